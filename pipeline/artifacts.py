@@ -1,0 +1,133 @@
+"""Artifact types exchanged between stages, and their on-disk form.
+
+Every artifact is a dataclass whose fields are numpy arrays, numbers, strings,
+``None`` or JSON-able dicts.  ``save`` writes the arrays to ``data.npz`` and the
+rest to ``fields.json`` inside a directory; ``load`` reverses it.  Stages never
+import each other: they exchange only these types.
+
+Conventions (physics.md): lengths in mm, coefficients in 1/mm, colour in linear
+RGB unless a field says ``srgb``.  UV origin is the bottom-left of the texture
+(OBJ convention): texel row counted from the top is ``(1 - v) * (H - 1)``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["Mesh", "BakedMaps", "LayerProfile", "save", "load", "ARTIFACT_TYPES"]
+
+
+@dataclass
+class Mesh:
+    """A triangle mesh in mm with optional per-corner UVs and an albedo texture.
+
+    vertices : (V, 3) float64, mm
+    faces : (F, 3) int32, counter-clockwise seen from outside
+    normals : (V, 3) float32 unit angle-weighted vertex normals, or None
+    uv : (T, 2) float32 texture coordinates, or None
+    uv_faces : (F, 3) int32 indices into ``uv`` per face corner (seams allowed), or None
+    texture_srgb : (H, W, 3) uint8 sRGB albedo texture, or None
+    info : dict of JSON-able facts (source, repairs made, units converted, ...)
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    normals: np.ndarray | None = None
+    uv: np.ndarray | None = None
+    uv_faces: np.ndarray | None = None
+    texture_srgb: np.ndarray | None = None
+    info: dict = field(default_factory=dict)
+
+    @property
+    def n_triangles(self) -> int:
+        return int(len(self.faces))
+
+
+@dataclass
+class BakedMaps:
+    """Albedo and bump maps baked from the high mesh into the low mesh's UV space.
+
+    albedo_srgb : (R, R, 3) uint8 sRGB albedo, dilated past chart borders
+    bump : (R, R) float32 height in [0, 1]; height_mm = bump_min_mm + bump * bump_range_mm
+    bump_blur : (R, R) float32 Gaussian-blurred ``bump`` (same scale)
+    coverage : (R, R) bool, texels inside a chart (before dilation)
+    bump_min_mm, bump_range_mm : float, the bump's mm scale
+    blur_sigma_px : float, the Gaussian sigma used for ``bump_blur``
+    info : dict of JSON-able facts (misses, threshold, timings)
+    """
+
+    albedo_srgb: np.ndarray
+    bump: np.ndarray
+    bump_blur: np.ndarray
+    coverage: np.ndarray
+    bump_min_mm: float
+    bump_range_mm: float
+    blur_sigma_px: float
+    info: dict = field(default_factory=dict)
+
+
+@dataclass
+class LayerProfile:
+    """Radial diffuse reflectance/transmittance profiles of a layer stack (the "layer file").
+
+    r_mm : (N,) float64 radial grid, mm
+    R, T : (N, 3) float64 profiles in 1/mm^2, normalised so that
+        integral 2 pi r R(r) dr = Rd (likewise T -> Tt)
+    Rd, Tt : (3,) float64 totals
+    cutoff_mm : (3,) float64 radius containing all but ``energy_beyond_cutoff`` of Rd
+    energy_beyond_cutoff : (3,) float64 fraction of Rd beyond ``cutoff_mm``
+    info : dict (layers, pole counts, grid sizes, timings)
+    """
+
+    r_mm: np.ndarray
+    R: np.ndarray
+    T: np.ndarray
+    Rd: np.ndarray
+    Tt: np.ndarray
+    cutoff_mm: np.ndarray
+    energy_beyond_cutoff: np.ndarray
+    info: dict = field(default_factory=dict)
+
+
+ARTIFACT_TYPES = {cls.__name__: cls for cls in (Mesh, BakedMaps, LayerProfile)}
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, (np.floating, np.integer, np.bool_)):
+        return value.item()
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    return value
+
+
+def save(artifact: Any, directory: str | os.PathLike) -> None:
+    """Write ``artifact`` (a dataclass from this module) into ``directory``."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    arrays, scalars = {}, {"__type__": type(artifact).__name__}
+    for f in dataclasses.fields(artifact):
+        value = getattr(artifact, f.name)
+        if isinstance(value, np.ndarray):
+            arrays[f.name] = value
+        else:
+            scalars[f.name] = _jsonable(value)
+    np.savez(directory / "data.npz", **arrays)
+    (directory / "fields.json").write_text(json.dumps(scalars, indent=1, sort_keys=True))
+
+
+def load(directory: str | os.PathLike) -> Any:
+    """Read back an artifact written by :func:`save`."""
+    directory = Path(directory)
+    scalars = json.loads((directory / "fields.json").read_text())
+    cls = ARTIFACT_TYPES[scalars.pop("__type__")]
+    with np.load(directory / "data.npz", allow_pickle=False) as data:
+        arrays = {k: data[k] for k in data.files}
+    return cls(**arrays, **scalars)

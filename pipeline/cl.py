@@ -1,0 +1,252 @@
+"""OpenCL runtime: device choice, program build from ``cl/``, build cache, kernel timing.
+
+Device choice, in order: the explicit ``spec`` argument (CLI ``--device``), the
+``DERMIS_CL_DEVICE`` environment variable, then the default: the PoCL CPU device.
+A spec is ``P:D`` (platform and device index, as ``dermis devices`` prints them),
+``P`` (first device of platform P), or a case-insensitive substring of the
+platform or device name (``pocl``, ``nvidia``, ``cuda``...).
+
+Programs are built from files in ``cl/`` with ``cl/`` on the include path, so
+every kernel can ``#include "common.h"``.  A ``#line`` directive makes compiler
+messages name the real file, and a failed build raises :class:`KernelBuildError`
+with the file, line, ``-D`` options, device and the compiler log.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+import threading
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from .errors import DermisError
+
+__all__ = [
+    "ClEnv", "KernelBuildError", "NoOpenCLError", "CL_DIR", "get_env", "list_devices",
+    "kernel_sources_hash", "event_seconds",
+]
+
+ENV_VAR = "DERMIS_CL_DEVICE"
+CL_DIR = Path(str(resources.files("cl")))
+_INCLUDE_RE = re.compile(r'^\s*#\s*include\s*"([^"]+)"', re.M)
+
+INSTALL_HINT = (
+    "No OpenCL runtime found. dermis needs an OpenCL CPU implementation: install PoCL with\n"
+    "  apt-get install pocl-opencl-icd ocl-icd-libopencl1   (Debian/Ubuntu)\n"
+    "or run the project's set-up script: bash .ci/setup"
+)
+
+
+class NoOpenCLError(DermisError):
+    """No OpenCL platform/device is available, or the requested one does not exist."""
+
+
+class KernelBuildError(DermisError):
+    """An OpenCL program failed to compile; the message names file:line and the log."""
+
+
+def _cl():
+    try:
+        import pyopencl as cl
+    except ImportError as exc:  # pragma: no cover - depends on the install
+        raise NoOpenCLError(f"pyopencl is not installed ({exc}); run: pip install -e .") from exc
+    return cl
+
+
+def _platforms():
+    cl = _cl()
+    try:
+        platforms = cl.get_platforms()
+    except cl.Error as exc:
+        raise NoOpenCLError(INSTALL_HINT + f"\n(pyopencl said: {exc})") from None
+    if not platforms:
+        raise NoOpenCLError(INSTALL_HINT)
+    return platforms
+
+
+@dataclass(frozen=True)
+class DeviceInfo:
+    platform_index: int
+    device_index: int
+    platform: str
+    name: str
+    type: str
+    compute_units: int
+    global_mem_mb: int
+    fp64: bool
+    version: str
+
+
+def list_devices() -> list[DeviceInfo]:
+    """Every OpenCL device on every platform, for ``dermis devices``."""
+    cl = _cl()
+    out = []
+    for pi, p in enumerate(_platforms()):
+        try:
+            devices = p.get_devices()
+        except cl.Error:
+            devices = []
+        for di, d in enumerate(devices):
+            out.append(DeviceInfo(
+                pi, di, p.name.strip(), d.name.strip(), cl.device_type.to_string(d.type),
+                int(d.max_compute_units), int(d.global_mem_size >> 20),
+                bool(d.double_fp_config), d.version.strip()))
+    return out
+
+
+def _pick(spec: str | None):
+    cl = _cl()
+    platforms = _platforms()
+    pairs = [(pi, di, p, d) for pi, p in enumerate(platforms)
+             for di, d in enumerate(_safe_devices(p))]
+    if not pairs:
+        raise NoOpenCLError(INSTALL_HINT + "\n(platforms exist but expose no devices)")
+    if spec:
+        spec = spec.strip()
+        m = re.fullmatch(r"(\d+)(?::(\d+))?", spec)
+        if m:
+            pi, di = int(m.group(1)), int(m.group(2) or 0)
+            for cand in pairs:
+                if cand[0] == pi and cand[1] == di:
+                    return cand[2], cand[3]
+            raise NoOpenCLError(
+                f"OpenCL device '{spec}' does not exist; available: "
+                + ", ".join(f"{a}:{b} ({d.name.strip()})" for a, b, _, d in pairs)
+                + " (see `dermis devices`)")
+        low = spec.lower()
+        for _, _, p, d in pairs:
+            if low in p.name.lower() or low in d.name.lower() or low in p.vendor.lower():
+                return p, d
+        raise NoOpenCLError(
+            f"no OpenCL device matches '{spec}'; available: "
+            + ", ".join(f"{a}:{b} {p.name.strip()} / {d.name.strip()}" for a, b, p, d in pairs))
+    for _, _, p, d in pairs:  # default: PoCL CPU
+        if "portable computing language" in p.name.lower() and d.type & cl.device_type.CPU:
+            return p, d
+    for _, _, p, d in pairs:
+        if d.type & cl.device_type.CPU:
+            return p, d
+    return pairs[0][2], pairs[0][3]
+
+
+def _safe_devices(p):
+    try:
+        return p.get_devices()
+    except Exception:  # a broken ICD must not hide the others
+        return []
+
+
+def _resolve_includes(name: str, seen: set[str]) -> list[str]:
+    """``name`` and every header it includes (recursively), relative to CL_DIR."""
+    if name in seen:
+        return []
+    seen.add(name)
+    path = CL_DIR / name
+    if not path.is_file():
+        raise KernelBuildError(f"OpenCL source {path} does not exist")
+    files = [name]
+    for inc in _INCLUDE_RE.findall(path.read_text()):
+        files += _resolve_includes(inc, seen)
+    return files
+
+
+def kernel_sources_hash(names: tuple[str, ...] | list[str]) -> str:
+    """Hash of the named ``cl/`` files and every header they include (for cache keys)."""
+    h = hashlib.sha256()
+    seen: set[str] = set()
+    for name in names:
+        for f in _resolve_includes(name, seen):
+            h.update(f.encode() + b"\0" + (CL_DIR / f).read_bytes() + b"\0")
+    return h.hexdigest()
+
+
+@dataclass
+class ClEnv:
+    """An OpenCL context + profiling queue on one device, with a program cache."""
+
+    context: object
+    queue: object
+    device: object
+    platform: object
+    _programs: dict = field(default_factory=dict, repr=False)
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    @property
+    def description(self) -> str:
+        return f"{self.platform.name.strip()} / {self.device.name.strip()}"
+
+    @property
+    def is_pocl(self) -> bool:
+        return "portable computing language" in self.platform.name.lower()
+
+    def program(self, name: str, defines: dict | None = None):
+        """Build (or fetch from cache) ``cl/<name>`` with ``-D`` defines."""
+        cl = _cl()
+        defines = dict(sorted((defines or {}).items()))
+        opts = [f"-I{CL_DIR}", "-cl-mad-enable"]
+        opts += [f"-D{k}={v}" for k, v in defines.items()]
+        key = (name, kernel_sources_hash([name]), tuple(opts))
+        with self._lock:
+            if key in self._programs:
+                return self._programs[key]
+            path = CL_DIR / name
+            if not path.is_file():
+                raise KernelBuildError(f"OpenCL source {path} does not exist")
+            src = f'#line 1 "{path}"\n' + path.read_text()
+            try:
+                prg = cl.Program(self.context, src).build(options=opts)
+            except cl.RuntimeError as exc:
+                log = str(exc)
+                where = _first_error_location(log, path)
+                raise KernelBuildError(
+                    f"OpenCL build of {where} failed on {self.description}\n"
+                    f"options: {' '.join(opts)}\ncompiler log:\n{log.strip()}") from None
+            self._programs[key] = prg
+            return prg
+
+    def kernel(self, name: str, kernel_name: str, defines: dict | None = None):
+        return getattr(self.program(name, defines), kernel_name)
+
+
+def _first_error_location(log: str, path: Path) -> str:
+    m = re.search(r"([^\s:]+\.(?:cl|h)):(\d+):(?:\d+:)?\s*error", log)
+    if m:
+        return f"{m.group(1)}:{m.group(2)}"
+    return str(path)
+
+
+_ENVS: dict[str, ClEnv] = {}
+
+
+def get_env(spec: str | None = None) -> ClEnv:
+    """The :class:`ClEnv` for ``spec`` (see module docstring); one per process and device."""
+    cl = _cl()
+    spec = spec or os.environ.get(ENV_VAR) or None
+    platform, device = _pick(spec)
+    key = f"{platform.name}|{device.name}|{device.int_ptr}"
+    if key not in _ENVS:
+        ctx = cl.Context([device])
+        queue = cl.CommandQueue(ctx, properties=cl.command_queue_properties.PROFILING_ENABLE)
+        _ENVS[key] = ClEnv(ctx, queue, device, platform)
+    return _ENVS[key]
+
+
+def event_seconds(events) -> float:
+    """Summed device execution time of profiling events, in seconds."""
+    total = 0
+    for ev in events if isinstance(events, (list, tuple)) else [events]:
+        ev.wait()
+        total += ev.profile.end - ev.profile.start
+    return float(total) * 1e-9
+
+
+def to_device(env: ClEnv, array: np.ndarray):
+    """Copy a contiguous host array to a read-only device buffer."""
+    cl = _cl()
+    array = np.ascontiguousarray(array)
+    return cl.Buffer(env.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
+                     hostbuf=array if array.nbytes else np.zeros(1, array.dtype))
