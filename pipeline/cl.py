@@ -213,9 +213,11 @@ class ClEnv:
 
 
 def _first_error_location(log: str, path: Path) -> str:
-    m = re.search(r"([^\s:]+\.(?:cl|h)):(\d+):(?:\d+:)?\s*error", log)
-    if m:
-        return f"{m.group(1)}:{m.group(2)}"
+    # clang prints "FILE:LINE:COL: error: ..."; PoCL 3 prints "error: FILE:LINE:COL: ..."
+    for pattern in (r"([^\s:]+\.(?:cl|h)):(\d+):(?:\d+:)?\s*error", r"error:\s*([^\s:]+\.(?:cl|h)):(\d+)"):
+        m = re.search(pattern, log)
+        if m:
+            return f"{m.group(1)}:{m.group(2)}"
     return str(path)
 
 

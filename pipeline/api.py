@@ -1,0 +1,140 @@
+"""Python API mirroring the CLI: ``load_scene``, ``run``, ``status``, ``clean``, ``devices``.
+
+>>> from pipeline.api import load_scene, run            # doctest: +SKIP
+>>> summary = run(load_scene("scenes/quick.toml"))       # doctest: +SKIP
+>>> print(summary.table())                               # doctest: +SKIP
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+from .config import Scene, load_scene
+from .errors import DermisError
+from .graph import RunSummary, execute
+from .plan import STAGE_NAMES, build_graph
+from .store import CACHE_ENV_VAR, Store
+
+__all__ = ["load_scene", "run", "status", "clean", "devices", "cache_dir_for", "RunContext"]
+
+
+@dataclass
+class RunContext:
+    """What a node function may use besides its inputs: the OpenCL env, its output dir, progress."""
+
+    device: str | None = None
+    out_dir: Path | None = None
+    progress: object = None
+    _env: object = None
+
+    @property
+    def cl(self):
+        if self._env is None:
+            from .cl import get_env
+            self._env = get_env(self.device)
+        return self._env
+
+    @property
+    def device_description(self) -> str:
+        return self._env.description if self._env is not None else "host"
+
+
+def cache_dir_for(scene: Scene | None, cache: str | os.PathLike | None = None) -> Path:
+    """Cache directory: ``cache`` argument > $DERMIS_CACHE > scene output.cache_dir > ./.dermis-cache."""
+    chosen = cache or os.environ.get(CACHE_ENV_VAR) or (scene.output.cache_dir if scene else "")
+    return Path(chosen or ".dermis-cache")
+
+
+def _check_stage(name: str, what: str) -> None:
+    if name not in STAGE_NAMES:
+        import difflib
+        close = difflib.get_close_matches(name, STAGE_NAMES, n=1)
+        hint = f" (did you mean '{close[0]}'?)" if close else ""
+        raise DermisError(f"{what} {name!r} is not a stage{hint}; stages: {', '.join(STAGE_NAMES)}")
+
+
+def _targets(nodes, targets, until):
+    if until is None:
+        return targets
+    _check_stage(until, "--until")
+    chosen = [nid for nid, n in nodes.items() if n.stage == until]
+    if not chosen:
+        raise DermisError(f"--until {until}: this scene needs no {until} stage; its stages: "
+                          + ", ".join(sorted({n.stage for n in nodes.values()})))
+    return chosen
+
+
+def run(scene: Scene, *, cache=None, until: str | None = None, force=(), device: str | None = None,
+        progress=None, export: bool = True) -> RunSummary:
+    """Build everything the scene asks for that is not cached; return the per-stage summary.
+
+    Parameters
+    ----------
+    scene : Scene
+        From :func:`load_scene`.
+    cache : path, optional
+        Cache directory (see :func:`cache_dir_for`).
+    until : str, optional
+        Build only what the named stage needs (and that stage).
+    force : iterable of str
+        Stage names or node ids to recompute even when cached.
+    device : str, optional
+        OpenCL device spec (see :mod:`pipeline.cl`).
+    progress : callable(node, fraction), optional
+    export : bool
+        Copy file outputs (previews, images) into ``output_dir/<scene name>/``.
+    """
+    for f in force:
+        if f not in STAGE_NAMES and "-" not in f:
+            _check_stage(f, "--force")
+    nodes, targets = build_graph(scene)
+    targets = _targets(nodes, targets, until)
+    store = Store(cache_dir_for(scene, cache))
+    ctx = RunContext(device=device)
+    with store.locked():
+        summary = execute(nodes, targets, store, ctx, force=tuple(force), progress=progress)
+        if export:
+            _export(scene, store, summary)
+    return summary
+
+
+def _export(scene: Scene, store: Store, summary: RunSummary) -> Path:
+    """Copy file artifacts to the output directory and write run.json beside them."""
+    out = Path(scene.output.output_dir) / scene.scene.name
+    out.mkdir(parents=True, exist_ok=True)
+    for rep in summary.nodes:
+        meta = store.meta(rep.id, rep.key)
+        for name in meta.get("files", []):
+            src = Path(rep.path) / name
+            if src.is_file():
+                shutil.copy2(src, out / f"{rep.id}-{name}" if rep.id not in name else out / name)
+    (out / "run.json").write_text(json.dumps({
+        "scene": scene.path, "cache": str(store.root),
+        "nodes": [{"id": r.id, "status": r.status, "seconds": r.seconds,
+                   "kernel_seconds": r.kernel_seconds, "key": r.key, "reasons": r.reasons}
+                  for r in summary.nodes]}, indent=1))
+    return out
+
+
+def status(scene: Scene, *, cache=None, until: str | None = None) -> RunSummary:
+    """What a run would do: each node cached or stale, with named reasons."""
+    nodes, targets = build_graph(scene)
+    targets = _targets(nodes, targets, until)
+    store = Store(cache_dir_for(scene, cache))
+    return execute(nodes, targets, store, RunContext(), dry_run=True)
+
+
+def clean(*, cache=None, scene: Scene | None = None, stage: str | None = None) -> int:
+    """Delete cached artifacts (all, or one stage's); returns how many were removed."""
+    if stage is not None:
+        _check_stage(stage, "--stage")
+    return Store(cache_dir_for(scene, cache)).clean(stage)
+
+
+def devices():
+    """OpenCL platforms and devices (see :func:`pipeline.cl.list_devices`)."""
+    from .cl import list_devices
+    return list_devices()

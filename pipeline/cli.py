@@ -1,0 +1,154 @@
+"""The ``dermis`` command line.
+
+Exit codes: 0 success, 2 bad input (scene, file, device, locked cache), 1 internal failure.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import traceback
+
+from .errors import DermisError
+
+__all__ = ["main"]
+
+
+def _progress_bars():
+    """A progress callback drawing one tqdm bar per running stage (stderr)."""
+    from tqdm import tqdm
+
+    bars = {}
+
+    def progress(node, fraction):
+        bar = bars.get(node.id)
+        if bar is None:
+            bar = bars[node.id] = tqdm(total=100, desc=f"{node.id:<14}", leave=False,
+                                       file=sys.stderr, bar_format="{desc} {bar} {percentage:3.0f}% {elapsed}",
+                                       disable=None)
+        bar.n = int(round(100 * min(max(fraction, 0.0), 1.0)))
+        bar.refresh()
+        if fraction >= 1.0:
+            bar.close()
+            bars.pop(node.id, None)
+
+    return progress
+
+
+def _scene(args):
+    from .config import load_scene
+    return load_scene(args.scene)
+
+
+def cmd_run(args) -> int:
+    from . import api
+    scene = _scene(args)
+    print(f"scene {scene.path}  cache {api.cache_dir_for(scene, args.cache).resolve()}",
+          file=sys.stderr)
+    summary = api.run(scene, cache=args.cache, until=args.until, force=tuple(args.force or ()),
+                      device=args.device, progress=None if args.quiet else _progress_bars())
+    print(summary.table())
+    print(f"outputs in {os.path.join(scene.output.output_dir, scene.scene.name)}")
+    return 0
+
+
+def cmd_status(args) -> int:
+    from . import api
+    scene = _scene(args)
+    summary = api.status(scene, cache=args.cache, until=args.until)
+    w = max(len(n.id) for n in summary.nodes)
+    for n in summary.nodes:
+        why = "; ".join(n.reasons) if n.reasons else ""
+        print(f"{n.id:<{w}}  {n.status:<6}  {why}")
+    stale = sum(n.status == "stale" for n in summary.nodes)
+    print(f"{stale} of {len(summary.nodes)} stages stale")
+    return 0
+
+
+def cmd_clean(args) -> int:
+    from . import api
+    scene = _scene(args) if args.scene else None
+    n = api.clean(cache=args.cache, scene=scene, stage=args.stage)
+    print(f"removed {n} cached artifact(s) from {api.cache_dir_for(scene, args.cache).resolve()}")
+    return 0
+
+
+def cmd_devices(args) -> int:
+    from . import api
+    from .cl import get_env
+    default = get_env(args.device)
+    for d in api.devices():
+        mark = "*" if (d.name == default.device.name.strip()
+                       and d.platform == default.platform.name.strip()) else " "
+        print(f"{mark} {d.platform_index}:{d.device_index}  {d.platform} / {d.name}  [{d.type}] "
+              f"compute units {d.compute_units}, memory {d.global_mem_mb} MiB, "
+              f"fp64 {'yes' if d.fp64 else 'no'}, {d.version}")
+    print("* = device used (choose with --device P:D or a name, or $DERMIS_CL_DEVICE)")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from .plan import STAGE_NAMES
+
+    p = argparse.ArgumentParser(prog="dermis", description=(
+        "Render faces with classic skin models side by side and measure them."))
+    sub = p.add_subparsers(dest="command", required=True)
+
+    def common(sp, scene_optional=True):
+        sp.add_argument("scene", nargs="?" if scene_optional else None, default=None,
+                        help="scene TOML (default: the embedded procedural-head scene)")
+        sp.add_argument("--cache", default=None, help="cache directory (or $DERMIS_CACHE)")
+
+    r = sub.add_parser("run", help="build what is stale for a scene")
+    common(r)
+    r.add_argument("--until", choices=STAGE_NAMES, metavar="STAGE",
+                   help="build only what STAGE needs: " + ", ".join(STAGE_NAMES))
+    r.add_argument("--force", action="append", metavar="STAGE", help="recompute STAGE (repeatable)")
+    r.add_argument("--device", default=None, help="OpenCL device: P:D, P, or a name substring")
+    r.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    r.set_defaults(func=cmd_run)
+
+    s = sub.add_parser("status", help="what is cached, what is stale and why")
+    common(s)
+    s.add_argument("--until", choices=STAGE_NAMES, metavar="STAGE")
+    s.set_defaults(func=cmd_status)
+
+    c = sub.add_parser("clean", help="delete cached artifacts")
+    common(c)
+    c.add_argument("--stage", default=None, help="only this stage's artifacts")
+    c.set_defaults(func=cmd_clean)
+
+    d = sub.add_parser("devices", help="list OpenCL platforms and devices")
+    d.add_argument("--device", default=None)
+    d.set_defaults(func=cmd_devices)
+
+    try:
+        from . import cli_profile
+    except ImportError:  # pragma: no cover - layer optics not installed yet
+        cli_profile = None
+    if cli_profile is not None:
+        cli_profile.add_parser(sub)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except DermisError as exc:
+        print(f"dermis: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print("dermis: interrupted; finished stages stay cached, the unfinished one was discarded",
+              file=sys.stderr)
+        return 130
+    except Exception as exc:  # internal failure: show the traceback, exit 1
+        tb = getattr(exc, "tb", None) or traceback.format_exc()
+        print(tb, file=sys.stderr)
+        print(f"dermis: internal error: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,380 @@
+"""Scene files: TOML -> validated, typed dataclasses with defaults.
+
+Every field is declared once, with its type, default, allowed range and unit, in
+the dataclasses below; one generic walker (:func:`_build`) validates a TOML
+table against them.  Errors name the file, the dotted key, the bad value and
+what is allowed; unknown keys are errors with a did-you-mean, and all problems
+found in one file are reported together.
+
+Lengths: fields marked ``unit="length"`` are written in the scene's
+``[scene] units`` (mm by default, or cm / m) and converted to mm at load.
+"""
+from __future__ import annotations
+
+import difflib
+import math
+import tomllib
+from dataclasses import MISSING, dataclass, field, fields, is_dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any, get_args, get_origin, get_type_hints
+
+from .errors import ConfigError
+
+__all__ = ["Scene", "load_scene", "default_scene_path", "LENGTH_UNITS", "MODELS", "GEOMETRIES"]
+
+LENGTH_UNITS = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
+MODELS = ("lafortune", "hk93", "bssrdf", "asperity")
+GEOMETRIES = ("high", "low", "low_bump", "low_bump_blur")
+LIGHT_TYPES = ("point", "disc", "directional", "environment")
+
+
+def spec(default=MISSING, *, lo=None, hi=None, lo_open=False, hi_open=False, choices=None,
+         unit=None, doc="", factory=None):
+    """A dataclass field with validation metadata."""
+    meta = dict(lo=lo, hi=hi, lo_open=lo_open, hi_open=hi_open, choices=choices, unit=unit,
+                doc=doc)
+    if factory is not None:
+        return field(default_factory=factory, metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+# --------------------------------------------------------------------------- schema
+@dataclass(frozen=True)
+class SceneInfo:
+    name: str = spec("dermis", doc="label used in output paths and reports")
+    units: str = spec("mm", choices=tuple(LENGTH_UNITS), doc="units of lengths in this file")
+
+
+@dataclass(frozen=True)
+class MeshConfig:
+    source: str = spec("procedural", doc='"procedural" (embedded head) or a mesh file path')
+    units: str = spec("mm", choices=tuple(LENGTH_UNITS), doc="units of the mesh file")
+    texture: str = spec("", doc="albedo texture path (else the file's material)")
+    displacement: str = spec("", doc="grey displacement map for the high mesh (optional)")
+    displacement_scale_mm: float = spec(0.0, lo=0.0, hi=100.0, doc="mm per unit map value")
+    displacement_mid: float = spec(0.5, lo=0.0, hi=1.0, doc="map value of zero displacement")
+    high_triangles: int = spec(1_000_000, lo=1_000, hi=20_000_000)
+    low_triangles: int = spec(16_750, lo=100, hi=5_000_000, doc="thesis: 16,750 (QSlim)")
+    procedural_detail: bool = spec(True, doc="pores and wrinkles on the procedural head")
+    procedural_texture_size: int = spec(2048, lo=64, hi=16384)
+    seed: int = spec(0, lo=0)
+
+
+@dataclass(frozen=True)
+class BakeConfig:
+    resolution: int = spec(4096, lo=16, hi=16384, doc="thesis: 4096x4096")
+    blur_sigma_px: float = spec(8.0, lo=0.0, hi=1000.0)
+    max_distance: float = spec(0.0, lo=0.0, unit="length", doc="0 = automatic")
+    dilate_px: int = spec(16, lo=0, hi=4096)
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    position: tuple = spec((0.0, 0.0, 900.0), unit="length")
+    look_at: tuple = spec((0.0, 0.0, 0.0), unit="length")
+    up: tuple = spec((0.0, 1.0, 0.0))
+    fov_deg: float = spec(30.0, lo=0.0, hi=179.0, lo_open=True)
+    width: int = spec(800, lo=1, hi=16384)
+    height: int = spec(800, lo=1, hi=16384)
+
+
+@dataclass(frozen=True)
+class LightConfig:
+    name: str = spec(doc="unique name, used in output file names")
+    type: str = spec(choices=LIGHT_TYPES)
+    position: tuple = spec((0.0, 0.0, 0.0), unit="length", doc="point / disc centre")
+    direction: tuple = spec((0.0, 0.0, 1.0), doc="directional: towards the light; disc: normal")
+    intensity: tuple = spec((1.0, 1.0, 1.0), lo=0.0, doc="point/disc: W/sr-like units; "
+                                                          "directional: irradiance")
+    radius: float = spec(70.0, lo=0.0, lo_open=True, unit="length", doc="disc radius (thesis 70 mm)")
+    map: str = spec("procedural_sunset", doc='environment: "procedural_sunset" or an HDR/EXR path')
+    scale: float = spec(1.0, lo=0.0, doc="environment radiance multiplier")
+    samples: int = spec(16, lo=1, hi=4096, doc="shadow samples (thesis: 16)")
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    models: tuple = spec(MODELS, choices=MODELS)
+    lights: tuple = spec((), doc="names of [[lights]] to render; empty = all")
+    geometries: tuple = spec(("high", "low_bump", "low_bump_blur"), choices=GEOMETRIES)
+    asperity_base: str = spec("hk93", choices=("lafortune", "hk93", "bssrdf"))
+
+
+@dataclass(frozen=True)
+class BssrdfConfig:
+    point_density: float = spec(1.0, lo=0.0, lo_open=True, hi=100.0,
+                                doc="multiplier on one point per pi*mfp^2")
+    irradiance_samples: int = spec(64, lo=1, hi=4096, doc="thesis: 64 shadow samples")
+    epsilon: float = spec(0.05, lo=0.0, lo_open=True, hi=10.0, doc="solid-angle criterion")
+    leaf_size: int = spec(8, lo=1, hi=256)
+    normalisation: str = spec("energy", choices=("energy", "thesis"))
+
+
+@dataclass(frozen=True)
+class OutputConfig:
+    cache_dir: str = spec("", doc="empty: $DERMIS_CACHE or ./.dermis-cache")
+    output_dir: str = spec("out")
+    previews: bool = spec(True, doc="PNG previews of meshes and baked maps")
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A whole validated scene; ``path`` is the file it came from (or the embedded default)."""
+
+    scene: SceneInfo = spec(factory=SceneInfo)
+    mesh: MeshConfig = spec(factory=MeshConfig)
+    bake: BakeConfig = spec(factory=BakeConfig)
+    camera: CameraConfig = spec(factory=CameraConfig)
+    lights: tuple = spec((), doc="array of [[lights]] tables")
+    render: RenderConfig = spec(factory=RenderConfig)
+    optics: Any = spec(None, doc='layer stack: preset = "two_layer" or [[optics.layers]]')
+    bssrdf: BssrdfConfig = spec(factory=BssrdfConfig)
+    output: OutputConfig = spec(factory=OutputConfig)
+    path: str = ""
+
+    @property
+    def light_by_name(self) -> dict:
+        return {l.name: l for l in self.lights}
+
+    def requested_lights(self) -> tuple:
+        names = self.render.lights or tuple(l.name for l in self.lights)
+        return tuple(self.light_by_name[n] for n in names)
+
+    def mesh_path(self) -> Path | None:
+        if self.mesh.source == "procedural":
+            return None
+        return _resolve(self.mesh.source, self.path)
+
+
+# --------------------------------------------------------------------------- validation
+class _Problems(list):
+    def add(self, where: str, key: str, msg: str):
+        self.append(f"{where}: {key}{msg}")
+
+
+def _fmt(value) -> str:
+    if isinstance(value, str):
+        return f'"{value}"'
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_fmt(v) for v in value) + "]"
+    return repr(value)
+
+
+def _did_you_mean(key: str, allowed) -> str:
+    close = difflib.get_close_matches(key, list(allowed), n=1, cutoff=0.6)
+    return f" (did you mean '{close[0]}'?)" if close else ""
+
+
+def _check_number(value, meta, where, key, problems, *, integer: bool, scale: float) -> Any:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or (
+            integer and not isinstance(value, int)):
+        kind = "an integer" if integer else "a number"
+        problems.add(where, key, f" = {_fmt(value)}: must be {kind}")
+        return None
+    if not math.isfinite(value):
+        problems.add(where, key, f" = {_fmt(value)}: must be finite")
+        return None
+    lo, hi = meta.get("lo"), meta.get("hi")
+    unit = " (mm)" if meta.get("unit") == "length" else ""
+    if lo is not None and (value < lo or (meta.get("lo_open") and value == lo)):
+        rel = ">" if meta.get("lo_open") else ">="
+        problems.add(where, key, f" = {_fmt(value)}{unit}: must be {rel} {lo}")
+        return None
+    if hi is not None and (value > hi or (meta.get("hi_open") and value == hi)):
+        rel = "<" if meta.get("hi_open") else "<="
+        problems.add(where, key, f" = {_fmt(value)}{unit}: must be {rel} {hi}")
+        return None
+    return value * scale if scale != 1.0 else value
+
+
+def _check_value(value, tp, meta, where, key, problems, length_scale):
+    scale = length_scale if meta.get("unit") == "length" else 1.0
+    choices = meta.get("choices")
+    if tp is bool:
+        if not isinstance(value, bool):
+            problems.add(where, key, f" = {_fmt(value)}: must be true or false")
+            return None
+        return value
+    if tp is int or tp is float:
+        return _check_number(value, meta, where, key, problems, integer=tp is int, scale=scale)
+    if tp is str:
+        if not isinstance(value, str):
+            problems.add(where, key, f" = {_fmt(value)}: must be a string")
+            return None
+        if choices and value not in choices:
+            problems.add(where, key, f" = {_fmt(value)}: must be one of "
+                         + ", ".join(_fmt(c) for c in choices) + _did_you_mean(value, choices))
+            return None
+        return value
+    if tp is tuple:  # vectors of numbers, or lists of choices / names
+        if not isinstance(value, list):
+            problems.add(where, key, f" = {_fmt(value)}: must be an array")
+            return None
+        if choices:
+            bad = [v for v in value if v not in choices]
+            if bad:
+                problems.add(where, key, f" = {_fmt(value)}: {_fmt(bad[0])} is not one of "
+                             + ", ".join(_fmt(c) for c in choices)
+                             + _did_you_mean(str(bad[0]), choices))
+                return None
+            return tuple(value)
+        if all(isinstance(v, str) for v in value):
+            return tuple(value)
+        if len(value) != 3:
+            problems.add(where, key, f" = {_fmt(value)}: must have 3 numbers")
+            return None
+        out = [_check_number(v, meta, where, f"{key}[{i}]", problems, integer=False, scale=scale)
+               for i, v in enumerate(value)]
+        return None if any(v is None for v in out) else tuple(float(v) for v in out)
+    return value
+
+
+def _build(cls, table, where: str, prefix: str, problems: _Problems, length_scale: float):
+    """Validate ``table`` against dataclass ``cls``; collect problems, return instance or None."""
+    if not isinstance(table, dict):
+        problems.add(where, prefix.rstrip("."), f" = {_fmt(table)}: must be a table")
+        return None
+    hints = get_type_hints(cls)
+    known = {f.name: f for f in fields(cls) if f.name != "path"}
+    for key in table:
+        if key not in known:
+            problems.add(where, prefix + key, ": unknown key" + _did_you_mean(key, known)
+                         + f"; allowed: {', '.join(known)}")
+    values = {}
+    for name, f in known.items():
+        key = prefix + name
+        if name not in table:
+            if f.default is MISSING and f.default_factory is MISSING:
+                problems.add(where, key, ": required key is missing")
+            continue
+        tp = hints[name]
+        if is_dataclass(tp):
+            values[name] = _build(tp, table[name], where, key + ".", problems, length_scale)
+        else:
+            values[name] = _check_value(table[name], tp, f.metadata, where, key, problems,
+                                        length_scale)
+    if any(v is None for k, v in values.items() if k in table):
+        return None
+    try:
+        return cls(**values)
+    except TypeError:
+        return None
+
+
+def _resolve(path: str, scene_path: str) -> Path:
+    p = Path(path).expanduser()
+    if not p.is_absolute() and scene_path and not scene_path.startswith("<"):
+        p = Path(scene_path).parent / p
+    return p
+
+
+def default_scene_path() -> Path:
+    """The embedded default scene (procedural head), shipped inside the package."""
+    return Path(str(resources.files("scenes"))) / "default.toml"
+
+
+def load_scene(path: str | Path | None = None, *, overrides: dict | None = None) -> Scene:
+    """Load and validate a scene file.
+
+    Parameters
+    ----------
+    path : str or Path, optional
+        TOML scene file; None loads the embedded default (:func:`default_scene_path`).
+    overrides : dict, optional
+        Nested dict merged over the file's tables before validation (API/tests).
+
+    Raises
+    ------
+    ConfigError
+        On any problem; the message lists every problem with file, key, value and rule.
+    """
+    path = Path(path) if path is not None else default_scene_path()
+    where = str(path)
+    if not path.is_file():
+        raise ConfigError(f"{where}: scene file does not exist")
+    try:
+        table = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{where}: not valid TOML: {exc}") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{where}: not a text (UTF-8) file") from None
+    return scene_from_dict(table, where=where, overrides=overrides)
+
+
+def _merge(base: dict, over: dict) -> dict:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | None = None) -> Scene:
+    """Validate an already-parsed scene table (see :func:`load_scene`)."""
+    from .layers import parse_layer_stack, PRESETS  # layer optics own their validation
+
+    if overrides:
+        table = _merge(table, overrides)
+    problems = _Problems()
+    units = table.get("scene", {}).get("units", "mm") if isinstance(table.get("scene"), dict) else "mm"
+    length_scale = LENGTH_UNITS.get(units, 1.0)
+    body = {k: v for k, v in table.items() if k not in ("lights", "optics")}
+    scene = _build(Scene, body, where, "", problems, length_scale)
+
+    lights = []
+    raw_lights = table.get("lights", [])
+    if not isinstance(raw_lights, list):
+        problems.add(where, "lights", ": must be an array of tables ([[lights]])")
+        raw_lights = []
+    for i, lt in enumerate(raw_lights):
+        light = _build(LightConfig, lt, where, f"lights[{i}].", problems, length_scale)
+        if light is not None:
+            lights.append(light)
+    names = [l.name for l in lights]
+    for n in {n for n in names if names.count(n) > 1}:
+        problems.add(where, "lights", f": name {_fmt(n)} is used twice; names must be unique")
+
+    optics = table.get("optics", {"preset": "two_layer"})
+    stack = None
+    if not isinstance(optics, dict):
+        problems.add(where, "optics", f" = {_fmt(optics)}: must be a table")
+    elif "preset" in optics:
+        extra = set(optics) - {"preset"}
+        if extra:
+            problems.add(where, "optics", f": preset and {sorted(extra)} conflict; give either "
+                         "preset or an explicit [[optics.layers]] stack")
+        elif optics["preset"] not in PRESETS:
+            problems.add(where, "optics.preset", f" = {_fmt(optics['preset'])}: must be one of "
+                         + ", ".join(_fmt(p) for p in PRESETS)
+                         + _did_you_mean(str(optics["preset"]), PRESETS))
+        else:
+            stack = PRESETS[optics["preset"]]
+    else:
+        try:
+            stack = parse_layer_stack(optics, where=f"{where}: optics")
+        except ConfigError as exc:
+            problems.append(str(exc))
+
+    if scene is not None:
+        render = scene.render
+        for n in render.lights:
+            if n not in names:
+                problems.add(where, "render.lights", f": {_fmt(n)} names no [[lights]] entry; "
+                             "defined: " + (", ".join(_fmt(x) for x in names) or "none"))
+        if scene.mesh.source != "procedural":
+            p = _resolve(scene.mesh.source, where)
+            if not p.is_file():
+                problems.add(where, "mesh.source", f" = {_fmt(scene.mesh.source)}: file not found "
+                             f"({p}); use \"procedural\" for the embedded head")
+        for key in ("texture", "displacement"):
+            val = getattr(scene.mesh, key)
+            if val and not _resolve(val, where).is_file():
+                problems.add(where, f"mesh.{key}", f" = {_fmt(val)}: file not found "
+                             f"({_resolve(val, where)})")
+        if scene.mesh.low_triangles >= scene.mesh.high_triangles:
+            problems.add(where, "mesh.low_triangles", f" = {scene.mesh.low_triangles}: must be "
+                         f"< mesh.high_triangles ({scene.mesh.high_triangles})")
+    if problems:
+        raise ConfigError("\n".join(problems))
+    return Scene(**{**{f.name: getattr(scene, f.name) for f in fields(Scene)},
+                    "lights": tuple(lights), "optics": stack, "path": where})

@@ -1,0 +1,252 @@
+"""Stage graph: nodes, cache keys, staleness reasons, and the make-style executor.
+
+A :class:`Node` is one invocation of a stage: its id (``mesh_low``,
+``irradiance-high-point``...), the stage module it runs, the exact slice of the
+scene config it reads, and the ids of the upstream nodes it consumes.  Its key is
+the hash of
+
+* the stage name, the module's ``VERSION`` and source text (so editing a stage
+  invalidates its artifacts, which joblib-style function hashing would miss for
+  helpers), and the text of its ``KERNELS`` and every header they include;
+* the canonical JSON of its config slice (sorted keys);
+* the keys of its upstream nodes.
+
+Nothing else (progress, verbosity, output paths, the OpenCL device) enters the
+key.  The graph itself is built by :mod:`pipeline.plan` from what the scene asks
+for, so nothing that no requested output needs is ever computed.
+"""
+from __future__ import annotations
+
+import hashlib
+import importlib
+import inspect
+import json
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from . import artifacts
+from .cl import kernel_sources_hash
+from .errors import DermisError
+from .store import META, Store
+
+__all__ = ["Node", "StageResult", "RunSummary", "node_key", "plan_order", "execute", "staleness"]
+
+
+@dataclass
+class StageResult:
+    """What a node's function returns: an artifact, and/or files it wrote into ``out_dir``."""
+
+    artifact: Any = None
+    files: list = field(default_factory=list)
+    info: dict = field(default_factory=dict)   # JSON-able facts for meta.json
+
+
+@dataclass
+class Node:
+    """One stage invocation in the graph.
+
+    fn(inputs: dict[node_id, artifact], ctx: RunContext) -> StageResult
+    """
+
+    id: str
+    stage: str                       # stage name, e.g. "mesh_prep"
+    module: str                      # its module, e.g. "stages.mesh_prep"
+    params: dict                     # config slice (JSON-able)
+    deps: tuple = ()
+    fn: Callable[..., StageResult] | None = None
+    label: str = ""                  # short human description
+
+    def code_hash(self) -> str:
+        mod = importlib.import_module(self.module)
+        h = hashlib.sha256()
+        h.update(str(getattr(mod, "VERSION", 0)).encode())
+        h.update(Path(inspect.getfile(mod)).read_bytes())
+        kernels = tuple(getattr(mod, "KERNELS", ()))
+        if kernels:
+            h.update(kernel_sources_hash(kernels).encode())
+        return h.hexdigest()
+
+
+def _canonical(obj) -> str:
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), default=str)
+
+
+def key_parts(node: Node, upstream_keys: dict[str, str]) -> dict:
+    return {
+        "stage": node.stage,
+        "code": node.code_hash(),
+        "params": json.loads(_canonical(node.params)),
+        "deps": {d: upstream_keys[d] for d in node.deps},
+    }
+
+
+def node_key(parts: dict) -> str:
+    return hashlib.sha256(_canonical(parts).encode()).hexdigest()[:24]
+
+
+def plan_order(nodes: dict[str, Node], targets: list[str]) -> list[str]:
+    """Topological order of ``targets`` and everything they depend on."""
+    order, state = [], {}
+
+    def visit(nid, chain):
+        if state.get(nid) == "done":
+            return
+        if state.get(nid) == "visiting":
+            raise RuntimeError("cycle in stage graph: " + " -> ".join(chain + [nid]))
+        state[nid] = "visiting"
+        for d in nodes[nid].deps:
+            visit(d, chain + [nid])
+        state[nid] = "done"
+        order.append(nid)
+
+    for t in targets:
+        visit(t, [])
+    return order
+
+
+def _diff_params(old, new, prefix="") -> list[str]:
+    """Dotted keys whose values differ between two JSON-able dicts."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        out = []
+        for k in sorted(set(old) | set(new)):
+            out += _diff_params(old.get(k), new.get(k), f"{prefix}{k}.")
+        return out
+    return [] if old == new else [prefix.rstrip(".")]
+
+
+def staleness(store: Store, node: Node, parts: dict, key: str, stale_deps: set[str]) -> list[str]:
+    """Named reasons why ``node`` must run (empty list: it is cached), doit-style."""
+    if store.has(node.id, key):
+        return []
+    old = store.read_index(node.id)
+    if old is None:
+        return ["never_built"]
+    if old.get("key") == key:
+        return ["missing_output"]
+    reasons = []
+    old_parts = old.get("parts", {})
+    if old_parts.get("code") != parts["code"]:
+        reasons.append(f"code_changed {node.module} or its kernels")
+    for k in _diff_params(old_parts.get("params", {}), parts["params"]):
+        reasons.append(f"config_changed {k}")
+    for d, k in parts["deps"].items():
+        if old_parts.get("deps", {}).get(d) != k:
+            reasons.append(f"upstream_changed {d}" + (" (stale)" if d in stale_deps else ""))
+    return reasons or ["missing_output"]
+
+
+@dataclass
+class NodeReport:
+    id: str
+    stage: str
+    status: str            # "ran" | "cached" | "stale" (status only) | "failed"
+    seconds: float = 0.0
+    kernel_seconds: float = 0.0
+    key: str = ""
+    reasons: list = field(default_factory=list)
+    path: str = ""
+
+
+@dataclass
+class RunSummary:
+    nodes: list
+
+    def ran(self) -> list[str]:
+        return [n.id for n in self.nodes if n.status == "ran"]
+
+    def cached(self) -> list[str]:
+        return [n.id for n in self.nodes if n.status == "cached"]
+
+    def table(self) -> str:
+        w = max([len(n.id) for n in self.nodes] + [5])
+        lines = [f"{'stage':<{w}}  {'status':<7}  {'seconds':>8}  {'kernel s':>8}"]
+        for n in self.nodes:
+            ks = f"{n.kernel_seconds:8.2f}" if n.kernel_seconds else f"{'':>8}"
+            lines.append(f"{n.id:<{w}}  {n.status:<7}  {n.seconds:8.2f}  {ks}")
+        total = sum(n.seconds for n in self.nodes)
+        lines.append(f"{'total':<{w}}  {'':<7}  {total:8.2f}")
+        return "\n".join(lines)
+
+
+def _load(store: Store, node_id: str, key: str):
+    d = store.artifact_dir(node_id, key)
+    if (d / "fields.json").is_file():
+        return artifacts.load(d)
+    return d  # file-only artifacts (images): their directory
+
+
+def execute(nodes: dict[str, Node], targets: list[str], store: Store, ctx, *,
+            force: tuple[str, ...] = (), dry_run: bool = False, progress=None) -> RunSummary:
+    """Run ``targets`` and their upstream nodes, skipping whatever is cached.
+
+    ``force`` lists stage names (or node ids) to recompute even when cached.
+    ``dry_run`` computes keys and staleness only (``dermis status``).
+    ``progress(node, fraction)`` is called as nodes advance.
+    """
+    order = plan_order(nodes, targets)
+    keys: dict[str, str] = {}
+    loaded: dict[str, Any] = {}
+    reports = []
+    stale: set[str] = set()
+    for nid in order:
+        node = nodes[nid]
+        parts = key_parts(node, keys)
+        key = keys[nid] = node_key(parts)
+        forced = node.stage in force or nid in force
+        reasons = staleness(store, node, parts, key, stale)
+        if forced:
+            reasons = ["forced"] + reasons
+        rep = NodeReport(nid, node.stage, "cached", key=key, reasons=reasons,
+                         path=str(store.artifact_dir(nid, key)))
+        reports.append(rep)
+        if not reasons:
+            continue
+        stale.add(nid)
+        if dry_run:
+            rep.status = "stale"
+            continue
+        inputs = {d: loaded[d] if d in loaded else _load(store, d, keys[d]) for d in node.deps}
+        for d in node.deps:
+            loaded.setdefault(d, inputs[d])
+        if progress:
+            progress(node, 0.0)
+        t0 = time.perf_counter()
+        with store.writing(nid, key) as tmp:
+            ctx.out_dir = tmp
+            ctx.progress = (lambda f, _n=node: progress(_n, f)) if progress else None
+            try:
+                result = node.fn(inputs, ctx)
+            except DermisError:
+                raise
+            except Exception as exc:
+                raise StageFailure(nid, exc, traceback.format_exc()) from exc
+            seconds = time.perf_counter() - t0
+            if result.artifact is not None:
+                artifacts.save(result.artifact, tmp)
+            info = dict(result.info)
+            kernel_s = float(info.pop("kernel_seconds", 0.0) or 0.0)
+            if result.artifact is not None and isinstance(getattr(result.artifact, "info", None), dict):
+                kernel_s = kernel_s or float(result.artifact.info.get("kernel_seconds", 0.0) or 0.0)
+            meta = {"node": nid, "stage": node.stage, "key": key, "parts": parts,
+                    "seconds": seconds, "kernel_seconds": kernel_s, "info": info,
+                    "files": [str(f) for f in result.files], "device": ctx.device_description,
+                    "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+            (tmp / META).write_text(json.dumps(meta, indent=1, sort_keys=True, default=str))
+        store.write_index(nid, {"key": key, "parts": parts})
+        loaded[nid] = result.artifact if result.artifact is not None else store.artifact_dir(nid, key)
+        rep.status, rep.seconds, rep.kernel_seconds = "ran", seconds, kernel_s
+        rep.path = str(store.artifact_dir(nid, key))
+        if progress:
+            progress(node, 1.0)
+    return RunSummary(reports)
+
+
+class StageFailure(Exception):
+    """An unexpected (internal) failure inside a stage: exit code 1, with the traceback."""
+
+    def __init__(self, node_id: str, exc: Exception, tb: str):
+        super().__init__(f"stage {node_id} failed: {type(exc).__name__}: {exc}")
+        self.node_id, self.tb = node_id, tb

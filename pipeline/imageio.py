@@ -1,0 +1,86 @@
+"""Image files through OpenImageIO: read textures/HDRs, write linear EXR and sRGB PNG."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .errors import DermisError
+
+__all__ = ["read_image", "write_exr", "write_png", "srgb_to_linear", "linear_to_srgb"]
+
+
+def read_image(path: str | Path, *, channels: int | None = None, what: str = "image") -> np.ndarray:
+    """Read an image as float32 (H, W, C) in the file's own encoding (no colour conversion).
+
+    8-bit files come back in [0, 1]. ``channels`` keeps the first N channels (grey -> repeated).
+    """
+    import OpenImageIO as oiio
+
+    path = Path(path)
+    if not path.is_file():
+        raise DermisError(f"{what} {path} does not exist")
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise DermisError(f"{what} {path} cannot be read: {oiio.geterror()}")
+    try:
+        pixels = inp.read_image(0, 0, 0, -1, "float")
+    finally:
+        inp.close()
+    if pixels is None or not isinstance(pixels, np.ndarray):
+        raise DermisError(f"{what} {path} cannot be decoded: {oiio.geterror()}")
+    img = np.asarray(pixels, dtype=np.float32)
+    if img.ndim == 2:
+        img = img[..., None]
+    if channels is not None:
+        if img.shape[2] < channels:
+            img = np.repeat(img[..., :1], channels, axis=2)
+        img = img[..., :channels]
+    if not np.all(np.isfinite(img)):
+        raise DermisError(f"{what} {path} contains NaN or Inf pixels")
+    return img
+
+
+def srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 sRGB decoding of values in [0, 1]."""
+    c = np.asarray(c, dtype=np.float32)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def linear_to_srgb(c: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 sRGB encoding; input clipped to [0, 1]."""
+    c = np.clip(np.asarray(c, dtype=np.float32), 0.0, 1.0)
+    return np.where(c <= 0.0031308, c * 12.92, 1.055 * np.power(c, 1 / 2.4) - 0.055).astype(np.float32)
+
+
+def _write(path: Path, img: np.ndarray, fmt: str) -> Path:
+    import OpenImageIO as oiio
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    img = np.ascontiguousarray(img)
+    if img.ndim == 2:
+        img = img[..., None]
+    spec = oiio.ImageSpec(img.shape[1], img.shape[0], img.shape[2], fmt)
+    out = oiio.ImageOutput.create(str(path))
+    if out is None or not out.open(str(path), spec):
+        raise DermisError(f"cannot write {path}: {oiio.geterror()}")
+    try:
+        out.write_image(img)
+    finally:
+        out.close()
+    return path
+
+
+def write_exr(path: str | Path, linear: np.ndarray) -> Path:
+    """Write a linear float image as half-float EXR."""
+    return _write(Path(path), np.asarray(linear, dtype=np.float32), "half")
+
+
+def write_png(path: str | Path, img: np.ndarray, *, encode_srgb: bool = False) -> Path:
+    """Write a PNG from uint8, or from floats in [0, 1] (sRGB-encoded first if ``encode_srgb``)."""
+    img = np.asarray(img)
+    if img.dtype != np.uint8:
+        img = linear_to_srgb(img) if encode_srgb else np.clip(img, 0.0, 1.0)
+        img = np.round(img * 255.0).astype(np.uint8)
+    return _write(Path(path), img, "uint8")

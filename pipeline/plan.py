@@ -1,0 +1,195 @@
+"""From a scene to the stage graph: which nodes the requested outputs need, and how each runs.
+
+The graph is built from the request, so a stage no output needs is never part
+of it: the low mesh and its bakes exist only when a ``low*`` geometry is asked
+for, layer profiles only for the BSSRDF model, and so on.  Each node's
+``params`` is exactly the slice of the scene its stage reads.
+
+Adapters here do the file IO (reading the scan, writing previews into the node's
+output directory) so that the stage functions themselves stay pure.
+"""
+from __future__ import annotations
+
+import hashlib
+from dataclasses import asdict
+from pathlib import Path
+
+from .config import Scene
+from .graph import Node, StageResult
+
+__all__ = ["build_graph", "STAGE_NAMES", "file_digest"]
+
+# Every stage name, in pipeline order (for --until / --force / clean validation).
+STAGE_NAMES = ("mesh_source", "mesh_high", "mesh_low", "bake", "mesh_previews", "profiles")
+
+
+def file_digest(path: Path) -> str:
+    """sha256 of a file's bytes (input files enter cache keys by content, not by name)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+# --------------------------------------------------------------------------- adapters
+def _mesh_source(scene: Scene) -> Node:
+    m = scene.mesh
+    if m.source == "procedural":
+        params = {"triangles": m.high_triangles, "detail": m.procedural_detail,
+                  "texture_size": m.procedural_texture_size, "seed": m.seed}
+
+        def fn(inputs, ctx):
+            from stages import procedural_head
+            mesh = procedural_head.run(**params)
+            return StageResult(mesh, info={"triangles": mesh.n_triangles})
+
+        return Node("mesh_source", "mesh_source", "stages.procedural_head", params, (), fn,
+                    "procedural head")
+
+    path = scene.mesh_path()
+    texture = _resolved(scene, m.texture)
+    params = {"file": str(path), "file_sha256": file_digest(path), "units": m.units,
+              "texture": str(texture) if texture else "",
+              "texture_sha256": file_digest(texture) if texture else ""}
+
+    def fn(inputs, ctx):
+        from stages import mesh_prep
+        mesh = mesh_prep.load_scan(path, units=m.units, texture=texture)
+        mesh, repairs = mesh_prep.validate(mesh, source=str(path))
+        return StageResult(mesh, info={"repairs": repairs, "triangles": mesh.n_triangles})
+
+    return Node("mesh_source", "mesh_source", "stages.mesh_prep", params, (), fn, "load scan")
+
+
+def _resolved(scene: Scene, value: str) -> Path | None:
+    if not value:
+        return None
+    p = Path(value).expanduser()
+    return p if p.is_absolute() else Path(scene.path).parent / p
+
+
+def _mesh_high(scene: Scene) -> Node:
+    m = scene.mesh
+    disp = _resolved(scene, m.displacement)
+    params = {"target_triangles": m.high_triangles,
+              "displacement": str(disp) if disp else "",
+              "displacement_sha256": file_digest(disp) if disp else "",
+              "displacement_scale_mm": m.displacement_scale_mm,
+              "displacement_mid": m.displacement_mid}
+
+    def fn(inputs, ctx):
+        from stages import mesh_prep
+        from .imageio import read_image
+        image = read_image(disp, channels=1, what="mesh.displacement")[..., 0] if disp else None
+        high = mesh_prep.make_high(inputs["mesh_source"], target_triangles=m.high_triangles,
+                                   displacement=image,
+                                   displacement_scale_mm=m.displacement_scale_mm,
+                                   displacement_mid=m.displacement_mid)
+        high.normals = mesh_prep.vertex_normals(high.vertices, high.faces)
+        return StageResult(high, info={"triangles": high.n_triangles})
+
+    return Node("mesh_high", "mesh_high", "stages.mesh_prep", params, ("mesh_source",), fn,
+                "high mesh + normals")
+
+
+def _mesh_low(scene: Scene) -> Node:
+    params = {"target_triangles": scene.mesh.low_triangles}
+
+    def fn(inputs, ctx):
+        from stages import mesh_prep
+        high = inputs["mesh_high"]
+        low = mesh_prep.simplify(high, target_triangles=scene.mesh.low_triangles)
+        low.normals = mesh_prep.vertex_normals(low.vertices, low.faces)
+        low, report = mesh_prep.transfer_uv(high, low)
+        return StageResult(low, info={"uv_transfer": report, "triangles": low.n_triangles})
+
+    return Node("mesh_low", "mesh_low", "stages.mesh_prep", params, ("mesh_high",), fn,
+                "simplify + UV transfer")
+
+
+def _bake(scene: Scene) -> Node:
+    b = scene.bake
+    params = asdict(b)
+
+    def fn(inputs, ctx):
+        from stages import bake
+        maps = bake.run(inputs["mesh_low"], inputs["mesh_high"], resolution=b.resolution,
+                        max_distance_mm=b.max_distance or None, blur_sigma_px=b.blur_sigma_px,
+                        dilate_px=b.dilate_px, progress=ctx.progress)
+        return StageResult(maps, info=maps.info)
+
+    return Node("bake", "bake", "stages.bake", params, ("mesh_low", "mesh_high"), fn,
+                "bake albedo + bump")
+
+
+def _mesh_previews(scene: Scene, low: bool) -> Node:
+    params = {"size": 800, "low": low}
+    deps = ("mesh_high", "mesh_low", "bake") if low else ("mesh_high",)
+
+    def fn(inputs, ctx):
+        from reports import mesh_previews
+        files = []
+        if low:
+            files += mesh_previews.save_map_previews(inputs["bake"], ctx.out_dir)
+            out = ctx.out_dir / "shaded_high_vs_low.png"
+            mesh_previews.save_shaded_comparison(inputs["mesh_high"], inputs["mesh_low"],
+                                                 inputs["bake"], out, size=800)
+            files.append(out)
+        else:
+            out = ctx.out_dir / "shaded_high.png"
+            mesh_previews.save_shaded_comparison(inputs["mesh_high"], None, None, out, size=800)
+            files.append(out)
+        return StageResult(files=[Path(f).name for f in files])
+
+    return Node("mesh_previews", "mesh_previews", "reports.mesh_previews", params, deps, fn,
+                "PNG previews")
+
+
+def _profiles(scene: Scene) -> Node:
+    params = {"stack": scene.optics.to_dict()}
+
+    def fn(inputs, ctx):
+        from stages import profiles
+        prof = profiles.run(scene.optics)
+        return StageResult(prof, info={"Rd": list(map(float, prof.Rd)),
+                                       "Tt": list(map(float, prof.Tt))})
+
+    return Node("profiles", "profiles", "stages.profiles", params, (), fn, "layer profiles")
+
+
+# --------------------------------------------------------------------------- graph
+def build_graph(scene: Scene) -> tuple[dict[str, Node], list[str]]:
+    """Nodes needed by the scene's requested outputs, and the target node ids.
+
+    Returns
+    -------
+    nodes : dict node id -> Node
+    targets : the node ids whose artifacts are the run's outputs
+    """
+    geoms = set(scene.render.geometries)
+    needs_low = bool(geoms & {"low", "low_bump", "low_bump_blur"})
+    needs_bake = bool(geoms & {"low_bump", "low_bump_blur"})
+    models = set(scene.render.models)
+    needs_profiles = "bssrdf" in models or (
+        "asperity" in models and scene.render.asperity_base == "bssrdf")
+
+    nodes: dict[str, Node] = {}
+    targets: list[str] = []
+
+    def add(node: Node, target: bool = False):
+        nodes[node.id] = node
+        if target:
+            targets.append(node.id)
+
+    add(_mesh_source(scene))
+    add(_mesh_high(scene), target=not needs_low)
+    if needs_low:
+        add(_mesh_low(scene), target=not needs_bake)
+    if needs_bake:
+        add(_bake(scene), target=True)
+    if scene.output.previews:
+        add(_mesh_previews(scene, needs_bake), target=True)
+    if needs_profiles:
+        add(_profiles(scene), target=True)
+    return nodes, targets

@@ -1,0 +1,153 @@
+"""Stage graph and cache semantics on toy stages (the product has only real stages)."""
+import json
+import sys
+
+import numpy as np
+import pytest
+
+from pipeline.artifacts import LayerProfile
+from pipeline.errors import CacheLockedError
+from pipeline.graph import Node, StageResult, execute, plan_order
+from pipeline.store import Store
+
+VERSION = 1          # toy stages live in this module: its source text enters their keys
+CALLS = []
+
+
+class Ctx:
+    out_dir = None
+    progress = None
+    device_description = "host"
+
+
+def _profile(value):
+    a = np.full(3, float(value))
+    return LayerProfile(np.linspace(0, 1, 4), np.ones((4, 3)) * value, np.zeros((4, 3)), a, a, a, a)
+
+
+def toy_graph(a=1.0, b=2.0, fail_in=None):
+    """a -> double -> add_b ; c independent."""
+    def source(inputs, ctx):
+        CALLS.append("source")
+        return StageResult(_profile(a))
+
+    def double(inputs, ctx):
+        CALLS.append("double")
+        if fail_in == "double":
+            raise KeyboardInterrupt  # a run killed mid-stage
+        return StageResult(_profile(inputs["source"].Rd[0] * 2))
+
+    def add_b(inputs, ctx):
+        CALLS.append("add_b")
+        (ctx.out_dir / "note.txt").write_text("x")
+        return StageResult(_profile(inputs["double"].Rd[0] + b), files=["note.txt"])
+
+    def other(inputs, ctx):
+        CALLS.append("other")
+        return StageResult(_profile(7))
+
+    mod = __name__
+    nodes = {
+        "source": Node("source", "source", mod, {"a": a}, (), source),
+        "double": Node("double", "double", mod, {}, ("source",), double),
+        "add_b": Node("add_b", "add_b", mod, {"b": b}, ("double",), add_b),
+        "other": Node("other", "other", mod, {"k": 1}, (), other),
+    }
+    return nodes
+
+
+def run(store, targets=("add_b",), **kw):
+    CALLS.clear()
+    nodes = toy_graph(**{k: v for k, v in kw.items() if k in ("a", "b", "fail_in")})
+    return execute(nodes, list(targets), store, Ctx(), force=kw.get("force", ()),
+                   dry_run=kw.get("dry_run", False))
+
+
+def test01_plan_order_is_topological_and_minimal():
+    order = plan_order(toy_graph(), ["add_b"])
+    assert order == ["source", "double", "add_b"]      # "other" is not needed: never planned
+
+
+def test02_second_run_executes_nothing(tmp_path):
+    store = Store(tmp_path)
+    first = run(store)
+    assert first.ran() == ["source", "double", "add_b"] and CALLS == first.ran()
+    second = run(store)
+    assert second.ran() == [] and CALLS == []
+    assert second.cached() == ["source", "double", "add_b"]
+
+
+def test03_changing_one_parameter_reruns_exactly_downstream(tmp_path):
+    store = Store(tmp_path)
+    run(store)
+    s = run(store, b=3.0)
+    assert s.ran() == ["add_b"]
+    s = run(store, a=5.0, b=3.0)
+    assert s.ran() == ["source", "double", "add_b"]
+    s = run(store, a=1.0, b=2.0)                       # back to the first values: all cached
+    assert s.ran() == []
+
+
+def test04_results_flow_through_cache(tmp_path):
+    store = Store(tmp_path)
+    s = run(store, a=1.5, b=2.0)
+    rep = {r.id: r for r in s.nodes}["add_b"]
+    from pipeline.artifacts import load
+    assert load(rep.path).Rd[0] == pytest.approx(1.5 * 2 + 2.0)
+
+
+def test05_interrupted_stage_leaves_nothing_trusted(tmp_path):
+    store = Store(tmp_path)
+    with pytest.raises(KeyboardInterrupt):
+        run(store, fail_in="double")
+    assert (tmp_path / "source").is_dir()              # finished before the kill: kept
+    assert not (tmp_path / "double").exists()          # unfinished: nothing under its name
+    s = run(store)
+    assert s.ran() == ["double", "add_b"]
+
+
+def test06_status_names_the_reason(tmp_path):
+    store = Store(tmp_path)
+    run(store)
+    s = run(store, b=4.0, dry_run=True)
+    by_id = {r.id: r for r in s.nodes}
+    assert by_id["add_b"].status == "stale" and "config_changed b" in by_id["add_b"].reasons
+    assert by_id["source"].status == "cached" and by_id["source"].reasons == []
+    assert CALLS == []                                  # status computes nothing
+    s = run(store, a=9.0, dry_run=True)
+    reasons = {r.id: r.reasons for r in s.nodes}
+    assert reasons["source"] == ["config_changed a"]
+    assert reasons["double"] == ["upstream_changed source (stale)"]
+
+
+def test07_force_reruns_that_stage_only(tmp_path):
+    store = Store(tmp_path)
+    run(store)
+    s = run(store, force=("double",))
+    assert s.ran() == ["double"]
+
+
+def test08_lock_refuses_a_second_run(tmp_path):
+    store = Store(tmp_path)
+    with store.locked():
+        with pytest.raises(CacheLockedError, match="in use by another dermis process"):
+            with Store(tmp_path).locked():
+                pass
+    with Store(tmp_path).locked():                      # released afterwards
+        pass
+
+
+def test09_metadata_records_timing_and_key(tmp_path):
+    store = Store(tmp_path)
+    s = run(store)
+    rep = {r.id: r for r in s.nodes}["add_b"]
+    meta = json.loads((tmp_path / "add_b" / rep.key / "meta.json").read_text())
+    assert meta["key"] == rep.key and meta["seconds"] >= 0 and meta["files"] == ["note.txt"]
+    assert meta["parts"]["params"] == {"b": 2.0}
+
+
+def test10_debris_of_killed_runs_is_removed_on_lock(tmp_path):
+    store = Store(tmp_path)
+    (tmp_path / ".tmp" / "deadbeef").mkdir(parents=True)
+    with store.locked():
+        assert not (tmp_path / ".tmp").exists()
