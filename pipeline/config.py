@@ -98,7 +98,9 @@ class RenderConfig:
     models: tuple = spec(MODELS, choices=MODELS)
     lights: tuple = spec((), doc="names of [[lights]] to render; empty = all")
     geometries: tuple = spec(("high", "low_bump", "low_bump_blur"), choices=GEOMETRIES)
-    asperity_base: str = spec("hk93", choices=("lafortune", "hk93", "bssrdf"))
+    # Lambert default: in the thesis's timings asperity renders beat Lafortune for every light
+    # (physics.md s7), so its base cannot have been a costlier model (an inference; see asperity.cl)
+    asperity_base: str = spec("lambert", choices=("lambert", "lafortune", "hk93", "bssrdf"))
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,657 @@
+"""Local reflectance models: parameters, packing for the OpenCL kernels, evaluation, references.
+
+Three models, one ``.cl`` file each (their header comments give equations and variants):
+
+* ``lafortune`` - measured-skin Lafortune BRDF with an albedo texture (physics.md s1),
+  ``cl/brdf_lafortune.cl``;
+* ``hk93`` - Hanrahan-Krueger two-layer single scattering + constant multiple scattering
+  (physics.md s2), ``cl/brdf_hk93.cl``;
+* ``asperity`` - Koenderink-Pont asperity scattering term, added on top of a base model
+  (physics.md s5), ``cl/asperity.cl``.
+
+Each parameter dataclass validates itself on construction (:class:`ConfigError` naming the
+field, the value and the rule) and ``pack()``s into the float32 block its kernel reads.
+:func:`evaluate` runs a model's ``<model>_eval`` kernel on arrays of direction pairs; the
+float64 NumPy references ``*_f_np`` are written from the formulas (angles, not the kernel's
+vector algebra) and serve the tests.
+
+Conventions: local shading frame with z along the shading normal, ``wo`` and ``wi`` unit
+vectors pointing away from the surface, f excludes the cosine, RGB linear, mm and 1/mm.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import numpy as np
+
+from pipeline.errors import ConfigError
+
+__all__ = [
+    "VERSION", "KERNELS", "MODELS", "LafortuneParams", "HK93Params", "HK93Layer",
+    "AsperityParams", "hk93_params_from_layers", "evaluate", "lafortune_f_np", "hk93_f_np",
+    "asperity_f_np", "dipole_total_reflectance", "fresnel_diffuse_reflectance",
+    "hk93_single_scattering_albedo",
+    "LAFORTUNE_NPARAMS", "HK93_NPARAMS", "ASPERITY_NPARAMS",
+]
+
+VERSION = 1
+KERNELS = ("brdf_lafortune.cl", "brdf_hk93.cl", "asperity.cl")
+MODELS = ("lafortune", "hk93", "asperity")
+KERNEL_FILES = dict(zip(MODELS, KERNELS))
+
+# Parameter-block sizes; must equal the #defines in the .cl files (checked by the tests).
+LAFORTUNE_NPARAMS = 27
+HK93_NPARAMS = 20
+ASPERITY_NPARAMS = 8
+
+# Grazing floor of the outside cosines in hk93_f (HK93_COS_MIN in cl/brdf_hk93.cl) and the
+# optical depth standing for a semi-infinite layer (HK93_TAU_MAX): part of the model.
+HK93_COS_MIN = 1e-7
+HK93_TAU_MAX = 1e30
+
+_F32_MAX = float(np.finfo(np.float32).max)
+
+
+# --------------------------------------------------------------------------------------
+# validation helpers
+# --------------------------------------------------------------------------------------
+
+def _fmt(v) -> str:
+    """A value on one line for an error message."""
+    return str(np.asarray(v).tolist()) if np.ndim(v) else f"{v}"
+
+
+def _array(value, name: str, shape: tuple[int, ...], unit: str = "") -> np.ndarray:
+    """``value`` as a float64 array of ``shape`` with finite entries, else ConfigError."""
+    try:
+        a = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{name} = {value!r}{unit}: must be numbers of shape {shape}") from None
+    if a.shape != shape:
+        raise ConfigError(f"{name} = {_fmt(a)}{unit}: must have shape {shape}, got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ConfigError(f"{name} = {_fmt(a)}{unit}: must be finite")
+    return a
+
+
+def _check(ok, name: str, value, unit: str, rule: str) -> None:
+    if not np.all(ok):
+        raise ConfigError(f"{name} = {_fmt(value)}{unit}: {rule}")
+
+
+# --------------------------------------------------------------------------------------
+# Lafortune (physics.md s1)
+# --------------------------------------------------------------------------------------
+
+# pbrt-v1 materials/skin.cpp three-lobe fit of measured skin (Lafortune et al. 1997 model),
+# table in physics.md s1. Rows: lobe 0 (grazing, non-zero past ~46 deg), lobe 1 (broad),
+# lobe 2 (sharp specular); columns R, G, B.
+_SKIN_RHO_D = (0.428425, 0.301341, 0.331054)
+_SKIN_CXY = ((-1.131747, -1.016939, -0.966018),
+             (-0.546570, -0.643533, -0.638934),
+             (-0.998888, -1.020153, -1.027479))
+_SKIN_CZ = ((-1.209182, -1.462488, -1.222419),
+            (0.380123, 0.410559, 0.437367),
+            (0.857998, 0.703913, 0.573625))
+_SKIN_N = ((6.421658, 3.699932, 3.524889),
+           (3.685044, 4.266495, 4.539742),
+           (64.208486, 63.919687, 43.809866))
+
+
+@dataclass(frozen=True)
+class LafortuneParams:
+    """Isotropic three-lobe Lafortune BRDF; defaults are pbrt-v1's measured-skin fit.
+
+    Parameters
+    ----------
+    cxy, cz : (3, 3) floats, [lobe, RGB]
+        Lobe coefficients (per-lobe rho_s folded in, as in pbrt-v1 skin.cpp).
+    n : (3, 3) floats, [lobe, RGB], > 0
+        Lobe exponents.
+    rho_d : (3,) floats in [0, 1]
+        Diffuse albedo used when no per-point albedo (texture) is given.
+    """
+
+    cxy: Any = _SKIN_CXY
+    cz: Any = _SKIN_CZ
+    n: Any = _SKIN_N
+    rho_d: Any = _SKIN_RHO_D
+
+    def __post_init__(self):
+        for name in ("cxy", "cz", "n"):
+            object.__setattr__(self, name, _array(getattr(self, name), f"lafortune.{name}", (3, 3)))
+        rho_d = _array(self.rho_d, "lafortune.rho_d", (3,))
+        object.__setattr__(self, "rho_d", rho_d)
+        _check(self.n > 0, "lafortune.n", self.n, "", "every lobe exponent must be > 0")
+        _check((rho_d >= 0) & (rho_d <= 1), "lafortune.rho_d", rho_d, "",
+               "must be in [0, 1] (linear RGB albedo)")
+
+    def pack(self) -> np.ndarray:
+        """(27,) float32: per lobe k at 9k: Cxy RGB, Cz RGB, n RGB (cl/brdf_lafortune.cl)."""
+        return np.stack([self.cxy, self.cz, self.n], axis=1).astype(np.float32).ravel()
+
+    def lobes_off(self) -> "LafortuneParams":
+        """The same BRDF with every lobe coefficient 0: f = albedo / pi."""
+        z = np.zeros((3, 3))
+        return LafortuneParams(z, z, self.n, self.rho_d)
+
+
+# --------------------------------------------------------------------------------------
+# Hanrahan-Krueger 1993 (physics.md s2)
+# --------------------------------------------------------------------------------------
+
+def fresnel_diffuse_reflectance(eta: float) -> float:
+    """Fdr(eta), the polynomial fits quoted in physics.md s3 (same as cl/optics.h)."""
+    if eta >= 1.0:
+        return -1.440 / eta**2 + 0.710 / eta + 0.668 + 0.0636 * eta
+    return -0.4399 + 0.7099 / eta - 0.3319 / eta**2 + 0.0636 / eta**3
+
+
+def dipole_total_reflectance(sigma_a, sigma_s_prime, eta: float) -> np.ndarray:
+    """Total diffuse reflectance Rd of a semi-infinite medium (Jensen et al. 2001 dipole).
+
+    Rd = a'/2 (1 + exp(-4/3 A sqrt(3(1 - a')))) exp(-sqrt(3(1 - a'))), a' = s'/(s' + a),
+    A = (1 + Fdr)/(1 - Fdr).  Inputs in 1/mm, per channel; returns a float64 array.
+    """
+    sa = np.asarray(sigma_a, dtype=np.float64)
+    ssp = np.asarray(sigma_s_prime, dtype=np.float64)
+    alpha = ssp / (sa + ssp)
+    fdr = fresnel_diffuse_reflectance(float(eta))
+    big_a = (1.0 + fdr) / (1.0 - fdr)
+    root = np.sqrt(3.0 * (1.0 - alpha))
+    return 0.5 * alpha * (1.0 + np.exp(-4.0 / 3.0 * big_a * root)) * np.exp(-root)
+
+
+@dataclass(frozen=True)
+class HK93Layer:
+    """One HK93 layer: thickness (mm, ``inf`` allowed for the last), eta >= 1, RGB sigma_a and
+    sigma_s_prime (1/mm), HG mean cosine g in (-1, 1); sigma_s = sigma_s_prime / (1 - g)."""
+
+    thickness_mm: float
+    eta: float
+    sigma_a: Any
+    sigma_s_prime: Any
+    g: float
+
+    @property
+    def sigma_s(self) -> np.ndarray:
+        return np.asarray(self.sigma_s_prime, dtype=np.float64) / (1.0 - self.g)
+
+
+def _layer_attr(layer, key: str, where: str):
+    if isinstance(layer, dict):
+        if key not in layer:
+            raise ConfigError(f"{where}: missing key '{key}' (a layer needs thickness_mm, eta, "
+                              "sigma_a, sigma_s_prime, g)")
+        return layer[key]
+    if not hasattr(layer, key):
+        raise ConfigError(f"{where}: {type(layer).__name__} has no attribute '{key}' (a layer "
+                          "needs thickness_mm, eta, sigma_a, sigma_s_prime, g)")
+    return getattr(layer, key)
+
+
+def _as_hk93_layer(layer, i: int, last: bool) -> HK93Layer:
+    """Validate one duck-typed layer (dict or object) into an HK93Layer."""
+    where = f"hk93.layers[{i}]"
+    d = _layer_attr(layer, "thickness_mm", where)
+    try:
+        d = float(d)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{where}.thickness_mm = {d!r}: must be a number (mm) or inf") from None
+    if math.isnan(d) or d < 0 or (math.isinf(d) and not last):
+        raise ConfigError(f"{where}.thickness_mm = {d} (mm): must be >= 0, and inf only for "
+                          "the last layer")
+    eta = float(_array(_layer_attr(layer, "eta", where), f"{where}.eta", ()))
+    _check(1.0 <= eta <= 3.0, f"{where}.eta", eta, "", "must be in [1, 3] (absolute index)")
+    g = float(_array(_layer_attr(layer, "g", where), f"{where}.g", ()))
+    _check(-1.0 < g < 1.0, f"{where}.g", g, "", "must satisfy -1 < g < 1 (HG mean cosine)")
+    sa = _array(_layer_attr(layer, "sigma_a", where), f"{where}.sigma_a", (3,), " (1/mm)")
+    ssp = _array(_layer_attr(layer, "sigma_s_prime", where), f"{where}.sigma_s_prime", (3,),
+                 " (1/mm)")
+    _check(sa >= 0, f"{where}.sigma_a", sa, " (1/mm)", "must be >= 0")
+    _check(ssp >= 0, f"{where}.sigma_s_prime", ssp, " (1/mm)", "must be >= 0")
+    _check(sa + ssp > 0, f"{where}.sigma_a + sigma_s_prime", sa + ssp, " (1/mm)",
+           "must be > 0 per channel")
+    return HK93Layer(d, eta, tuple(sa), tuple(ssp), g)
+
+
+def _diffuse_reflectance(layers: Sequence[HK93Layer]) -> np.ndarray:
+    """Total diffuse reflectance of the stack from diffusion theory (float64, RGB).
+
+    Rd_k = Jensen 2001 dipole reflectance of layer k as if semi-infinite (boundary index of the
+    top layer).  For two layers the top layer's diffuse two-way transmittance
+    t = exp(-2 sigma_tr,1 d_1) blends the limits: Rd = (1 - t) Rd_1 + t Rd_2, so a thin
+    epidermis shows the dermis and a thick one hides it.  A convex combination of values in
+    [0, 1], so 0 <= Rd <= 1.
+    """
+    eta = layers[0].eta
+    rd = [dipole_total_reflectance(l.sigma_a, l.sigma_s_prime, eta) for l in layers]
+    if len(layers) == 1:
+        return rd[0]
+    top = layers[0]
+    sa = np.asarray(top.sigma_a)
+    sigma_tr = np.sqrt(3.0 * sa * (sa + np.asarray(top.sigma_s_prime)))
+    t = np.exp(-2.0 * sigma_tr * top.thickness_mm)
+    return (1.0 - t) * rd[0] + t * rd[1]
+
+
+# Outgoing cosines at which the single-scattering albedo's maximum is sought (it peaks at
+# grazing for eta = 1, near normal incidence for eta > 1 where Fresnel cuts grazing light),
+# and the midpoint quadrature resolution over (cos theta_i, phi).  Resolution 96 was compared
+# with 384: the maxima agree to 2e-3 (the 1/(mu_i + mu_o) peak at grazing is the worst case),
+# which SS_ALBEDO_TOL absorbs.
+_SS_COS_GRID = np.array([1.0, 0.9, 0.75, 0.5, 0.3, 0.15, 0.07, 0.03, 0.01, 0.003, 0.001])
+_SS_QUAD_N = 96
+SS_ALBEDO_TOL = 5e-3
+
+
+def hk93_single_scattering_albedo(layers, cos_theta_o) -> np.ndarray:
+    """Directional albedo of HK93's single-scattering part, (len(cos_theta_o), 3) float64.
+
+    Midpoint quadrature of the float64 reference over (cos theta_i, phi); ``layers`` are
+    validated HK93Layer objects (``HK93Params(...).layers``).
+    """
+    n = _SS_QUAD_N
+    mu = (np.arange(n) + 0.5) / n
+    phi = (np.arange(n) + 0.5) / n * np.pi          # f is even in phi: integrate [0, pi] twice
+    m, p = (a.ravel() for a in np.meshgrid(mu, phi, indexing="ij"))
+    s = np.sqrt(1.0 - m * m)
+    wi = np.stack([s * np.cos(p), s * np.sin(p), m], axis=1)
+    out = []
+    for c in np.atleast_1d(np.asarray(cos_theta_o, np.float64)):
+        wo = np.broadcast_to([math.sqrt(max(0.0, 1.0 - c * c)), 0.0, c], wi.shape)
+        f = _hk93_single_np(wo, wi, layers)
+        out.append((f * m[:, None]).sum(axis=0) * (2.0 * np.pi / (n * n)))
+    return np.array(out)
+
+
+def _max_single_scattering_albedo(layers) -> np.ndarray:
+    """Per-channel maximum over _SS_COS_GRID of the single-scattering directional albedo."""
+    return hk93_single_scattering_albedo(layers, _SS_COS_GRID).max(axis=0)
+
+
+def _default_multiple_scattering(layers: Sequence[HK93Layer], ss_max) -> np.ndarray:
+    """rho_ms = max(0, Rd - max_theta rho_ss(theta)): diffusion total reflectance of the same
+    layers minus the largest single-scattering albedo, so rho_ss(theta) + rho_ms <= Rd <= 1 at
+    every angle (a white semi-infinite medium has Rd = 1: adding single scattering on top of
+    the dipole, as Jensen 2001 does for its BSSRDF, would then create energy)."""
+    return np.maximum(0.0, _diffuse_reflectance(layers) - ss_max)
+
+
+def _default_hk93_layers() -> tuple:
+    # Same skin as the multipole model (physics.md s2: "derive both layers from the same
+    # epidermis/dermis optical parameters"): pipeline.layers PRESETS["two_layer"], an
+    # epidermis of 0.25 mm over a semi-infinite dermis, eta 1.4, g 0.8.
+    from pipeline.layers import PRESETS
+    return tuple(PRESETS["two_layer"].layers)
+
+
+@dataclass(frozen=True)
+class HK93Params:
+    """Hanrahan-Krueger layers (1 or 2, top first) and the constant multiple-scattering albedo.
+
+    Parameters
+    ----------
+    layers : sequence of 1 or 2 layers
+        Objects or dicts with ``thickness_mm`` (mm; inf allowed for the last), ``eta`` (>= 1),
+        ``sigma_a`` and ``sigma_s_prime`` (RGB, 1/mm) and ``g`` (HG mean cosine), e.g.
+        :class:`pipeline.layers.Layer`.  Zero-thickness layers are dropped.  Default: the
+        ``two_layer`` skin preset of :mod:`pipeline.layers`.
+    multiple_scattering : (3,) floats in [0, 1) or None
+        rho_ms, the albedo of the constant (Lambertian) multiple-scattering term
+        f_ms = rho_ms / pi.  None derives it from the same layers: diffusion total
+        reflectance Rd minus the largest single-scattering directional albedo (see
+        ``_default_multiple_scattering``).  Must not push the directional albedo above 1.
+    """
+
+    layers: Any = field(default_factory=_default_hk93_layers)
+    multiple_scattering: Any = None
+
+    def __post_init__(self):
+        layers = self.layers
+        if hasattr(layers, "layers") and not isinstance(layers, dict):  # a LayerStack
+            layers = layers.layers
+        try:
+            layers = list(layers)
+        except TypeError:
+            raise ConfigError(f"hk93.layers = {layers!r}: must be a list of 1 or 2 layers") from None
+        checked = [_as_hk93_layer(l, i, i == len(layers) - 1) for i, l in enumerate(layers)]
+        checked = [l for l in checked if l.thickness_mm > 0]
+        if not 1 <= len(checked) <= 2:
+            raise ConfigError(f"hk93.layers: {len(checked)} layers of non-zero thickness; the "
+                              "HK93 model takes 1 or 2")
+        object.__setattr__(self, "layers", tuple(checked))
+        ss_max = _max_single_scattering_albedo(checked)
+        ms = self.multiple_scattering
+        if ms is None:
+            ms = _default_multiple_scattering(checked, ss_max)
+        ms = _array(ms, "hk93.multiple_scattering", (3,))
+        _check((ms >= 0) & (ms < 1), "hk93.multiple_scattering", ms, "",
+               "must be in [0, 1) (albedo of the constant multiple-scattering term)")
+        limit = 1.0 - ss_max + SS_ALBEDO_TOL
+        _check(ms <= limit, "hk93.multiple_scattering", ms, "",
+               f"must be <= 1 - max single-scattering albedo of these layers = "
+               f"{_fmt(np.round(limit, 4))} (else the directional albedo exceeds 1)")
+        object.__setattr__(self, "multiple_scattering", ms)
+
+    @classmethod
+    def from_layers(cls, layers, *, multiple_scattering=None) -> "HK93Params":
+        """HK93Params from duck-typed layers (list, or a LayerStack with ``.layers``)."""
+        return cls(layers, multiple_scattering)
+
+    def pack(self) -> np.ndarray:
+        """(20,) float32 block of cl/brdf_hk93.cl: eta1, eta2, g1, g2, W1, tau1, W2, tau2, rho_ms."""
+        out = np.zeros(HK93_NPARAMS, dtype=np.float64)
+        l1 = self.layers[0]
+        l2 = self.layers[1] if len(self.layers) == 2 else None
+        out[0] = l1.eta
+        out[1] = l2.eta if l2 else l1.eta   # single layer: equal index, so T_12 = 1 ...
+        out[2] = l1.g
+        out[3] = l2.g if l2 else 0.0
+        for k, lay in enumerate([l1, l2]):
+            if lay is None:                  # ... and W_2 = tau_2 = 0: no second slab
+                continue
+            ss = lay.sigma_s
+            st = np.asarray(lay.sigma_a) + ss
+            # tau = sigma_t d; a semi-infinite layer (d = inf) becomes HK93_TAU_MAX
+            tau = np.minimum(st * lay.thickness_mm, HK93_TAU_MAX)
+            out[4 + 6 * k: 7 + 6 * k] = ss / st
+            out[7 + 6 * k: 10 + 6 * k] = tau
+        out[16:19] = self.multiple_scattering
+        return out.astype(np.float32)
+
+
+def hk93_params_from_layers(layers, *, multiple_scattering=None) -> np.ndarray:
+    """Packed float32 HK93 parameter block from 1-2 duck-typed layers.
+
+    Parameters
+    ----------
+    layers : list of layers (objects or dicts) or a LayerStack
+        ``thickness_mm`` (mm, inf allowed last), ``eta``, ``sigma_a`` (3, 1/mm),
+        ``sigma_s_prime`` (3, 1/mm), ``g``.
+    multiple_scattering : (3,) floats or None
+        Constant multiple-scattering albedo; None derives it (see :class:`HK93Params`).
+
+    Returns
+    -------
+    (20,) float32 ndarray, the layout documented in ``cl/brdf_hk93.cl``.
+
+    Raises
+    ------
+    ConfigError
+        A layer misses a field or breaks a rule (message names layer, field, value, rule).
+    """
+    return HK93Params(layers, multiple_scattering).pack()
+
+
+# --------------------------------------------------------------------------------------
+# Asperity (physics.md s5)
+# --------------------------------------------------------------------------------------
+
+ASPERITY_BASES = ("lambert", "lafortune", "hk93")
+
+
+@dataclass(frozen=True)
+class AsperityParams:
+    """Koenderink-Pont asperity layer; the term is added to a base model by the renderer.
+
+    Parameters
+    ----------
+    delta_mm : float > 0
+        Thickness of the layer of sparse scatterers (vellus hair).  Default 1 mm: the order
+        of a facial vellus hair's length (< 2 mm).
+    lambda_mm : float > delta_mm
+        Mean free path 1/(sigma_t rho) among the scatterers.  Default 20 mm, an
+        order-of-magnitude estimate: ~3 follicles per mm^2 on the face (forehead counts of
+        ~290 /cm^2) times a mean projected area pi L d / 4 of a hair of length L = 1 mm and
+        diameter d ~ 0.02 mm gives 1/lambda ~ 0.05 /mm.  Only Delta/lambda = 0.05 matters:
+        at normal incidence and view the term is ~3 % of the skin diffuse albedo/pi, at 80 deg
+        ~17 %, and it is capped at 1/(4 pi Delta/lambda) = 1.6 /sr at grazing (the "peach
+        fuzz" rim).  Not confirmed against a measurement here; a scene may override it.
+    albedo : (3,) floats in [0, 1]
+        Single-scattering albedo of the scatterers; default (1, 1, 1) as in Koenderink-Pont
+        (unpigmented fuzz).
+    f_max : float > 0
+        Optional cap f <= f_max (1/sr); default inf (none: the cosine clamp already bounds f).
+    base : str
+        Base model the renderer adds the term to; default "lambert" (albedo texture / pi):
+        the thesis's timings (physics.md s7) put its asperity renders below the Lafortune
+        ones in every light (e.g. 19:45 vs 28:56 for the area light), so its base cannot
+        have been Lafortune or HK93 plus an extra term; a Lambertian albedo base is the
+        cheaper candidate.  "lafortune" and "hk93" are accepted.
+    """
+
+    delta_mm: float = 1.0
+    lambda_mm: float = 20.0
+    albedo: Any = (1.0, 1.0, 1.0)
+    f_max: float = math.inf
+    base: str = "lambert"
+
+    def __post_init__(self):
+        d = float(_array(self.delta_mm, "asperity.delta_mm", ()))
+        lam = float(_array(self.lambda_mm, "asperity.lambda_mm", ()))
+        _check(d > 0, "asperity.delta_mm", d, " (mm)", "must be > 0")
+        _check(lam > d, "asperity.lambda_mm", lam, " (mm)",
+               f"must be > delta_mm = {d} (the thin-layer model needs Delta/lambda < 1)")
+        albedo = _array(self.albedo, "asperity.albedo", (3,))
+        _check((albedo >= 0) & (albedo <= 1), "asperity.albedo", albedo, "", "must be in [0, 1]")
+        try:
+            f_max = float(self.f_max)
+        except (TypeError, ValueError):
+            raise ConfigError(f"asperity.f_max = {self.f_max!r}: must be a number > 0") from None
+        _check(f_max > 0 and not math.isnan(f_max), "asperity.f_max", f_max, " (1/sr)",
+               "must be > 0 (inf for no cap)")
+        if self.base not in ASPERITY_BASES:
+            raise ConfigError(f"asperity.base = {self.base!r}: must be one of {ASPERITY_BASES}")
+        object.__setattr__(self, "delta_mm", d)
+        object.__setattr__(self, "lambda_mm", lam)
+        object.__setattr__(self, "albedo", albedo)
+        object.__setattr__(self, "f_max", f_max)
+
+    @property
+    def tau(self) -> float:
+        """Optical thickness Delta / lambda of the asperity layer."""
+        return self.delta_mm / self.lambda_mm
+
+    def pack(self) -> np.ndarray:
+        """(8,) float32 block of cl/asperity.cl: tau, f_max, albedo RGB, 3 unused."""
+        out = np.zeros(ASPERITY_NPARAMS, dtype=np.float64)
+        out[0] = self.tau
+        out[1] = min(self.f_max, _F32_MAX)
+        out[2:5] = self.albedo
+        return out.astype(np.float32)
+
+
+# --------------------------------------------------------------------------------------
+# evaluation on the OpenCL device
+# --------------------------------------------------------------------------------------
+
+_PARAM_TYPES = {"lafortune": LafortuneParams, "hk93": HK93Params, "asperity": AsperityParams}
+
+
+def _directions(v, name: str) -> np.ndarray:
+    a = np.asarray(v)
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise ConfigError(f"{name}: must be an (N, 3) array of directions, got shape {a.shape}")
+    a = np.ascontiguousarray(a, dtype=np.float32)
+    if not np.all(np.isfinite(a)):
+        raise ConfigError(f"{name}: contains NaN or Inf")
+    return a
+
+
+def evaluate(model: str, wo, wi, params=None, *, albedo=None, env=None) -> np.ndarray:
+    """Evaluate a model's BRDF on the OpenCL device for N direction pairs.
+
+    Parameters
+    ----------
+    model : {"lafortune", "hk93", "asperity"}
+    wo, wi : (N, 3) float arrays
+        Unit directions in the local shading frame (z = normal), both pointing away from the
+        surface.  Directions on or below the horizon give f = 0.
+    params : LafortuneParams | HK93Params | AsperityParams | None
+        The model's parameters; None uses the defaults.
+    albedo : (N, 3) or (3,) floats, optional
+        Lafortune only: linear-RGB albedo per pair (replaces rho_d); default params.rho_d.
+    env : pipeline.cl.ClEnv, optional
+        OpenCL environment; default ``pipeline.cl.get_env()``.
+
+    Returns
+    -------
+    (N, 3) float32 ndarray
+        f(wo, wi) in 1/sr per RGB channel (cosine not included).
+
+    Raises
+    ------
+    ConfigError
+        Unknown model, parameters of the wrong type, or malformed direction/albedo arrays.
+    """
+    if model not in _PARAM_TYPES:
+        raise ConfigError(f"model = {model!r}: must be one of {MODELS}")
+    ptype = _PARAM_TYPES[model]
+    if params is None:
+        params = ptype()
+    if not isinstance(params, ptype):
+        raise ConfigError(f"params for model {model!r} must be {ptype.__name__}, "
+                          f"got {type(params).__name__}")
+    wo = _directions(wo, "wo")
+    wi = _directions(wi, "wi")
+    if wo.shape != wi.shape:
+        raise ConfigError(f"wo and wi must have the same shape, got {wo.shape} and {wi.shape}")
+    n = wo.shape[0]
+    args = [wo, wi]
+    if model == "lafortune":
+        alb = params.rho_d if albedo is None else albedo
+        alb = np.asarray(alb, dtype=np.float32)
+        if alb.shape == (3,):
+            alb = np.broadcast_to(alb, (n, 3))
+        if alb.shape != (n, 3):
+            raise ConfigError(f"albedo: must have shape (3,) or ({n}, 3), got {alb.shape}")
+        if not np.all(np.isfinite(alb)):
+            raise ConfigError("albedo: contains NaN or Inf")
+        args.append(np.ascontiguousarray(alb))
+    elif albedo is not None:
+        raise ConfigError(f"albedo is a Lafortune parameter; model {model!r} takes none")
+    out = np.zeros((n, 3), dtype=np.float32)
+    if n == 0:
+        return out
+
+    import pyopencl as cl
+    from pipeline.cl import get_env, to_device
+    env = env or get_env()
+    kernel = cl.Kernel(env.program(KERNEL_FILES[model]), f"{model}_eval")
+    bufs = [to_device(env, a) for a in args] + [to_device(env, params.pack())]
+    out_buf = cl.Buffer(env.context, cl.mem_flags.WRITE_ONLY, out.nbytes)
+    kernel(env.queue, (n,), None, *bufs, out_buf, np.int32(n))
+    cl.enqueue_copy(env.queue, out, out_buf)
+    return out
+
+
+
+# --------------------------------------------------------------------------------------
+# float64 NumPy references (written from the formulas, in angles; used by the tests)
+# --------------------------------------------------------------------------------------
+
+def _angles(w):
+    """(cos theta, sin theta, phi) of (N, 3) directions, float64."""
+    w = np.asarray(w, dtype=np.float64)
+    cos_t = w[:, 2]
+    sin_t = np.hypot(w[:, 0], w[:, 1])
+    phi = np.arctan2(w[:, 1], w[:, 0])
+    return cos_t, sin_t, phi
+
+
+def lafortune_f_np(wo, wi, params: LafortuneParams | None = None, albedo=None) -> np.ndarray:
+    """Float64 Lafortune BRDF (N, 3): rho/pi + sum_k max(0, Cxy sin sin cos(dphi) + Cz cos cos)^n."""
+    params = params or LafortuneParams()
+    co, so, po = _angles(wo)
+    ci, si, pi_ = _angles(wi)
+    n = co.shape[0]
+    rho = np.broadcast_to(np.asarray(params.rho_d if albedo is None else albedo, np.float64),
+                          (n, 3))
+    horizontal = (so * si * np.cos(po - pi_))[:, None]
+    vertical = (co * ci)[:, None]
+    f = rho / np.pi
+    for k in range(3):
+        base = params.cxy[k] * horizontal + params.cz[k] * vertical
+        f = f + np.where(base > 0, np.abs(base) ** params.n[k], 0.0)
+    front = (co > 0) & (ci > 0)
+    return np.where(front[:, None], f, 0.0)
+
+
+def _fresnel_angles(theta_i, theta_t, eta_rel):
+    """Unpolarised Fresnel reflectance from angles (sin/tan form), normal-incidence limit."""
+    small = theta_i < 1e-6
+    ti = np.where(small, 0.5, theta_i)   # placeholder angles where the limit applies
+    tt = np.where(small, 0.4, theta_t)
+    rs = -np.sin(ti - tt) / np.sin(ti + tt)
+    rp = np.tan(ti - tt) / np.tan(ti + tt)
+    normal = ((eta_rel - 1.0) / (eta_rel + 1.0)) ** 2
+    return np.where(small, normal, 0.5 * (rs * rs + rp * rp))
+
+
+def hk93_f_np(wo, wi, params: HK93Params | None = None) -> np.ndarray:
+    """Float64 HK93 BRDF (N, 3): single scattering per layer + rho_ms/pi (physics.md s2).
+
+    Walks the stack top-down: the beam refracts by Snell (sin theta_k = sin theta_0 / eta_k),
+    loses the Fresnel transmittance of each interface in both directions and exp(-tau/cos)
+    of each layer above, and each layer adds W HG / (eta^2 (cos_i + cos_o))
+    (1 - exp(-tau (1/cos_i + 1/cos_o))).  Scattering angles from 3-D refracted vectors.
+    """
+    params = params or HK93Params()
+    f = _hk93_single_np(wo, wi, params.layers) + params.multiple_scattering / np.pi
+    front = (np.asarray(wo)[:, 2] > 0) & (np.asarray(wi)[:, 2] > 0)
+    return np.where(front[:, None], f, 0.0)
+
+
+def _hk93_single_np(wo, wi, layers) -> np.ndarray:
+    """Single-scattering part of hk93_f_np (no horizon test, no constant term)."""
+    co, so, po = _angles(wo)
+    ci, si, pi_ = _angles(wi)
+    # grazing floor HK93_COS_MIN (part of the model, cl/brdf_hk93.cl)
+    co = np.maximum(co, HK93_COS_MIN)
+    ci = np.maximum(ci, HK93_COS_MIN)
+    th0o, th0i = np.arccos(co), np.arccos(ci)
+    n = co.shape[0]
+    f = np.zeros((n, 3))
+    through = np.ones((n, 3))      # product of transmittances/attenuations above the layer
+    eta_prev, tho_prev, thi_prev = 1.0, th0o, th0i
+    for lay in layers:
+        tho = np.arcsin(np.sin(th0o) / lay.eta)
+        thi = np.arcsin(np.sin(th0i) / lay.eta)
+        rel = lay.eta / eta_prev
+        t_in = 1.0 - _fresnel_angles(thi_prev, thi, rel)
+        t_out = 1.0 - _fresnel_angles(tho_prev, tho, rel)
+        through = through * (t_in * t_out)[:, None]
+        # propagation directions inside the layer: down along -wi refracted, up along wo
+        d_in = np.stack([-np.sin(thi) * np.cos(pi_), -np.sin(thi) * np.sin(pi_), -np.cos(thi)], 1)
+        d_out = np.stack([np.sin(tho) * np.cos(po), np.sin(tho) * np.sin(po), np.cos(tho)], 1)
+        cos_scatter = np.sum(d_in * d_out, axis=1)
+        g = lay.g
+        hg = (1 - g * g) / (4 * np.pi * (1 + g * g - 2 * g * cos_scatter) ** 1.5)
+        sigma_t = np.asarray(lay.sigma_a) + lay.sigma_s
+        albedo = lay.sigma_s / sigma_t
+        path = (1 / np.cos(thi) + 1 / np.cos(tho))[:, None]
+        if math.isinf(lay.thickness_mm):
+            depth = np.ones((n, 3))
+        else:
+            depth = -np.expm1(-sigma_t * lay.thickness_mm * path)
+        single = albedo * (hg / (lay.eta ** 2 * (np.cos(thi) + np.cos(tho))))[:, None] * depth
+        f += through * single
+        if not math.isinf(lay.thickness_mm):
+            through = through * np.exp(-sigma_t * lay.thickness_mm * path)
+        eta_prev, tho_prev, thi_prev = lay.eta, tho, thi
+    return f
+
+
+def asperity_f_np(wo, wi, params: AsperityParams | None = None) -> np.ndarray:
+    """Float64 asperity term (N, 3): albedo Delta / (4 pi lambda max(cos_i, tau) max(cos_o, tau))."""
+    params = params or AsperityParams()
+    co = np.asarray(wo, np.float64)[:, 2]
+    ci = np.asarray(wi, np.float64)[:, 2]
+    tau = params.delta_mm / params.lambda_mm
+    f = params.albedo * (params.delta_mm / (4 * np.pi * params.lambda_mm
+                                            * np.maximum(co, tau) * np.maximum(ci, tau)))[:, None]
+    f = np.minimum(f, params.f_max)
+    return np.where(((co > 0) & (ci > 0))[:, None], f, 0.0)

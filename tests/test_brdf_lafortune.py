@@ -1,0 +1,166 @@
+"""Lafortune measured-skin BRDF (cl/brdf_lafortune.cl, physics.md s1)."""
+from __future__ import annotations
+
+import math
+import re
+
+import numpy as np
+import pytest
+
+from brdf_testutil import hemisphere, mc_albedo, sample_pairs, with_cos
+from pipeline.cl import CL_DIR
+from pipeline.errors import ConfigError
+from stages.brdf_models import LAFORTUNE_NPARAMS, LafortuneParams, evaluate, lafortune_f_np
+
+# float32 kernel vs float64 reference: the lobe base carries a few ulp (2^-24) of relative
+# error, which the exponent n <= 64.2 multiplies: 64 * 8 ulp ~ 3e-5.  Near a zero base the
+# relative error of the base is unbounded but its absolute error is ~2 ulp of |Cxy|+|Cz|
+# ~ 3e-7 and base^n with n >= 3.5 is then < 1e-7: ATOL covers it.
+RTOL_F32 = 64 * 8 * 2.0 ** -24
+ATOL_F32 = 1e-6
+# reciprocity: the kernel's arithmetic is symmetric in (wo, wi) up to operand order
+RTOL_RECIPROCITY = 4 * 2.0 ** -24
+# Monte Carlo: 2^16 cosine-weighted samples per angle; 5 standard errors
+N_MC = 1 << 16
+N_SIGMA = 5.0
+THETA_GRID = [0, 15, 30, 45, 60, 70, 75, 80, 85, 87, 89]
+
+# Directional albedo of the three fitted lobes alone (albedo texture = 0), per RGB, from a
+# 1500 x 1500 midpoint quadrature of the float64 reference over (cos theta_i, phi) at the
+# THETA_GRID angles; a 750 x 750 grid agrees to 1e-5, so QUADRATURE_TOL = 1e-4 is generous.
+# The full BRDF's directional albedo is  albedo + LOBE_ALBEDO(theta_o): it exceeds 1 wherever
+# the albedo texture is above 1 - LOBE_ALBEDO, i.e. above ~0.97 at normal incidence and
+# above ~0.74 (R), 0.74 (G), 0.76 (B) at 89 deg.  With pbrt-v1's rho_d it stays <= 0.70.
+LOBE_ALBEDO = np.array([
+    [0.03130, 0.02247, 0.02250],   # 0 deg
+    [0.03318, 0.02528, 0.02475],   # 15
+    [0.03756, 0.03293, 0.03100],   # 30
+    [0.04359, 0.04481, 0.04156],   # 45
+    [0.06310, 0.06757, 0.06460],   # 60
+    [0.09986, 0.10626, 0.10486],   # 70
+    [0.12915, 0.13880, 0.13705],   # 75
+    [0.16705, 0.17794, 0.17368],   # 80
+    [0.21554, 0.22100, 0.21055],   # 85
+    [0.23858, 0.24001, 0.22536],   # 87
+    [0.26403, 0.26095, 0.24068],   # 89
+])
+QUADRATURE_TOL = 1e-4
+# documented bound on the excess over the albedo texture, all angles <= 89 deg
+MAX_LOBE_EXCESS = 0.27
+
+
+def _f(params=None, albedo=None):
+    def run(wo, wi):
+        return evaluate("lafortune", wo, wi, params, albedo=albedo)
+    return run
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(n=np.full((3, 3), 0.0)), r"lafortune\.n = .*must be > 0"),
+    (dict(n=np.full((3, 3), -2.0)), r"lafortune\.n = .*must be > 0"),
+    (dict(cxy=np.full((3, 3), np.nan)), r"lafortune\.cxy = .*must be finite"),
+    (dict(cz=np.zeros((2, 3))), r"lafortune\.cz = .*must have shape \(3, 3\)"),
+    (dict(rho_d=(0.5, 1.2, 0.3)), r"lafortune\.rho_d = .*must be in \[0, 1\]"),
+    (dict(rho_d="red"), r"lafortune\.rho_d = 'red'.*must be numbers"),
+])
+def test01_params_rejected(kwargs, match):
+    with pytest.raises(ConfigError, match=match):
+        LafortuneParams(**kwargs)
+
+
+def test01_evaluate_rejects_bad_input(cl_env):
+    wo = np.array([[0.0, 0.0, 1.0]])
+    with pytest.raises(ConfigError, match=r"model = 'lafortun'.*must be one of"):
+        evaluate("lafortun", wo, wo)
+    with pytest.raises(ConfigError, match=r"wo: must be an \(N, 3\) array.*\(3,\)"):
+        evaluate("lafortune", wo[0], wo)
+    with pytest.raises(ConfigError, match=r"wi: contains NaN"):
+        evaluate("lafortune", wo, wo * np.nan)
+    with pytest.raises(ConfigError, match=r"albedo: must have shape \(3,\) or \(1, 3\)"):
+        evaluate("lafortune", wo, wo, albedo=np.ones((2, 3)))
+    with pytest.raises(ConfigError, match=r"must be LafortuneParams"):
+        evaluate("lafortune", wo, wo, params=object())
+
+
+def test01_pack_layout_matches_kernel():
+    src = (CL_DIR / "brdf_lafortune.cl").read_text()
+    assert int(re.search(r"#define LAFORTUNE_NPARAMS (\d+)", src).group(1)) == LAFORTUNE_NPARAMS
+    p = LafortuneParams()
+    packed = p.pack()
+    assert packed.shape == (LAFORTUNE_NPARAMS,) and packed.dtype == np.float32
+    # lobe 2 (specular) green exponent sits at 9*2 + 6 + 1
+    assert packed[9 * 2 + 7] == np.float32(63.919687)
+
+
+def test02_matches_reference(cl_env, rng):
+    wo, wi = sample_pairs(rng)
+    albedo = rng.random((len(wo), 3)).astype(np.float32)
+    got = evaluate("lafortune", wo, wi, albedo=albedo, env=cl_env)
+    want = lafortune_f_np(wo, wi, LafortuneParams(), albedo=albedo)
+    np.testing.assert_allclose(got, want, rtol=RTOL_F32, atol=ATOL_F32)
+    assert np.all(want[len(wo) // 10 * 2 + 10:len(wo) // 10 * 2 + 200] > 0)
+
+
+def test02_closed_form_lobes_off(cl_env, rng):
+    """Lobes off: f = albedo / pi exactly (physics.md s1)."""
+    wo, wi = sample_pairs(rng, 2000)
+    albedo = rng.random((len(wo), 3)).astype(np.float32)
+    got = evaluate("lafortune", wo, wi, LafortuneParams().lobes_off(), albedo=albedo, env=cl_env)
+    np.testing.assert_allclose(got, albedo / np.pi, rtol=RTOL_RECIPROCITY)
+
+
+def test02_closed_form_normal_incidence(cl_env):
+    """wo = wi = normal: only the Cz terms remain; lobe 0 (Cz < 0) vanishes."""
+    n = np.array([[0.0, 0.0, 1.0]], np.float32)
+    got = evaluate("lafortune", n, n, env=cl_env)[0]
+    rho = np.array([0.428425, 0.301341, 0.331054])
+    want = rho / math.pi + np.array([
+        0.380123 ** 3.685044 + 0.857998 ** 64.208486,
+        0.410559 ** 4.266495 + 0.703913 ** 63.919687,
+        0.437367 ** 4.539742 + 0.573625 ** 43.809866])
+    np.testing.assert_allclose(got, want, rtol=RTOL_F32)
+
+
+def test03_reciprocity(cl_env, rng):
+    wo, wi = sample_pairs(rng)
+    albedo = rng.random((len(wo), 3)).astype(np.float32)
+    a = evaluate("lafortune", wo, wi, albedo=albedo, env=cl_env)
+    b = evaluate("lafortune", wi, wo, albedo=albedo, env=cl_env)
+    np.testing.assert_allclose(a, b, rtol=RTOL_RECIPROCITY, atol=0)
+
+
+def test04_energy_with_skin_albedo(cl_env, rng):
+    """With pbrt-v1's rho_d the directional albedo stays <= 1 up to 89 deg."""
+    mean, err = mc_albedo(_f(), THETA_GRID, rng, N_MC)
+    assert np.all(mean - N_SIGMA * err <= 1.0), mean
+    # and equals rho_d + the documented lobe albedo
+    rho = LafortuneParams().rho_d
+    assert np.all(np.abs(mean - (rho + LOBE_ALBEDO)) <= N_SIGMA * err + QUADRATURE_TOL)
+
+
+def test04_energy_lobe_excess_documented(cl_env, rng):
+    """The fitted lobes add LOBE_ALBEDO(theta_o) on top of the albedo texture: with a white
+    texture the directional albedo exceeds 1 by exactly that much (up to 0.264 at 89 deg)."""
+    mean, err = mc_albedo(_f(albedo=np.ones(3, np.float32)), THETA_GRID, rng, N_MC)
+    excess = mean - 1.0
+    assert np.all(excess + N_SIGMA * err > 0), "white texture: albedo > 1 everywhere"
+    assert np.all(np.abs(excess - LOBE_ALBEDO) <= N_SIGMA * err + QUADRATURE_TOL), excess
+    assert np.all(excess - N_SIGMA * err <= MAX_LOBE_EXCESS)
+    # monotone rise toward grazing (lobe 0 switches on past ~46 deg)
+    assert np.all(np.diff(LOBE_ALBEDO[:, 0]) > 0)
+
+
+def test05_grazing_and_backfacing_finite(cl_env, rng):
+    n = 400
+    phi = 2 * np.pi * rng.random(n)
+    cos = np.repeat([0.0, 1e-8, 1e-30, 1e-3], n // 4)
+    graze = with_cos(cos, phi)
+    other = hemisphere(rng, n)
+    below = other * (1.0, 1.0, -1.0)
+    for wo, wi in [(graze, other), (other, graze), (graze, graze[::-1]),
+                   (below, other), (other, below), (below, below)]:
+        f = evaluate("lafortune", wo, wi, albedo=np.ones(3, np.float32), env=cl_env)
+        assert np.all(np.isfinite(f)) and np.all(f >= 0)
+        on_or_below = (wo[:, 2] <= 0) | (wi[:, 2] <= 0)
+        assert np.all(f[on_or_below] == 0)
+        assert np.all(f[~on_or_below] > 0)
