@@ -1,0 +1,775 @@
+"""Albedo and bump maps baked from the high mesh into the low mesh's UV space (physics.md s6).
+
+The bake follows the thesis (physics.md section 6, "Bake"): every low-poly triangle is
+rasterised in UV space, rays are cast both ways along the interpolated normal into the
+high-poly mesh, the signed distance of the nearest hit becomes the bump height and the hit's
+texture colour becomes the albedo; hits beyond a threshold distance are ignored.
+
+Conventions (pipeline/artifacts.py): mm; UV origin bottom-left, so the texel centre of
+column ``c`` and row ``r`` (counted from the top) of an ``R x R`` map sits at
+``u = c / (R - 1)``, ``v = 1 - r / (R - 1)`` -- the same ``(1 - v) * (H - 1)`` rule used to
+read the high mesh's texture.  Heights are outward positive: a positive height means the
+high surface lies outside the low surface (along the low mesh's outward normal).
+
+Also here, for the renderer: :func:`triangle_tangent_frames` and :func:`bump_shading_normals`
+(Blinn 1978 bump mapping with the bump map's mm scale) and a convenience
+:func:`bump_shading_normals_at_hits` that starts from triangle ids and barycentrics.
+
+Everything is numpy/scipy plus Embree through open3d's ``RaycastingScene``: the rasteriser is
+a vectorised scanline fill (no per-texel Python loop) and measured fast enough
+(bench/bench_bake.py), so no OpenCL kernel is used.
+"""
+from __future__ import annotations
+
+import time
+from typing import Callable
+
+import numpy as np
+from scipy import ndimage
+
+from pipeline.artifacts import BakedMaps, Mesh
+from pipeline.errors import ConfigError, DermisError
+
+__all__ = [
+    "VERSION", "KERNELS", "run", "triangle_tangent_frames", "bump_shading_normals",
+    "bump_shading_normals_at_hits", "srgb_to_linear", "linear_to_srgb",
+    "DEFAULT_MAX_DISTANCE_EDGE_FRACTION",
+]
+
+VERSION = 1
+KERNELS: tuple[str, ...] = ()
+
+# Default ray length: half the low mesh's mean edge length.  The low mesh deviates from the
+# high one by the simplification error, which quadric simplification keeps well below an edge
+# length (Garland-Heckbert 1997), plus the displacement detail (pores/wrinkles, sub-mm to a
+# few mm on a face); a longer reach starts to find the far side of thin parts (ears, nostrils).
+DEFAULT_MAX_DISTANCE_EDGE_FRACTION = 0.5
+# Largest map side accepted: 16384^2 texels is ~1 GB per RGB uint8 map; beyond that the
+# memory budget of mesh prep (architecture: <= 4 GB) cannot hold.
+MAX_RESOLUTION = 16384
+# Texels per ray-casting chunk: bounds the per-chunk arrays (2 rays per texel, ~150 B per
+# texel in flight) to ~150 MB while keeping Embree's per-call overhead negligible.
+CHUNK_TEXELS = 1 << 20
+# Tolerance of the inside test, in texels: texel centres lying on a shared UV edge are taken
+# by both triangles (no cracks); the duplicate is dropped afterwards.
+EDGE_EPS_PX = 1e-4
+# Rays start this fraction of max_distance behind the texel's point so that a high surface
+# passing exactly through it (t = 0) is still reported by Embree (which uses tnear = 0).
+RAY_BACKOFF_FRACTION = 1e-4
+# Neutral sRGB grey used for albedo only when nothing at all can be looked up (no texture on
+# the high mesh, no hit): 0.5 linear reflectance.
+NEUTRAL_LINEAR_ALBEDO = 0.5
+
+
+# ----------------------------------------------------------------------------------------
+# Colour helpers
+# ----------------------------------------------------------------------------------------
+def srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 sRGB decoding of values in [0, 1] (float in, float out)."""
+    c = np.asarray(c, dtype=np.float32)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def linear_to_srgb(c: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 sRGB encoding of linear values (clipped to [0, 1])."""
+    c = np.clip(np.asarray(c, dtype=np.float32), 0.0, 1.0)
+    return np.where(c <= 0.0031308, c * 12.92, 1.055 * c ** (1.0 / 2.4) - 0.055).astype(np.float32)
+
+
+# Encoding table: linear quantised to 1/65535 (an sRGB step of <= 12.92 / 65535 = 2e-4,
+# far below the 1/255 output step) -> sRGB uint8; 50x faster than pow() on 16M texels.
+_ENCODE_LEVELS = 65535
+_LINEAR16_TO_SRGB8 = np.rint(
+    linear_to_srgb(np.arange(_ENCODE_LEVELS + 1, dtype=np.float64) / _ENCODE_LEVELS) * 255.0
+).astype(np.uint8)
+
+
+def _encode_srgb8(linear: np.ndarray) -> np.ndarray:
+    """Linear float -> sRGB uint8, rounded to nearest (table lookup)."""
+    q = np.clip(linear, 0.0, 1.0) * np.float32(_ENCODE_LEVELS) + np.float32(0.5)
+    return _LINEAR16_TO_SRGB8[q.astype(np.uint16)]
+
+
+_SRGB8_TO_LINEAR = srgb_to_linear(np.arange(256, dtype=np.float32) / 255.0)
+# Textures up to this many texels are decoded to linear float32 once (4096^2 -> 200 MB);
+# larger ones are decoded per lookup through the 256-entry table.
+_DECODE_ONCE_MAX_TEXELS = 4096 * 4096
+
+
+# ----------------------------------------------------------------------------------------
+# Validation
+# ----------------------------------------------------------------------------------------
+def _check_mesh(mesh: Mesh, name: str, *, need_uv: bool) -> None:
+    """Raise DermisError if ``mesh`` lacks what the bake needs."""
+    if mesh is None:
+        raise DermisError(f"bake: {name} mesh is None")
+    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0:
+        raise DermisError(f"bake: {name}.vertices has shape {v.shape}; need (V, 3) with V > 0")
+    if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
+        raise DermisError(f"bake: {name}.faces has shape {f.shape}; need (F, 3) with F > 0")
+    if not np.all(np.isfinite(v)):
+        raise DermisError(f"bake: {name}.vertices contains NaN/inf")
+    if f.min() < 0 or f.max() >= len(v):
+        raise DermisError(f"bake: {name}.faces indexes vertices outside [0, {len(v) - 1}]")
+    if not need_uv:
+        return
+    if mesh.uv is None:
+        raise ConfigError(f"bake: {name}.uv is None; the {name} mesh needs UVs (uv + uv_faces) "
+                          "to bake into (run the UV transfer step of mesh prep first)")
+    uv = np.asarray(mesh.uv)
+    if uv.ndim != 2 or uv.shape[1] != 2 or not np.all(np.isfinite(uv)):
+        raise DermisError(f"bake: {name}.uv has shape {uv.shape} or non-finite values; "
+                          "need finite (T, 2)")
+    uvf = _uv_faces(mesh, name)
+    if uvf.shape != f.shape:
+        raise DermisError(f"bake: {name}.uv_faces has shape {uvf.shape}; need {f.shape} "
+                          "(one UV index per face corner)")
+    if uvf.min() < 0 or uvf.max() >= len(uv):
+        raise DermisError(f"bake: {name}.uv_faces indexes uv outside [0, {len(uv) - 1}]")
+
+
+def _uv_faces(mesh: Mesh, name: str) -> np.ndarray:
+    """Per-corner UV indices; per-vertex UVs (uv_faces None, len(uv) == V) use the faces."""
+    if mesh.uv_faces is not None:
+        return np.asarray(mesh.uv_faces)
+    if mesh.uv is not None and len(mesh.uv) == len(mesh.vertices):
+        return np.asarray(mesh.faces)
+    raise DermisError(f"bake: {name}.uv_faces is None and {name}.uv is not per-vertex "
+                      f"({0 if mesh.uv is None else len(mesh.uv)} UVs for {len(mesh.vertices)} vertices)")
+
+
+def _check_options(resolution, max_distance_mm, blur_sigma_px, dilate_px) -> None:
+    """Raise ConfigError naming the first bad option."""
+    if isinstance(resolution, bool) or not isinstance(resolution, (int, np.integer)) \
+            or not 2 <= resolution <= MAX_RESOLUTION:
+        raise ConfigError(f"bake: resolution = {resolution!r}: must be an integer in "
+                          f"[2, {MAX_RESOLUTION}] (texels per side)")
+    if max_distance_mm is not None and not (np.isfinite(max_distance_mm) and max_distance_mm > 0):
+        raise ConfigError(f"bake: max_distance_mm = {max_distance_mm!r}: must be > 0 (mm) or None "
+                          f"(default: {DEFAULT_MAX_DISTANCE_EDGE_FRACTION} x mean low edge length)")
+    if not (np.isfinite(blur_sigma_px) and blur_sigma_px >= 0):
+        raise ConfigError(f"bake: blur_sigma_px = {blur_sigma_px!r}: must be >= 0 (texels)")
+    if isinstance(dilate_px, bool) or not isinstance(dilate_px, (int, np.integer)) or dilate_px < 0:
+        raise ConfigError(f"bake: dilate_px = {dilate_px!r}: must be an integer >= 0 (texels)")
+
+
+def _vertex_normals(mesh: Mesh) -> np.ndarray:
+    """The mesh's unit vertex normals; angle-weighted ones from libigl if absent (physics.md s6)."""
+    if mesh.normals is not None:
+        n = np.asarray(mesh.normals, dtype=np.float64)
+        if n.shape != np.asarray(mesh.vertices).shape:
+            raise DermisError(f"bake: low.normals has shape {n.shape}; need {mesh.vertices.shape}")
+    else:
+        import igl
+        n = igl.per_vertex_normals(
+            np.ascontiguousarray(mesh.vertices, dtype=np.float64),
+            np.ascontiguousarray(mesh.faces, dtype=np.int64),
+            igl.PerVertexNormalsWeightingType.PER_VERTEX_NORMALS_WEIGHTING_TYPE_ANGLE)
+    n = np.nan_to_num(n)
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    return n / np.where(length > 0, length, 1.0)
+
+
+def _mean_edge_length(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Mean length of the face edges (each interior edge counted twice: same mean)."""
+    v = vertices[faces]
+    e = np.concatenate([v[:, 1] - v[:, 0], v[:, 2] - v[:, 1], v[:, 0] - v[:, 2]])
+    return float(np.linalg.norm(e, axis=1).mean())
+
+
+# ----------------------------------------------------------------------------------------
+# UV-space rasteriser
+# ----------------------------------------------------------------------------------------
+def _barycentric_planes(px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Affine barycentric functions of each triangle in texel coordinates.
+
+    px : (F, 3, 2) float64 corner positions (x = column, y = row from top).
+    Returns coef (F, 3, 3) with lambda_k(x, y) = coef[:, k, 0] x + coef[:, k, 1] y + coef[:, k, 2],
+    and the doubled signed area (F,).
+    """
+    x0, y0 = px[:, 0, 0], px[:, 0, 1]
+    x1, y1 = px[:, 1, 0], px[:, 1, 1]
+    x2, y2 = px[:, 2, 0], px[:, 2, 1]
+    area2 = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
+    inv = np.divide(1.0, area2, out=np.zeros_like(area2), where=area2 != 0)
+    coef = np.empty((len(px), 3, 3))
+    # lambda_1 = ((x - x0)(y2 - y0) - (x2 - x0)(y - y0)) / area2
+    coef[:, 1, 0] = (y2 - y0) * inv
+    coef[:, 1, 1] = -(x2 - x0) * inv
+    coef[:, 1, 2] = (-x0 * (y2 - y0) + (x2 - x0) * y0) * inv
+    # lambda_2 = ((x1 - x0)(y - y0) - (x - x0)(y1 - y0)) / area2
+    coef[:, 2, 0] = -(y1 - y0) * inv
+    coef[:, 2, 1] = (x1 - x0) * inv
+    coef[:, 2, 2] = (-(x1 - x0) * y0 + x0 * (y1 - y0)) * inv
+    coef[:, 0] = -coef[:, 1] - coef[:, 2]
+    coef[:, 0, 2] += 1.0
+    return coef, area2
+
+
+def _rasterise(uv: np.ndarray, uv_faces: np.ndarray, resolution: int):
+    """Texel centres covered by each UV triangle (vectorised scanline fill).
+
+    Returns (flat, tri, coef, info): flat (N,) int64 texel index row * R + col of each covered
+    texel (each texel once), tri (N,) int32 its triangle, coef the barycentric planes.
+    """
+    r1 = resolution - 1
+    tuv = np.asarray(uv, dtype=np.float64)[uv_faces]                # (F, 3, 2)
+    px = np.empty_like(tuv)
+    px[..., 0] = tuv[..., 0] * r1
+    px[..., 1] = (1.0 - tuv[..., 1]) * r1
+    coef, area2 = _barycentric_planes(px)
+    degenerate = np.abs(area2) < 1e-12
+    # Rows whose centres the triangle may cover, clipped to the map.
+    ylo = np.maximum(np.ceil(px[..., 1].min(1) - EDGE_EPS_PX), 0)
+    yhi = np.minimum(np.floor(px[..., 1].max(1) + EDGE_EPS_PX), r1)
+    nrows = np.where(degenerate, 0, np.maximum(yhi - ylo + 1, 0)).astype(np.int64)
+    tri_of_row = np.repeat(np.arange(len(px), dtype=np.int64), nrows)
+    starts = np.cumsum(nrows) - nrows
+    y = (ylo[tri_of_row] + (np.arange(len(tri_of_row)) - starts[tri_of_row])).astype(np.float64)
+    # Per row: x interval where every lambda_k >= -tol_k (tol in texels times |grad lambda_k|).
+    xlo = np.maximum(np.ceil(px[tri_of_row, :, 0].min(1) - EDGE_EPS_PX), 0.0)
+    xhi = np.minimum(np.floor(px[tri_of_row, :, 0].max(1) + EDGE_EPS_PX), float(r1))
+    c = coef[tri_of_row]                                            # (Nrows, 3, 3)
+    for k in range(3):
+        a, b, d = c[:, k, 0], c[:, k, 1], c[:, k, 2]
+        tol = EDGE_EPS_PX * np.hypot(a, b)
+        rhs = -tol - (b * y + d)                                    # need a x >= rhs
+        flat_edge = np.abs(a) < 1e-14
+        with np.errstate(divide="ignore", invalid="ignore"):
+            bound = rhs / a
+        xlo = np.where(~flat_edge & (a > 0), np.maximum(xlo, np.ceil(bound)), xlo)
+        xhi = np.where(~flat_edge & (a < 0), np.minimum(xhi, np.floor(bound)), xhi)
+        xhi = np.where(flat_edge & (rhs > 0), -1.0, xhi)           # row entirely outside
+    counts = np.maximum(xhi - xlo + 1, 0).astype(np.int64)
+    del c
+    n = int(counts.sum())
+    row_of_texel = np.repeat(np.arange(len(counts), dtype=np.int64), counts)
+    row_start = np.cumsum(counts) - counts
+    x = xlo.astype(np.int64)[row_of_texel] + (np.arange(n, dtype=np.int64) - row_start[row_of_texel])
+    flat = y.astype(np.int64)[row_of_texel] * resolution + x
+    tri = tri_of_row[row_of_texel].astype(np.int32)
+    del row_of_texel, x
+    # Texels claimed twice (on shared edges, or overlapping charts): keep the last claim.
+    owner = np.full(resolution * resolution, -1, dtype=np.int64)
+    owner[flat] = np.arange(n, dtype=np.int64)
+    keep = owner[flat] == np.arange(n, dtype=np.int64)
+    del owner
+    info = {"degenerate_uv_triangles": int(degenerate.sum()),
+            "texels_claimed_twice": int(n - keep.sum())}
+    return flat[keep], tri[keep], coef, info
+
+
+# ----------------------------------------------------------------------------------------
+# Texture lookups
+# ----------------------------------------------------------------------------------------
+def _bilinear(image: np.ndarray, uv: np.ndarray, lut: np.ndarray | None = None) -> np.ndarray:
+    """Bilinear lookup of ``image`` (H, W[, C]) at ``uv`` (N, 2), clamp-to-edge, texel centres
+    at u = col / (W - 1), v = 1 - row / (H - 1); ``lut`` maps uint8 values before weighting."""
+    h, w = image.shape[:2]
+    x = np.clip(uv[:, 0].astype(np.float32) * (w - 1), 0, w - 1)
+    y = np.clip((1.0 - uv[:, 1].astype(np.float32)) * (h - 1), 0, h - 1)
+    x0 = np.minimum(x.astype(np.int64), max(w - 2, 0))
+    y0 = np.minimum(y.astype(np.int64), max(h - 2, 0))
+    fx, fy = x - x0, y - y0
+    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+
+    def at(yy, xx):
+        v = image[yy, xx]
+        return lut[v] if lut is not None else v.astype(np.float32)
+
+    if image.ndim == 3:
+        fx, fy = fx[:, None], fy[:, None]
+    top = at(y0, x0) * (1 - fx) + at(y0, x1) * fx
+    bottom = at(y1, x0) * (1 - fx) + at(y1, x1) * fx
+    return (top * (1 - fy) + bottom * fy).astype(np.float32)
+
+
+def _masked_blur(image: np.ndarray, mask: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian blur over the ``mask`` texels only (normalised convolution G*(x m) / G*m);
+    zero outside the mask; sigma 0 returns a copy."""
+    if sigma <= 0:
+        return image.copy()
+    m = mask.astype(np.float32)
+    num = ndimage.gaussian_filter(image * m, sigma, mode="constant", cval=0.0)
+    den = ndimage.gaussian_filter(m, sigma, mode="constant", cval=0.0)
+    del m
+    # A convex mix of covered values: the clip removes only float rounding beyond their range.
+    lo, hi = (float(image[mask].min()), float(image[mask].max())) if mask.any() else (0.0, 0.0)
+    ratio = np.clip(num / np.maximum(den, 1e-12), lo, hi)
+    return np.where(mask, ratio, 0.0).astype(np.float32)
+
+
+def _nearest_fill_indices(valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For every texel, the (row, col) of the nearest valid texel (Euclidean, scipy EDT)."""
+    return ndimage.distance_transform_edt(~valid, return_distances=False, return_indices=True)
+
+
+def _squared_distance(idx: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """Squared texel distance from each texel to the texel its fill index points at."""
+    r = idx[0].shape[0]
+    ar = np.arange(r, dtype=np.int32)
+    dy = idx[0] - ar[:, None]
+    d2 = dy * dy
+    dx = idx[1] - ar[None, :]
+    d2 += dx * dx
+    return d2
+
+
+# ----------------------------------------------------------------------------------------
+# The bake
+# ----------------------------------------------------------------------------------------
+def run(low: Mesh, high: Mesh, *, resolution: int = 4096, max_distance_mm: float | None = None,
+        blur_sigma_px: float = 8.0, dilate_px: int = 16,
+        progress: Callable[[float], None] | None = None) -> BakedMaps:
+    """Bake albedo and bump maps of ``high`` into the UV space of ``low``.
+
+    Parameters
+    ----------
+    low : Mesh
+        The simplified mesh, mm.  Needs ``uv`` + ``uv_faces`` (per-corner, seams allowed);
+        ``normals`` (V, 3) angle-weighted unit vertex normals (computed with libigl when None).
+    high : Mesh
+        The detailed mesh, mm, faces counter-clockwise seen from outside.  ``uv``/``uv_faces``
+        and ``texture_srgb`` (H, W, 3) uint8 give the albedo; without them the albedo is a
+        neutral grey (recorded in ``info["albedo_source"]``).
+    resolution : int, optional
+        Side of the square maps in texels, 2..16384.  Default 4096.
+    max_distance_mm : float or None, optional
+        Longest accepted distance from the low surface to a high-mesh hit, mm.  Default
+        ``DEFAULT_MAX_DISTANCE_EDGE_FRACTION`` (0.5) times the low mesh's mean edge length.
+    blur_sigma_px : float, optional
+        Gaussian sigma of ``bump_blur``, texels (0 gives a copy).  Default 8.
+    dilate_px : int, optional
+        Width in texels of the band outside the charts filled with the nearest chart texel.
+        Default 16.
+    progress : callable, optional
+        Called with the completed fraction in [0, 1].
+
+    Returns
+    -------
+    BakedMaps
+        ``albedo_srgb`` (R, R, 3) uint8, ``bump``/``bump_blur`` (R, R) float32 in [0, 1] with
+        ``height_mm = bump_min_mm + bump * bump_range_mm``, ``coverage`` (R, R) bool; ``info``
+        has hit/miss counts, ``max_distance_mm`` and its rule, and per-step timings (s).
+
+    Raises
+    ------
+    ConfigError
+        A bad option (named) or a low mesh without UVs.
+    DermisError
+        Malformed meshes, or UVs that cover no texel centre.
+
+    Notes
+    -----
+    physics.md section 6.  Steps:
+
+    1. Rasterise every low triangle in UV space at texel centres (vectorised scanline fill;
+       texels on shared edges are owned by one triangle).
+    2. Interpolate position ``p`` and normal ``n`` (unit vertex normals, renormalised).
+    3. Cast two rays with Embree (open3d ``RaycastingScene``), along ``+n`` and ``-n``, and keep
+       the nearest hit within ``max_distance_mm`` whose high-mesh face faces the same way as
+       ``n`` (``dot(n_face, n) > 0``): a hit on a back-facing face is the far side of a thin
+       part (ear, nose wing) seen from inside, never the surface that ``p`` approximates.
+       Height = +t for a hit along ``+n``, -t along ``-n`` (outward positive).
+    4. Albedo: the hit's barycentrics interpolate the high mesh's UVs; the texture is read
+       bilinearly in linear RGB (sRGB decoded per texel, re-encoded to sRGB uint8).
+    5. Texels without a hit: height 0 mm (neutral), albedo of the nearest texel with a hit.
+       They are counted in ``info["misses"]``.
+    6. Normalise heights over the covered texels to [0, 1] (``bump_min_mm``,
+       ``bump_range_mm``).
+    7. Blur: normalised convolution ``G*(b c) / G*c`` with the coverage mask ``c``, so only
+       covered texels enter the average and chart borders are not pulled toward the dilated
+       background (which plain blurring of the dilated map would do: the dilated band repeats
+       border values, weighting them up).  Texels of neighbouring charts that are close in UV
+       space still mix, as in any texture-space blur.
+    8. Dilate all three maps: texels within ``dilate_px`` of a chart take the value of the
+       nearest covered texel (scipy EDT feature transform) so bilinear lookups and mip maps at
+       seams do not bleed background in; texels farther out get neutral values (0 mm height,
+       the mean covered albedo).
+    """
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    _check_options(resolution, max_distance_mm, blur_sigma_px, dilate_px)
+    _check_mesh(low, "low", need_uv=True)
+    _check_mesh(high, "high", need_uv=False)
+    resolution = int(resolution)
+    report = progress if progress is not None else (lambda _f: None)
+
+    vertices = np.asarray(low.vertices, dtype=np.float64)
+    faces = np.asarray(low.faces, dtype=np.int64)
+    normals = _vertex_normals(low)
+    if max_distance_mm is None:
+        max_distance = DEFAULT_MAX_DISTANCE_EDGE_FRACTION * _mean_edge_length(vertices, faces)
+        distance_rule = f"{DEFAULT_MAX_DISTANCE_EDGE_FRACTION} x mean low edge length"
+    else:
+        max_distance = float(max_distance_mm)
+        distance_rule = "given"
+
+    # 1. rasterise
+    t0 = time.perf_counter()
+    flat, tri, coef, rast_info = _rasterise(low.uv, _uv_faces(low, "low"), resolution)
+    timings["rasterise_s"] = time.perf_counter() - t0
+    n_cov = len(flat)
+    if n_cov == 0:
+        raise DermisError(f"bake: low.uv covers no texel centre of a {resolution}^2 map; "
+                          "UVs must lie inside [0, 1]^2 and the resolution must be large enough")
+    report(0.05)
+
+    # Embree scene of the high mesh.
+    import open3d as o3d
+    import open3d.core as o3c
+    t0 = time.perf_counter()
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3c.Tensor(np.ascontiguousarray(high.vertices, dtype=np.float32)),
+                        o3c.Tensor(np.ascontiguousarray(high.faces, dtype=np.uint32)))
+    timings["scene_build_s"] = time.perf_counter() - t0
+
+    has_texture = (high.texture_srgb is not None and high.uv is not None
+                   and (high.uv_faces is not None or len(high.uv) == len(high.vertices)))
+    if has_texture:
+        tex = np.asarray(high.texture_srgb)
+        if tex.ndim == 2:
+            tex = np.repeat(tex[..., None], 3, axis=2)
+        if tex.dtype != np.uint8 or tex.ndim != 3 or tex.shape[2] < 3:
+            raise DermisError(f"bake: high.texture_srgb has dtype {tex.dtype} shape {tex.shape}; "
+                              "need (H, W, 3) uint8 sRGB")
+        tex = np.ascontiguousarray(tex[..., :3])
+        tex_lut = _SRGB8_TO_LINEAR
+        if tex.shape[0] * tex.shape[1] <= _DECODE_ONCE_MAX_TEXELS:
+            tex, tex_lut = _SRGB8_TO_LINEAR[tex], None
+        high_uv = np.asarray(high.uv, dtype=np.float32)
+        high_uvf = _uv_faces(high, "high")
+        if high_uvf.shape != np.asarray(high.faces).shape:
+            raise DermisError(f"bake: high.uv_faces has shape {high_uvf.shape}; "
+                              f"need {np.asarray(high.faces).shape}")
+
+    # 2-5. per chunk: interpolate, cast, pick the nearest hit, look up albedo
+    height = np.zeros(n_cov, dtype=np.float32)
+    hit = np.zeros(n_cov, dtype=bool)
+    albedo_lin = np.zeros((n_cov, 3), dtype=np.float32)
+    t_interp = t_cast = t_shade = 0.0
+    backoff = RAY_BACKOFF_FRACTION * max_distance
+    rejected_backfacing = 0
+    # Per-triangle data for the texel loop, float32 relative to corner 0 (mm-scale positions
+    # keep ~3e-5 mm in float32; the rays are float32 anyway).
+    corners_v = vertices[faces]
+    corners_n = normals[faces]
+    tri_p0 = corners_v[:, 0].astype(np.float32)
+    tri_e1 = (corners_v[:, 1] - corners_v[:, 0]).astype(np.float32)
+    tri_e2 = (corners_v[:, 2] - corners_v[:, 0]).astype(np.float32)
+    tri_n0 = corners_n[:, 0].astype(np.float32)
+    tri_dn1 = (corners_n[:, 1] - corners_n[:, 0]).astype(np.float32)
+    tri_dn2 = (corners_n[:, 2] - corners_n[:, 0]).astype(np.float32)
+    fn = np.cross(tri_e1, tri_e2)
+    face_normals = fn / np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-30)
+    # lambda_k(x, y) = grad_k . (x - x0, y - y0) for k = 1, 2 (coef from _barycentric_planes)
+    tri_grad = np.ascontiguousarray(coef[:, 1:, :2], dtype=np.float32)   # (F, 2, 2)
+    uvc = np.asarray(low.uv, dtype=np.float64)[_uv_faces(low, "low")[:, 0]]
+    tri_x0 = (uvc[:, 0] * (resolution - 1)).astype(np.float32)
+    tri_y0 = ((1.0 - uvc[:, 1]) * (resolution - 1)).astype(np.float32)
+    del corners_v, corners_n, fn, uvc
+    for s in range(0, n_cov, CHUNK_TEXELS):
+        e = min(s + CHUNK_TEXELS, n_cov)
+        t0 = time.perf_counter()
+        f_idx = tri[s:e]
+        fl = flat[s:e]
+        # Barycentrics relative to corner 0 in float32: (x - x0) stays small, so no
+        # cancellation (an absolute affine form would lose ~1e-4 at 4096 texels).
+        dx = (fl % resolution).astype(np.float32) - tri_x0[f_idx]
+        dy = (fl // resolution).astype(np.float32) - tri_y0[f_idx]
+        g = tri_grad[f_idx]                                          # (m, 2, 2)
+        l1 = np.clip(g[:, 0, 0] * dx + g[:, 0, 1] * dy, 0.0, 1.0)
+        l2 = np.clip(g[:, 1, 0] * dx + g[:, 1, 1] * dy, 0.0, 1.0)
+        over = l1 + l2
+        np.maximum(over, 1.0, out=over)          # clip back onto the triangle (edge texels)
+        l1 /= over
+        l2 /= over
+        del g, dx, dy, over
+        l1, l2 = l1[:, None], l2[:, None]
+        p = tri_p0[f_idx] + l1 * tri_e1[f_idx] + l2 * tri_e2[f_idx]
+        nrm = tri_n0[f_idx] + l1 * tri_dn1[f_idx] + l2 * tri_dn2[f_idx]
+        length = np.sqrt(np.einsum("nd,nd->n", nrm, nrm))
+        bad = length < 1e-6         # opposite vertex normals cancel: use the face normal
+        if bad.any():
+            nrm[bad] = face_normals[f_idx[bad]]
+            length[bad] = 1.0
+        nrm /= length[:, None]
+        m = e - s
+        rays = np.empty((2 * m, 6), dtype=np.float32)
+        off = np.float32(backoff) * nrm
+        np.subtract(p, off, out=rays[:m, :3])
+        rays[:m, 3:] = nrm
+        np.add(p, off, out=rays[m:, :3])
+        np.negative(nrm, out=rays[m:, 3:])
+        del off, p
+        t_interp += time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        ans = scene.cast_rays(o3c.Tensor(rays))
+        t_cast += time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        t_hit = ans["t_hit"].numpy() - np.float32(backoff)
+        prim = ans["primitive_ids"].numpy()
+        pn = ans["primitive_normals"].numpy()
+        facing = np.concatenate([np.einsum("nd,nd->n", pn[:m], nrm),
+                                 np.einsum("nd,nd->n", pn[m:], nrm)]) > 0
+        del pn
+        in_reach = np.isfinite(t_hit) & (t_hit <= max_distance)
+        rejected_backfacing += int(np.count_nonzero(in_reach & ~facing))
+        ok = in_reach & facing
+        tf = np.where(ok[:m], t_hit[:m], np.inf)
+        tb = np.where(ok[m:], t_hit[m:], np.inf)
+        use_f = tf <= tb
+        got = np.isfinite(np.minimum(tf, tb))
+        height[s:e] = np.where(got, np.where(use_f, tf, -tb), 0.0)
+        hit[s:e] = got
+        if has_texture and got.any():
+            sel = np.nonzero(got)[0]
+            ray_idx = np.where(use_f[sel], sel, sel + m)
+            pid = prim[ray_idx].astype(np.int64)
+            buv = ans["primitive_uvs"].numpy()[ray_idx]
+            c_uv = high_uv[high_uvf[pid]]                                # (k, 3, 2)
+            huv = c_uv[:, 0] + buv[:, :1] * (c_uv[:, 1] - c_uv[:, 0]) \
+                + buv[:, 1:] * (c_uv[:, 2] - c_uv[:, 0])
+            del c_uv
+            albedo_lin[s + sel] = _bilinear(tex, huv, tex_lut)
+        t_shade += time.perf_counter() - t0
+        report(0.05 + 0.75 * e / n_cov)
+    del scene, coef
+    timings["interpolate_s"] = t_interp
+    timings["raycast_s"] = t_cast
+    timings["hit_lookup_s"] = t_shade
+    n_hit = int(hit.sum())
+
+    # Albedo of texels without a hit: nearest texel with one (physics.md s6 leaves it open).
+    t0 = time.perf_counter()
+    if not has_texture:
+        albedo_lin[:] = NEUTRAL_LINEAR_ALBEDO
+        albedo_source = "neutral grey (high mesh has no texture_srgb/uv)"
+    elif n_hit == 0:
+        sub = tex[::max(1, tex.shape[0] // 256), ::max(1, tex.shape[1] // 256)].reshape(-1, 3)
+        albedo_lin[:] = (sub if tex_lut is None else tex_lut[sub]).mean(0)
+        albedo_source = "no hit: mean texture colour"
+    else:
+        albedo_source = "high texture"
+    albedo_cov = _encode_srgb8(albedo_lin)
+    del albedo_lin
+    n_pix = resolution * resolution
+    albedo = np.zeros((n_pix, 3), dtype=np.uint8)
+    albedo[flat] = albedo_cov
+    if has_texture and 0 < n_hit < n_cov:
+        hit_img = np.zeros(n_pix, dtype=bool)
+        hit_img[flat[hit]] = True
+        iy, ix = _nearest_fill_indices(hit_img.reshape(resolution, resolution))
+        miss_flat = flat[~hit]
+        albedo[miss_flat] = albedo[iy.ravel()[miss_flat] * resolution + ix.ravel()[miss_flat]]
+        del iy, ix, hit_img
+    timings["miss_fill_s"] = time.perf_counter() - t0
+    report(0.85)
+
+    # 6. normalise heights over covered texels (misses included at 0 mm).
+    h_min, h_max = float(height.min()), float(height.max())
+    h_range = h_max - h_min
+    coverage = np.zeros(n_pix, dtype=bool)
+    coverage[flat] = True
+    coverage = coverage.reshape(resolution, resolution)
+    bump = np.zeros(n_pix, dtype=np.float32)
+    if h_range > 0:
+        bump[flat] = (height - np.float32(h_min)) / np.float32(h_range)
+    bump = bump.reshape(resolution, resolution)
+    neutral_bump = float(np.clip((0.0 - h_min) / h_range, 0.0, 1.0)) if h_range > 0 else 0.0
+    mean_albedo = _encode_srgb8(_SRGB8_TO_LINEAR[albedo_cov].mean(0))
+    del height, albedo_cov
+
+    # 7. blur by normalised convolution over covered texels only.
+    t0 = time.perf_counter()
+    bump_blur = _masked_blur(bump, coverage, blur_sigma_px)
+    timings["blur_s"] = time.perf_counter() - t0
+    report(0.9)
+
+    # 8. dilate past chart borders.
+    t0 = time.perf_counter()
+    albedo = albedo.reshape(resolution, resolution, 3)
+    if not coverage.all():
+        idx = _nearest_fill_indices(coverage)
+        band = _squared_distance(idx) <= dilate_px * dilate_px
+        band &= ~coverage
+        src_y, src_x = idx[0][band], idx[1][band]
+        del idx
+        albedo[band] = albedo[src_y, src_x]
+        bump[band] = bump[src_y, src_x]
+        bump_blur[band] = bump_blur[src_y, src_x]
+        far = ~(band | coverage)
+        albedo[far] = mean_albedo
+        bump[far] = neutral_bump
+        bump_blur[far] = neutral_bump
+        n_band = int(band.sum())
+        del band, far, src_y, src_x
+    else:
+        n_band = 0
+    timings["dilate_s"] = time.perf_counter() - t0
+    timings["total_s"] = time.perf_counter() - t_start
+    report(1.0)
+
+    info = {
+        "resolution": resolution,
+        "covered_texels": n_cov,
+        "hits": n_hit,
+        "misses": n_cov - n_hit,
+        "rejected_backfacing_rays": rejected_backfacing,
+        "max_distance_mm": max_distance,
+        "max_distance_rule": distance_rule,
+        "height_min_mm": h_min,
+        "height_max_mm": h_max,
+        "miss_height_mm": 0.0,
+        "dilated_texels": n_band,
+        "dilate_px": int(dilate_px),
+        "albedo_source": albedo_source,
+        "blur": "normalised convolution over covered texels (mode=constant)",
+        "low_triangles": int(len(faces)),
+        "high_triangles": int(len(high.faces)),
+        "timings": {k: round(v, 4) for k, v in timings.items()},
+        **rast_info,
+    }
+    return BakedMaps(albedo_srgb=albedo, bump=bump, bump_blur=bump_blur, coverage=coverage,
+                     bump_min_mm=h_min, bump_range_mm=h_range,
+                     blur_sigma_px=float(blur_sigma_px), info=info)
+
+
+# ----------------------------------------------------------------------------------------
+# Bump mapping for the renderer
+# ----------------------------------------------------------------------------------------
+def triangle_tangent_frames(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray,
+                            uv_faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-triangle partial derivatives of position with respect to the texture coordinates.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float, mm
+    faces : (F, 3) int
+    uv : (T, 2) float
+    uv_faces : (F, 3) int, per-corner indices into ``uv``
+
+    Returns
+    -------
+    dpdu, dpdv : (F, 3) float64 each, mm per unit of u (resp. v)
+        Solve ``[p1 - p0, p2 - p0] = [dpdu, dpdv] @ [[u1 - u0, u2 - u0], [v1 - v0, v2 - v0]]``
+        (pbrt's ``Triangle::Intersect`` derivation).  Triangles with a degenerate UV
+        parameterisation (|det| < 1e-20) get zero vectors, which turns bump mapping off there.
+    """
+    v = np.asarray(vertices, dtype=np.float64)[np.asarray(faces)]
+    t = np.asarray(uv, dtype=np.float64)[np.asarray(uv_faces)]
+    dp1, dp2 = v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]
+    du1, du2 = t[:, 1, 0] - t[:, 0, 0], t[:, 2, 0] - t[:, 0, 0]
+    dv1, dv2 = t[:, 1, 1] - t[:, 0, 1], t[:, 2, 1] - t[:, 0, 1]
+    det = du1 * dv2 - du2 * dv1
+    ok = np.abs(det) > 1e-20
+    inv = np.divide(1.0, det, out=np.zeros_like(det), where=ok)[:, None]
+    dpdu = (dv2[:, None] * dp1 - dv1[:, None] * dp2) * inv
+    dpdv = (du1[:, None] * dp2 - du2[:, None] * dp1) * inv
+    return dpdu, dpdv
+
+
+def bump_shading_normals(normals: np.ndarray, dpdu: np.ndarray, dpdv: np.ndarray,
+                         uv: np.ndarray, bump: np.ndarray, *, bump_range_mm: float,
+                         step_texels: float = 1.0) -> np.ndarray:
+    """Blinn bump-mapped unit shading normals at surface points.
+
+    Parameters
+    ----------
+    normals : (N, 3) float
+        Interpolated (smooth) shading normals of the low mesh, outward; need not be unit.
+    dpdu, dpdv : (N, 3) float, mm per unit u / v
+        Tangent frame of the triangle under each point (``triangle_tangent_frames()[tri]``).
+    uv : (N, 2) float
+        Texture coordinates of the points (bottom-left origin).
+    bump : (R, R) float
+        Normalised bump map (``BakedMaps.bump`` or ``bump_blur``).
+    bump_range_mm : float
+        mm per unit of ``bump`` (``BakedMaps.bump_range_mm``); the offset does not matter.
+    step_texels : float, optional
+        Half-width of the central difference, texels.  Default 1 (the map's own resolution;
+        smaller steps only resolve the bilinear kinks).
+
+    Returns
+    -------
+    (N, 3) float32 unit normals.  Zero bump, or zero (degenerate) tangent frames, return the
+    normalised input normals unchanged.
+
+    Notes
+    -----
+    The bumped surface is ``p'(u, v) = p + h(u, v) n`` with height ``h`` in mm, outward
+    positive (positive ``h`` raises the surface along ``n``).  Dropping the ``h dn/du`` terms
+    (Blinn 1978; pbrt's ``BumpMap`` keeps them, but they are O(h / radius of curvature), < 1 %
+    for sub-mm bumps on a face) and writing ``n`` for ``dpdu x dpdv / |dpdu x dpdv|`` gives
+
+        n' = normalize( n + s * (h_u (n x dpdv) - h_v (n x dpdu)) / |dpdu x dpdv| ),
+
+    with ``h_u = dh/du``, ``h_v = dh/dv`` (central differences of bilinear lookups) and
+    ``s = sign((dpdu x dpdv) . n)``, which is -1 on mirrored UV charts and keeps the tilt
+    right there.  Check on a plane ``p = (a u, a v, 0)``: a ramp ``h = k u`` gives
+    ``n' ∝ (-k / a, 0, 1)``, i.e. the normal tilts toward ``-dpdu`` by ``atan(k / a)`` --
+    the exact normal of the surface ``z = k x / a``.
+
+    References
+    ----------
+    J. F. Blinn, "Simulation of wrinkled surfaces", SIGGRAPH 1978, doi:10.1145/965139.507101.
+    """
+    n = np.asarray(normals, dtype=np.float64)
+    n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    dpdu = np.asarray(dpdu, dtype=np.float64)
+    dpdv = np.asarray(dpdv, dtype=np.float64)
+    uv = np.asarray(uv, dtype=np.float64)
+    bump = np.asarray(bump, dtype=np.float32)
+    if bump.ndim != 2:
+        raise DermisError(f"bump_shading_normals: bump has shape {bump.shape}; need (R, R)")
+    step = np.array([step_texels / max(bump.shape[1] - 1, 1),
+                     step_texels / max(bump.shape[0] - 1, 1)])
+    du = np.array([step[0], 0.0])
+    dv = np.array([0.0, step[1]])
+    h_u = (_bilinear(bump, uv + du) - _bilinear(bump, uv - du)) * (bump_range_mm / (2 * step[0]))
+    h_v = (_bilinear(bump, uv + dv) - _bilinear(bump, uv - dv)) * (bump_range_mm / (2 * step[1]))
+    cross = np.cross(dpdu, dpdv)
+    area = np.linalg.norm(cross, axis=1)
+    sign = np.where(np.einsum("nd,nd->n", cross, n) < 0, -1.0, 1.0)
+    scale = np.divide(sign, area, out=np.zeros_like(area), where=area > 1e-300)
+    perturbed = n + scale[:, None] * (h_u[:, None] * np.cross(n, dpdv)
+                                      - h_v[:, None] * np.cross(n, dpdu))
+    out = perturbed / np.maximum(np.linalg.norm(perturbed, axis=1, keepdims=True), 1e-300)
+    return out.astype(np.float32)
+
+
+def bump_shading_normals_at_hits(low: Mesh, maps: BakedMaps, tri_ids: np.ndarray,
+                                 bary: np.ndarray, *, blurred: bool = False) -> np.ndarray:
+    """Bump-mapped shading normals at points given by low-mesh triangle and barycentrics.
+
+    Parameters
+    ----------
+    low : Mesh
+        The mesh the maps were baked into (uv, uv_faces; normals or libigl's).
+    maps : BakedMaps
+    tri_ids : (N,) int, triangle index of each point
+    bary : (N, 2) float, barycentrics (b1, b2) of corners 1 and 2, as Embree's / open3d's
+        ``primitive_uvs``: point = (1 - b1 - b2) p0 + b1 p1 + b2 p2
+    blurred : bool, optional
+        Use ``maps.bump_blur`` instead of ``maps.bump``.
+
+    Returns
+    -------
+    (N, 3) float32 unit shading normals (see :func:`bump_shading_normals`).
+    """
+    _check_mesh(low, "low", need_uv=True)
+    tri_ids = np.asarray(tri_ids, dtype=np.int64)
+    b = np.asarray(bary, dtype=np.float64)
+    w = np.stack([1.0 - b[:, 0] - b[:, 1], b[:, 0], b[:, 1]], axis=1)
+    faces = np.asarray(low.faces)
+    uvf = _uv_faces(low, "low")
+    normals = _vertex_normals(low)
+    n = np.einsum("nk,nkd->nd", w, normals[faces[tri_ids]])
+    uv = np.einsum("nk,nkd->nd", w, np.asarray(low.uv, dtype=np.float64)[uvf[tri_ids]])
+    dpdu, dpdv = triangle_tangent_frames(low.vertices, faces, low.uv, uvf)
+    return bump_shading_normals(n, dpdu[tri_ids], dpdv[tri_ids], uv,
+                                maps.bump_blur if blurred else maps.bump,
+                                bump_range_mm=maps.bump_range_mm)
