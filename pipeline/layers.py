@@ -241,7 +241,7 @@ def load_layers_toml(path: str | Path) -> LayerStack:
 #     sigma_s'(lambda) = 14.74 lambda^-0.22 + 2.2e11 lambda^-4 (1/mm); its Rayleigh part
 #     equals Jacques's 2e12 lambda^-4 /cm, which supports the mm^-1 reading.
 #   Results (1/mm):
-#     epidermis sigma_a = 0.008*mel + 0.992*base = (0.255, 0.443, 0.897)
+#     epidermis sigma_a = 0.008*mel + 0.992*base = (0.256, 0.441, 0.893)
 #     dermis    sigma_a = 0.009*blood + 0.991*base = (0.035, 0.265, 0.472)
 #     sigma_s' = (4.78, 6.08, 9.20)
 #   The dermis sigma_a agrees with Jensen 2001 Skin1 (0.032, 0.17, 0.48) to within the
