@@ -1,0 +1,87 @@
+"""The real stage graph on the quick scene: make-style reruns, --until, minimal graphs, CLI."""
+import json
+from pathlib import Path
+
+import pytest
+
+from pipeline import api
+from pipeline.cli import main
+from pipeline.config import load_scene
+from pipeline.plan import build_graph
+
+QUICK = Path(__file__).resolve().parents[1] / "scenes" / "quick.toml"
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    """The quick scene built once into a fresh cache (shared by the tests below)."""
+    root = tmp_path_factory.mktemp("quick")
+    scene = load_scene(QUICK, overrides={"output": {"output_dir": str(root / "out")}})
+    first = api.run(scene, cache=root / "cache")
+    return scene, root, first
+
+
+def test01_first_run_builds_every_requested_stage(built):
+    scene, root, first = built
+    assert first.ran() == ["mesh_source", "mesh_high", "mesh_low", "bake", "mesh_previews",
+                           "profiles"]
+    out = root / "out" / "quick"
+    assert (out / "run.json").is_file()
+    assert sorted(p.name for p in out.glob("*.png"))  # previews were exported
+
+
+def test02_second_run_runs_nothing(built):
+    scene, root, _ = built
+    again = api.run(scene, cache=root / "cache")
+    assert again.ran() == []
+
+
+def test03_one_parameter_reruns_exactly_downstream(built):
+    scene, root, _ = built
+    blurrier = load_scene(QUICK, overrides={"bake": {"blur_sigma_px": 3.0},
+                                            "output": {"output_dir": str(root / "out")}})
+    status = {n.id: n for n in api.status(blurrier, cache=root / "cache").nodes}
+    assert status["bake"].reasons == ["config_changed blur_sigma_px"]
+    assert status["mesh_previews"].reasons == ["upstream_changed bake (stale)"]
+    s = api.run(blurrier, cache=root / "cache")
+    assert s.ran() == ["bake", "mesh_previews"]
+
+
+def test04_until_builds_only_what_the_stage_needs(built, tmp_path):
+    scene, _, _ = built
+    s = api.run(scene, cache=tmp_path / "c", until="mesh_high", export=False)
+    assert [n.id for n in s.nodes] == ["mesh_source", "mesh_high"]
+
+
+def test05_graph_holds_only_what_outputs_need():
+    brdf_high = load_scene(QUICK, overrides={"render": {"models": ["lafortune"],
+                                                        "geometries": ["high"]}})
+    nodes, _ = build_graph(brdf_high)
+    assert set(nodes) == {"mesh_source", "mesh_high", "mesh_previews"}
+    unbumped = load_scene(QUICK, overrides={"render": {"geometries": ["low"]},
+                                            "output": {"previews": False}})
+    nodes, _ = build_graph(unbumped)
+    assert set(nodes) == {"mesh_source", "mesh_high", "mesh_low", "profiles"}
+
+
+def test06_cli_run_status_clean(built, capsys):
+    scene, root, _ = built
+    cache = str(root / "cache")
+    assert main(["run", str(QUICK), "--cache", cache, "-q"]) == 0
+    out = capsys.readouterr().out
+    assert "mesh_source" in out and "cached" in out and " ran " not in out
+    assert main(["status", str(QUICK), "--cache", cache]) == 0
+    assert "0 of 6 stages stale" in capsys.readouterr().out
+    assert main(["run", str(QUICK), "--cache", cache, "--until", "nope"]) == 2
+    capsys.readouterr()
+    assert main(["clean", "--cache", cache, "--stage", "profiles"]) == 0
+    assert "removed 1" in capsys.readouterr().out
+    assert main(["status", str(QUICK), "--cache", cache]) == 0
+    assert "profiles" in capsys.readouterr().out
+
+
+def test07_metadata_has_timing_and_device(built):
+    _, root, first = built
+    rep = {r.id: r for r in first.nodes}["mesh_high"]
+    meta = json.loads((Path(rep.path) / "meta.json").read_text())
+    assert meta["seconds"] > 0 and meta["parts"]["params"]["target_triangles"] == 60_000
