@@ -1,0 +1,498 @@
+"""Light sampling shared by the BRDF renderer and the BSSRDF irradiance stage (physics.md s6).
+
+Every light type answers one question: for surface points ``p`` (N, 3) with normals ``n``,
+give S samples per point of
+
+* ``directions`` (N, S, 3): unit vectors from the point towards the light sample,
+* ``weights`` (N, S, 3): the sample's RGB contribution, defined so that the reflected
+  radiance estimate is ``sum_s f(wo, wi_s) * weights_s * cos(theta_s) * V_s`` and the
+  irradiance estimate ``sum_s weights_s * cos(theta_s) * V_s`` (V: 1 if unoccluded),
+* ``distance`` (N, S): distance to the sample in mm (``inf`` for lights at infinity), the
+  shadow ray's length.
+
+Weights of samples below the horizon of ``normals`` (cos <= 0) are 0, so callers skip them
+(no shadow ray is traced for them).
+
+Light types (``pipeline.config.LightConfig``, lengths in mm):
+
+* ``point`` - intensity I (RGB, per steradian): weight = I / d^2 (inverse square).
+* ``directional`` - ``intensity`` is the irradiance E on a surface facing the light:
+  weight = E.  Any number of them may be given at once (a list of lights concatenates the
+  samples; the thesis preset uses two, front-left and front-right).
+* ``disc`` - radius r, axis ``direction``, ``intensity`` I = the on-axis intensity, so the
+  radiance is L = I / (pi r^2) and the disc tends to a point light of intensity
+  I |cos theta_l| as r -> 0.  **Decision: the disc emits from both faces (|cos theta_l|)**,
+  so the sign of the scene's ``direction`` cannot silently turn the light off; only the axis
+  matters.  Samples: S points stratified on the disc (jittered sqrt(S) x sqrt(S) grid when S
+  is a square, Latin hypercube otherwise) through Shirley & Chiu's concentric map (area
+  preserving), area-sampling estimator weight = L |cos theta_l| (pi r^2) / (d^2 S).
+  Default S = 16, r = 70 mm (thesis, physics.md s6).
+* ``environment`` - a lat-long radiance map: an HDR/EXR read with OpenImageIO or the
+  embedded procedural sunset sky (sun 3 deg above the horizon, thesis).  Importance sampled
+  by pixel luminance x sin(theta) (the pixel's solid angle) with S samples per point,
+  stratified in the flattened CDF; weight = L / (pdf S).
+
+Lat-long convention: y is up; image row 0 is the zenith; the image centre (u = 0.5) looks
+along +z, in front of the face and behind the default camera, and the panorama is seen
+unmirrored from inside (u grows towards -x).  With it, the Venice sunset map's sun
+(column 614/1024) lands in front of the face, on the screen's left.
+
+Guarded by tests/test_lights.py (inverse square, disc -> point limit and closed form,
+constant environment gives pi L, importance-sampling consistency) and tests/test_render.py.
+"""
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from .errors import ConfigError, DermisError
+
+__all__ = [
+    "LightSamples", "EnvironmentMap", "sample_lights", "irradiance", "environment_map",
+    "procedural_sunset", "concentric_disc", "LUMINANCE", "SUNSET_SUN_ELEVATION_DEG",
+]
+
+# Rec. 709 / sRGB luminance weights (ITU-R BT.709), used for importance sampling.
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722], dtype=np.float64)
+
+# Procedural sunset (our embedded default map).  Sun elevation: thesis, physics.md s6
+# ("sun ~3 deg above the horizon"); the Venice map's sun is at 3.3 deg (its README).
+SUNSET_SUN_ELEVATION_DEG = 3.0
+# Sun azimuth: where the Venice sunset map puts it under our lat-long convention (u = 0.6,
+# i.e. 36 deg from +z towards -x), so both sunset maps light the face the same way.
+SUNSET_SUN_AZIMUTH_DEG = 36.0
+# The sun's angular radius, 0.267 deg (solar diameter 0.533 deg as seen from Earth).
+SUNSET_SUN_RADIUS_DEG = 0.267
+# Irradiance of the sun on a surface facing it, and colour (linear RGB, normalised to unit
+# luminance): our choice.  A sun at 3 deg crosses ~15 air masses, so it is reddened and
+# weak; E_sun = 1.0 puts a sun-facing cheek near the thesis preset's two 0.6 directional
+# lights, and the sky adds ~0.3 on an upward surface.
+SUNSET_SUN_IRRADIANCE = 1.0
+SUNSET_SUN_COLOUR = (1.0, 0.55, 0.25)
+SUNSET_ZENITH_RADIANCE = (0.02, 0.035, 0.08)    # deep blue (our choice)
+SUNSET_HORIZON_RADIANCE = (0.14, 0.08, 0.04)    # orange horizon band (our choice)
+SUNSET_GROUND_RADIANCE = (0.02, 0.017, 0.015)   # dark ground below the horizon (our choice)
+SUNSET_WIDTH = 2048     # 0.18 deg per pixel: the sun spans ~3 pixels
+
+_TWO_PI = 2.0 * math.pi
+
+
+@dataclass
+class LightSamples:
+    """Light samples for N points, S per point (see the module docstring).
+
+    directions : (N, S, 3) float32 unit vectors towards the light
+    weights : (N, S, 3) float32 contribution weights (0 below the normal's horizon)
+    distance : (N, S) float32 distance to the light sample, mm (inf at infinity)
+    """
+
+    directions: np.ndarray
+    weights: np.ndarray
+    distance: np.ndarray
+
+    @property
+    def count(self) -> int:
+        return int(self.directions.shape[1])
+
+
+# --------------------------------------------------------------------------- helpers
+def _normalize(v: np.ndarray) -> np.ndarray:
+    """Unit vectors along the last axis (zero vectors stay zero)."""
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    return v / np.maximum(n, 1e-30)
+
+
+def _frame(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors orthogonal to unit ``axis`` (Duff et al. 2017, as cl/common.h)."""
+    x, y, z = (float(c) for c in axis)
+    s = 1.0 if z >= 0 else -1.0
+    a = -1.0 / (s + z)
+    b = x * y * a
+    t = np.array([1.0 + s * x * x * a, s * b, -s * x])
+    bt = np.array([b, s + y * y * a, -y])
+    return t, bt
+
+
+def concentric_disc(u: np.ndarray) -> np.ndarray:
+    """Shirley & Chiu 1997 concentric map of [0, 1)^2 onto the unit disc (area preserving).
+
+    u : (..., 2) float in [0, 1); returns (..., 2) points in the unit disc.
+    """
+    a = 2.0 * u[..., 0] - 1.0
+    b = 2.0 * u[..., 1] - 1.0
+    first = np.abs(a) > np.abs(b)
+    safe_a = np.where(a == 0, 1.0, a)
+    safe_b = np.where(b == 0, 1.0, b)
+    r = np.where(first, a, b)
+    phi = np.where(first, (math.pi / 4) * (b / safe_a),
+                   (math.pi / 2) - (math.pi / 4) * (a / safe_b))
+    return np.stack([r * np.cos(phi), r * np.sin(phi)], axis=-1)
+
+
+def _stratified_2d(rng: np.random.Generator, n: int, s: int) -> np.ndarray:
+    """(n, s, 2) points in [0, 1)^2: a jittered grid if s is a square, else Latin hypercube."""
+    m = int(round(math.sqrt(s)))
+    jitter = rng.random((n, s, 2))
+    if m * m == s:
+        k = np.arange(s)
+        cell = np.stack([k % m, k // m], axis=-1)[None].astype(np.float64)
+        return (cell + jitter) / m
+    # Latin hypercube: each axis stratified, strata paired by an independent permutation
+    perm = np.argsort(rng.random((n, s)), axis=1)
+    ax0 = (np.arange(s)[None, :] + jitter[..., 0]) / s
+    ax1 = (perm + jitter[..., 1]) / s
+    return np.stack([ax0, ax1], axis=-1)
+
+
+def _check_points(points, normals) -> tuple[np.ndarray, np.ndarray | None]:
+    p = np.asarray(points, dtype=np.float32)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise DermisError(f"lights: points have shape {p.shape}; need (N, 3)")
+    n = None
+    if normals is not None:
+        n = np.asarray(normals, dtype=np.float32)
+        if n.shape != p.shape:
+            raise DermisError(f"lights: normals have shape {n.shape}; need {p.shape}")
+    return p, n
+
+
+def _vec(value, name: str, light) -> np.ndarray:
+    v = np.asarray(value, dtype=np.float64)
+    if v.shape != (3,) or not np.all(np.isfinite(v)):
+        raise ConfigError(f"lights.{light.name}.{name} = {value!r}: must be 3 finite numbers")
+    return v
+
+
+# --------------------------------------------------------------------------- light types
+def _point(light, p: np.ndarray, rng) -> tuple:
+    pos = _vec(light.position, "position", light).astype(np.float32)
+    d = pos[None, :] - p
+    dist = np.linalg.norm(d, axis=1)
+    safe = np.maximum(dist, np.float32(1e-6))
+    wi = d / safe[:, None]
+    # inverse square (physics.md s6); a point exactly at the light gets weight 0, not inf
+    w = _vec(light.intensity, "intensity", light).astype(np.float32)[None, :] \
+        / np.where(dist > 1e-6, safe * safe, np.inf)[:, None]
+    return wi[:, None], w[:, None], dist[:, None]
+
+
+def _directional(light, p: np.ndarray, rng) -> tuple:
+    d = _vec(light.direction, "direction", light)
+    if np.linalg.norm(d) == 0:
+        raise ConfigError(f"lights.{light.name}.direction = {light.direction!r}: must be non-zero")
+    wi = np.broadcast_to((d / np.linalg.norm(d)).astype(np.float32), (len(p), 1, 3))
+    w = np.broadcast_to(_vec(light.intensity, "intensity", light).astype(np.float32),
+                        (len(p), 1, 3))
+    dist = np.full((len(p), 1), np.inf, dtype=np.float32)
+    return wi, w, dist
+
+
+def _disc(light, p: np.ndarray, rng, samples: int) -> tuple:
+    centre = _vec(light.position, "position", light)
+    axis = _vec(light.direction, "direction", light)
+    if np.linalg.norm(axis) == 0:
+        raise ConfigError(f"lights.{light.name}.direction = {light.direction!r}: the disc's "
+                          "axis must be non-zero")
+    axis = axis / np.linalg.norm(axis)
+    radius = float(light.radius)
+    if not radius > 0:
+        raise ConfigError(f"lights.{light.name}.radius = {radius} (mm): must be > 0")
+    t, b = _frame(axis)
+    xy = concentric_disc(_stratified_2d(rng, len(p), samples)).astype(np.float32) * radius
+    q = (centre.astype(np.float32)[None, None, :]
+         + xy[..., :1] * t.astype(np.float32) + xy[..., 1:] * b.astype(np.float32))
+    d = q - p[:, None, :]
+    dist = np.linalg.norm(d, axis=2)
+    safe = np.maximum(dist, np.float32(1e-6))
+    wi = d / safe[..., None]
+    # two-sided emitter (module docstring): |cos theta_l|; L (pi r^2) = I
+    cos_l = np.abs(wi @ axis.astype(np.float32))
+    intensity = _vec(light.intensity, "intensity", light).astype(np.float32)
+    w = intensity[None, None, :] * (cos_l / (np.where(dist > 1e-6, safe * safe, np.inf)
+                                             * np.float32(samples)))[..., None]
+    return wi, w, dist
+
+
+def _environment(light, p: np.ndarray, rng, samples: int, env) -> tuple:
+    if env is None:
+        env = environment_map(light)
+    n = len(p)
+    u = np.empty((n, samples, 3))
+    # stratify the flattened-CDF coordinate per point; jitter inside the pixel at random
+    u[..., 0] = (np.arange(samples)[None, :] + rng.random((n, samples))) / samples
+    u[..., 1:] = rng.random((n, samples, 2))
+    wi, w = env.sample(u.reshape(-1, 3))
+    wi = wi.reshape(n, samples, 3)
+    w = (w / np.float32(samples)).reshape(n, samples, 3)
+    dist = np.full((n, samples), np.inf, dtype=np.float32)
+    return wi, w, dist
+
+
+# --------------------------------------------------------------------------- public API
+def sample_lights(lights, points: np.ndarray, normals: np.ndarray | None = None, *,
+                  samples: int | None = None, seed: int | Sequence[int] = 0,
+                  env: "EnvironmentMap | None" = None) -> LightSamples:
+    """Sample one light or several (summed) for N surface points.
+
+    Parameters
+    ----------
+    lights : LightConfig or sequence of LightConfig
+        Several lights (e.g. the two directional lights of the thesis preset) concatenate
+        their samples along the S axis, so the estimate sums them.
+    points : (N, 3) float, mm
+    normals : (N, 3) float, optional
+        Unit surface normals; samples with cos <= 0 get weight 0.  None keeps every sample.
+    samples : int, optional
+        Samples per point for disc and environment lights (default: each light's
+        ``samples``, 16 in the thesis).  Point and directional lights take one.
+    seed : int or sequence of int
+        Seeds ``numpy.random.default_rng`` (pass ``(seed, chunk)`` for chunked calls).
+    env : EnvironmentMap, optional
+        Pre-built map for an environment light (else built from ``light.map``, cached).
+
+    Returns
+    -------
+    LightSamples
+    """
+    if not isinstance(lights, (list, tuple)):
+        lights = [lights]
+    if not lights:
+        raise DermisError("lights: no light given")
+    p, n = _check_points(points, normals)
+    rng = np.random.default_rng(seed)
+    parts = []
+    for light in lights:
+        s = int(samples if samples is not None else getattr(light, "samples", 16))
+        if s < 1:
+            raise ConfigError(f"lights.{light.name}.samples = {s}: must be >= 1")
+        kind = light.type
+        if kind == "point":
+            parts.append(_point(light, p, rng))
+        elif kind == "directional":
+            parts.append(_directional(light, p, rng))
+        elif kind == "disc":
+            parts.append(_disc(light, p, rng, s))
+        elif kind == "environment":
+            parts.append(_environment(light, p, rng, s, env))
+        else:
+            raise ConfigError(f"lights.{light.name}.type = {kind!r}: must be one of point, "
+                              "disc, directional, environment")
+    wi = np.concatenate([np.asarray(q[0], dtype=np.float32) for q in parts], axis=1)
+    w = np.concatenate([np.asarray(q[1], dtype=np.float32) for q in parts], axis=1)
+    dist = np.concatenate([np.asarray(q[2], dtype=np.float32) for q in parts], axis=1)
+    if n is not None:
+        cos = np.einsum("nsk,nk->ns", wi, n)
+        w = np.where((cos > 0)[..., None], w, np.float32(0.0))
+    return LightSamples(np.ascontiguousarray(wi), np.ascontiguousarray(w, dtype=np.float32),
+                        np.ascontiguousarray(dist))
+
+
+def irradiance(points: np.ndarray, normals: np.ndarray, light,
+               occlusion_fn: Callable | None, *, samples: int | None = None,
+               seed: int = 0, env: "EnvironmentMap | None" = None,
+               chunk: int = 65536) -> np.ndarray:
+    """Irradiance E at surface points from one light (or a list of lights), with shadows.
+
+    Parameters
+    ----------
+    points : (N, 3) float, mm
+    normals : (N, 3) float, unit outward normals (also the shadow-ray offset direction)
+    light : LightConfig or sequence of LightConfig
+    occlusion_fn : callable or None
+        ``occlusion_fn(points, normals, directions, max_distance) -> (M,) bool`` (True =
+        blocked), e.g. :meth:`pipeline.visibility.Visibility.occluded`; None: no shadows.
+    samples : int, optional
+        Samples per point for disc/environment lights (thesis: 64 for BSSRDF irradiance).
+    seed : int
+    env : EnvironmentMap, optional
+    chunk : int
+        Points per batch (bounds memory to ~chunk x samples rays).
+
+    Returns
+    -------
+    (N, 3) float32 irradiance E = integral of L cos(theta) over the hemisphere (units of the
+    light's intensity / mm^2 for point and disc lights, of ``intensity`` for directional
+    lights, of radiance x sr for environment maps).
+    """
+    p, n = _check_points(points, normals)
+    if n is None:
+        raise DermisError("irradiance: normals are required")
+    out = np.zeros((len(p), 3), dtype=np.float32)
+    for c, start in enumerate(range(0, len(p), chunk)):
+        sl = slice(start, start + chunk)
+        ls = sample_lights(light, p[sl], n[sl], samples=samples, seed=(seed, c), env=env)
+        cos = np.einsum("nsk,nk->ns", ls.directions, n[sl])
+        contrib = ls.weights * np.maximum(cos, 0.0)[..., None]
+        live = np.any(ls.weights > 0, axis=2)
+        if occlusion_fn is not None and live.any():
+            idx_p, idx_s = np.nonzero(live)
+            blocked = occlusion_fn(p[sl][idx_p], n[sl][idx_p], ls.directions[idx_p, idx_s],
+                                   ls.distance[idx_p, idx_s])
+            contrib[idx_p[blocked], idx_s[blocked]] = 0.0
+        out[sl] = contrib.sum(axis=1)
+    return out
+
+
+# --------------------------------------------------------------------------- environment
+class EnvironmentMap:
+    """A lat-long radiance map with a luminance x sin(theta) sampling distribution.
+
+    Parameters
+    ----------
+    radiance : (H, W, 3) float, linear RGB radiance (row 0 = zenith; module docstring)
+    rotation_deg : float, optional
+        Rotation of the map about +y (the up axis), degrees, counter-clockwise seen from
+        above; 0 = the convention of the module docstring.
+    name : str, optional
+    """
+
+    def __init__(self, radiance: np.ndarray, *, rotation_deg: float = 0.0, name: str = ""):
+        rad = np.asarray(radiance, dtype=np.float32)
+        if rad.ndim != 3 or rad.shape[2] != 3 or rad.shape[0] < 1 or rad.shape[1] < 1:
+            raise DermisError(f"environment map {name!r}: shape {rad.shape}; need (H, W, 3)")
+        if not np.all(np.isfinite(rad)) or np.any(rad < 0):
+            raise DermisError(f"environment map {name!r}: radiance must be finite and >= 0")
+        self.radiance = np.ascontiguousarray(rad)
+        self.name = name
+        self.rotation = math.radians(rotation_deg)
+        h, w = rad.shape[:2]
+        self.height, self.width = h, w
+        sin_t = np.sin((np.arange(h) + 0.5) / h * math.pi)
+        weight = (rad.astype(np.float64) @ LUMINANCE) * sin_t[:, None]
+        total = weight.sum()
+        self.pmf = (weight / total).ravel() if total > 0 else np.zeros(h * w)
+        self.cdf = np.cumsum(self.pmf)
+        self.black = not total > 0
+
+    # direction <-> lat-long coordinates (module docstring)
+    def _dirs(self, u: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        theta = s * math.pi
+        phi = _TWO_PI * (u - 0.5) + self.rotation
+        st = np.sin(theta)
+        d = np.stack([-st * np.sin(phi), np.cos(theta), st * np.cos(phi)], axis=-1)
+        return d, st
+
+    def pixel_of(self, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(row, col) of the pixel seen along each unit direction (..., 3)."""
+        d = np.asarray(directions, dtype=np.float64)
+        theta = np.arccos(np.clip(d[..., 1], -1.0, 1.0))
+        phi = np.arctan2(-d[..., 0], d[..., 2]) - self.rotation
+        u = np.mod(phi / _TWO_PI + 0.5, 1.0)
+        row = np.minimum((theta / math.pi * self.height).astype(np.int64), self.height - 1)
+        col = np.minimum((u * self.width).astype(np.int64), self.width - 1)
+        return row, col
+
+    def lookup(self, directions: np.ndarray) -> np.ndarray:
+        """Radiance (..., 3) along unit directions (piecewise constant, as sampled)."""
+        row, col = self.pixel_of(directions)
+        return self.radiance[row, col]
+
+    def pdf(self, directions: np.ndarray) -> np.ndarray:
+        """Solid-angle density (1/sr) with which :meth:`sample` draws each direction."""
+        d = np.asarray(directions, dtype=np.float64)
+        row, col = self.pixel_of(d)
+        sin_t = np.sqrt(np.maximum(1.0 - d[..., 1] ** 2, 0.0))
+        p = self.pmf[row * self.width + col] * (self.height * self.width)
+        return np.where(sin_t > 0, p / (2.0 * math.pi * math.pi * np.maximum(sin_t, 1e-30)), 0.0)
+
+    def sample(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Directions and radiance / pdf for uniform numbers ``u`` (M, 3) in [0, 1).
+
+        u[:, 0] picks the pixel through the flattened CDF, u[:, 1:] places the direction
+        uniformly inside it (in (u, v)); returns (M, 3) float32 unit directions and (M, 3)
+        float32 L / pdf (sr x radiance), 0 for a black map.
+        """
+        m = len(u)
+        if self.black:
+            d = np.zeros((m, 3), dtype=np.float32)
+            d[:, 1] = 1.0
+            return d, np.zeros((m, 3), dtype=np.float32)
+        idx = np.searchsorted(self.cdf, u[:, 0] * self.cdf[-1], side="right")
+        idx = np.minimum(idx, len(self.pmf) - 1)
+        # guard: a zero-mass pixel can only be reached at the CDF's end; step back to mass
+        row, col = np.divmod(idx, self.width)
+        d, sin_t = self._dirs((col + u[:, 2]) / self.width, (row + u[:, 1]) / self.height)
+        # pdf over solid angle: pmf * H W / (2 pi^2 sin theta); weight = L / pdf
+        inv_pdf = (2.0 * math.pi * math.pi) * sin_t / (self.pmf[idx] * (self.height * self.width))
+        inv_pdf = np.where(self.pmf[idx] > 0, inv_pdf, 0.0)
+        w = self.radiance[row, col] * inv_pdf[:, None].astype(np.float32)
+        return d.astype(np.float32), w.astype(np.float32)
+
+
+def procedural_sunset(width: int = SUNSET_WIDTH) -> np.ndarray:
+    """The embedded sunset sky: (width/2, width, 3) float32 linear radiance, lat-long.
+
+    A warm horizon band fading to a deep-blue zenith, a glow around the sun, dark ground, and
+    a sun disc of the true angular radius at 3 deg elevation whose radiance is set so that
+    its irradiance on a surface facing it is exactly ``SUNSET_SUN_IRRADIANCE`` at this
+    resolution (the disc is only a few pixels wide).  Colours are our choice (constants
+    above); only the sun's elevation comes from the thesis.
+    """
+    h = max(width // 2, 2)
+    env = EnvironmentMap(np.zeros((1, 1, 3), dtype=np.float32))  # for the convention only
+    rows = (np.arange(h) + 0.5) / h
+    cols = (np.arange(width) + 0.5) / width
+    uu, ss = np.meshgrid(cols, rows)
+    env.height, env.width = h, width
+    d, sin_t = env._dirs(uu, ss)
+    elev = np.arcsin(np.clip(d[..., 1], -1.0, 1.0))
+    el_s = math.radians(SUNSET_SUN_ELEVATION_DEG)
+    az_s = math.radians(SUNSET_SUN_AZIMUTH_DEG)
+    sun = np.array([-math.sin(az_s) * math.cos(el_s), math.sin(el_s),
+                    math.cos(az_s) * math.cos(el_s)])
+    cos_sun = np.clip(d @ sun, -1.0, 1.0)
+    zen, hor, gnd = (np.array(c) for c in (SUNSET_ZENITH_RADIANCE, SUNSET_HORIZON_RADIANCE,
+                                           SUNSET_GROUND_RADIANCE))
+    # sky: horizon colour fading to the zenith with elevation; forward glow near the sun
+    t = np.clip(np.sin(np.maximum(elev, 0.0)), 0.0, 1.0)[..., None] ** 0.5
+    sky = hor * (1.0 - t) + zen * t
+    glow = (np.exp((cos_sun - 1.0) / 0.08) * 0.8)[..., None] * np.array(SUNSET_SUN_COLOUR)
+    sky = sky + glow * np.exp(-np.maximum(elev, 0.0) / 0.15)[..., None]
+    img = np.where((elev >= 0)[..., None], sky, gnd)
+    # sun disc: radiance normalised so that sum L cos(0) dOmega_pixel = SUNSET_SUN_IRRADIANCE
+    in_sun = cos_sun >= math.cos(math.radians(SUNSET_SUN_RADIUS_DEG))
+    if not in_sun.any():  # low resolution: the nearest pixel stands for the sun
+        r, c = env.pixel_of(sun)
+        in_sun = np.zeros_like(in_sun)
+        in_sun[r, c] = True
+    pix_sr = (math.pi / h) * (_TWO_PI / width) * sin_t
+    colour = np.array(SUNSET_SUN_COLOUR) / (np.array(SUNSET_SUN_COLOUR) @ LUMINANCE)
+    solid = float((pix_sr * cos_sun * in_sun).sum())
+    img[in_sun] += colour * (SUNSET_SUN_IRRADIANCE / solid)
+    return img.astype(np.float32)
+
+
+@functools.lru_cache(maxsize=4)
+def _cached_map(source: str, mtime: float, scale: float, rotation_deg: float) -> EnvironmentMap:
+    """Build (once per source, scale and rotation) an environment map."""
+    if source == "procedural_sunset":
+        rad = procedural_sunset()
+    else:
+        from .imageio import read_image
+        rad = read_image(source, channels=3, what="environment map")
+    return EnvironmentMap(rad * np.float32(scale), rotation_deg=rotation_deg, name=source)
+
+
+def environment_map(light, *, rotation_deg: float = 0.0) -> EnvironmentMap:
+    """The :class:`EnvironmentMap` of an environment ``LightConfig`` (cached).
+
+    ``light.map`` is ``"procedural_sunset"`` or a lat-long HDR/EXR path read with
+    OpenImageIO (:func:`pipeline.imageio.read_image`); ``light.scale`` multiplies it.
+    """
+    source = str(getattr(light, "map", "procedural_sunset"))
+    mtime = 0.0
+    if source != "procedural_sunset":
+        path = Path(source).expanduser()
+        if not path.is_file():
+            raise ConfigError(f"lights.{light.name}.map = {source!r}: file not found; use "
+                              '"procedural_sunset" for the embedded sky')
+        source, mtime = str(path.resolve()), path.stat().st_mtime
+    scale = float(getattr(light, "scale", 1.0))
+    if not (scale >= 0 and math.isfinite(scale)):
+        raise ConfigError(f"lights.{light.name}.scale = {scale}: must be finite and >= 0")
+    return _cached_map(source, mtime, scale, float(rotation_deg))
