@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from .config import Scene, load_scene
@@ -28,6 +28,7 @@ class RunContext:
     device: str | None = None
     out_dir: Path | None = None
     progress: object = None
+    memo: dict = field(default_factory=dict)   # per-run reuse (e.g. Embree scenes per mesh key)
     _env: object = None
 
     @property
@@ -102,7 +103,7 @@ def run(scene: Scene, *, cache=None, until: str | None = None, force=(), device:
 
 
 def _export(scene: Scene, store: Store, summary: RunSummary) -> Path:
-    """Copy file artifacts to the output directory and write run.json beside them."""
+    """Copy file artifacts to ``output_dir/<scene>/<stage>/`` and write run.json beside them."""
     out = Path(scene.output.output_dir) / scene.scene.name
     out.mkdir(parents=True, exist_ok=True)
     for rep in summary.nodes:
@@ -110,7 +111,8 @@ def _export(scene: Scene, store: Store, summary: RunSummary) -> Path:
         for name in meta.get("files", []):
             src = Path(rep.path) / name
             if src.is_file():
-                shutil.copy2(src, out / f"{rep.id}-{name}" if rep.id not in name else out / name)
+                (out / rep.stage).mkdir(exist_ok=True)
+                shutil.copy2(src, out / rep.stage / name)
     (out / "run.json").write_text(json.dumps({
         "scene": scene.path, "cache": str(store.root),
         "nodes": [{"id": r.id, "status": r.status, "seconds": r.seconds,

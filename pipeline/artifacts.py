@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Mesh", "BakedMaps", "LayerProfile", "save", "load", "ARTIFACT_TYPES"]
+__all__ = ["Mesh", "BakedMaps", "LayerProfile", "RenderedImage", "save", "load", "ARTIFACT_TYPES"]
 
 
 @dataclass
@@ -95,7 +95,23 @@ class LayerProfile:
     info: dict = field(default_factory=dict)
 
 
-ARTIFACT_TYPES = {cls.__name__: cls for cls in (Mesh, BakedMaps, LayerProfile)}
+@dataclass
+class RenderedImage:
+    """One rendered image (model x light x geometry).
+
+    linear : (H, W, 3) float32 linear RGB radiance, 0 where the camera ray missed
+    mask : (H, W) bool, camera ray hit the mesh
+    timings : dict of seconds (visibility, shadows, shading, kernel_seconds, total, ...)
+    info : dict (model, light, geometry, samples, ray counts)
+    """
+
+    linear: np.ndarray
+    mask: np.ndarray
+    timings: dict = field(default_factory=dict)
+    info: dict = field(default_factory=dict)
+
+
+ARTIFACT_TYPES = {cls.__name__: cls for cls in (Mesh, BakedMaps, LayerProfile, RenderedImage)}
 
 
 def _jsonable(value: Any) -> Any:

@@ -14,7 +14,7 @@ from __future__ import annotations
 import difflib
 import math
 import tomllib
-from dataclasses import MISSING, dataclass, field, fields, is_dataclass
+from dataclasses import MISSING, dataclass, field, fields, is_dataclass, replace
 from importlib import resources
 from pathlib import Path
 from typing import Any, get_args, get_origin, get_type_hints
@@ -90,13 +90,16 @@ class LightConfig:
     radius: float = spec(70.0, lo=0.0, lo_open=True, unit="length", doc="disc radius (thesis 70 mm)")
     map: str = spec("procedural_sunset", doc='environment: "procedural_sunset" or an HDR/EXR path')
     scale: float = spec(1.0, lo=0.0, doc="environment radiance multiplier")
+    rotation_deg: float = spec(0.0, lo=-360.0, hi=360.0, doc="environment: turn about +y")
     samples: int = spec(16, lo=1, hi=4096, doc="shadow samples (thesis: 16)")
 
 
 @dataclass(frozen=True)
 class RenderConfig:
     models: tuple = spec(MODELS, choices=MODELS)
-    lights: tuple = spec((), doc="names of [[lights]] to render; empty = all")
+    lights: tuple = spec((), doc='lighting conditions to render: names of [[lights]], "a+b" '
+                                "lights several together (the thesis's two directional "
+                                "lights); empty = each light alone")
     geometries: tuple = spec(("high", "low_bump", "low_bump_blur"), choices=GEOMETRIES)
     # Lambert default: in the thesis's timings asperity renders beat Lafortune for every light
     # (physics.md s7), so its base cannot have been a costlier model (an inference; see asperity.cl)
@@ -139,9 +142,11 @@ class Scene:
     def light_by_name(self) -> dict:
         return {l.name: l for l in self.lights}
 
-    def requested_lights(self) -> tuple:
-        names = self.render.lights or tuple(l.name for l in self.lights)
-        return tuple(self.light_by_name[n] for n in names)
+    def light_groups(self) -> tuple:
+        """The lighting conditions to render: (label, tuple of LightConfig) pairs."""
+        labels = self.render.lights or tuple(l.name for l in self.lights)
+        return tuple((label, tuple(self.light_by_name[n] for n in label.split("+")))
+                     for label in labels)
 
     def mesh_path(self) -> Path | None:
         if self.mesh.source == "procedural":
@@ -332,6 +337,13 @@ def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | No
         light = _build(LightConfig, lt, where, f"lights[{i}].", problems, length_scale)
         if light is not None:
             lights.append(light)
+    for i, light in enumerate(lights):  # map paths are relative to the scene file
+        if light.type == "environment" and light.map != "procedural_sunset":
+            p = _resolve(light.map, where)
+            if not p.is_file():
+                problems.add(where, f"lights[{i}].map", f" = {_fmt(light.map)}: file not found "
+                             f'({p}); use "procedural_sunset" for the embedded sky')
+            lights[i] = replace(light, map=str(p.resolve()))
     names = [l.name for l in lights]
     for n in {n for n in names if names.count(n) > 1}:
         problems.add(where, "lights", f": name {_fmt(n)} is used twice; names must be unique")
@@ -359,10 +371,12 @@ def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | No
 
     if scene is not None:
         render = scene.render
-        for n in render.lights:
-            if n not in names:
-                problems.add(where, "render.lights", f": {_fmt(n)} names no [[lights]] entry; "
-                             "defined: " + (", ".join(_fmt(x) for x in names) or "none"))
+        for label in render.lights:
+            for n in label.split("+"):
+                if n not in names:
+                    problems.add(where, "render.lights", f": {_fmt(n)} (in {_fmt(label)}) names "
+                                 "no [[lights]] entry; defined: "
+                                 + (", ".join(_fmt(x) for x in names) or "none"))
         if scene.mesh.source != "procedural":
             p = _resolve(scene.mesh.source, where)
             if not p.is_file():

@@ -495,4 +495,5 @@ def environment_map(light, *, rotation_deg: float = 0.0) -> EnvironmentMap:
     scale = float(getattr(light, "scale", 1.0))
     if not (scale >= 0 and math.isfinite(scale)):
         raise ConfigError(f"lights.{light.name}.scale = {scale}: must be finite and >= 0")
+    rotation_deg = rotation_deg or float(getattr(light, "rotation_deg", 0.0))
     return _cached_map(source, mtime, scale, float(rotation_deg))

@@ -11,6 +11,7 @@ output directory) so that the stage functions themselves stay pure.
 from __future__ import annotations
 
 import hashlib
+import json
 from dataclasses import asdict
 from pathlib import Path
 
@@ -20,7 +21,13 @@ from .graph import Node, StageResult
 __all__ = ["build_graph", "STAGE_NAMES", "file_digest"]
 
 # Every stage name, in pipeline order (for --until / --force / clean validation).
-STAGE_NAMES = ("mesh_source", "mesh_high", "mesh_low", "bake", "mesh_previews", "profiles")
+STAGE_NAMES = ("mesh_source", "mesh_high", "mesh_low", "bake", "mesh_previews", "profiles",
+               "render", "images")
+
+GEOMETRY_MESH = {"high": "mesh_high", "low": "mesh_low", "low_bump": "mesh_low",
+                 "low_bump_blur": "mesh_low"}
+GEOMETRY_BUMP = {"high": None, "low": None, "low_bump": "sharp", "low_bump_blur": "blur"}
+BRDF_MODELS = ("lafortune", "hk93", "asperity")
 
 
 def file_digest(path: Path) -> str:
@@ -158,6 +165,79 @@ def _profiles(scene: Scene) -> Node:
     return Node("profiles", "profiles", "stages.profiles", params, (), fn, "layer profiles")
 
 
+def _visibility(ctx, mesh_node: str, mesh):
+    """One Embree scene per mesh per run, shared by every image of that mesh."""
+    from .visibility import Visibility
+    key = ("visibility", mesh_node)
+    if key not in ctx.memo:
+        ctx.memo[key] = Visibility(mesh.vertices, mesh.faces)
+    return ctx.memo[key]
+
+
+def _model_params(scene: Scene, model: str):
+    """The parameter objects of a BRDF model, all derived from the scene's one layer stack."""
+    from stages.brdf_models import AsperityParams, HK93Params, LafortuneParams
+    hk = lambda: HK93Params(layers=scene.optics)  # noqa: E731 - HK93 shares the BSSRDF's layers
+    if model == "lafortune":
+        return LafortuneParams(), None
+    if model == "hk93":
+        return hk(), None
+    base = scene.render.asperity_base
+    base_params = {"lafortune": LafortuneParams, "hk93": hk}.get(base, lambda: None)()
+    return AsperityParams(base=base), base_params
+
+
+def _render(scene: Scene, model: str, label: str, lights: tuple, geometry: str) -> Node:
+    mesh_node, bump = GEOMETRY_MESH[geometry], GEOMETRY_BUMP[geometry]
+    deps = (mesh_node,) + (("bake",) if bump else ())
+    uses_optics = model == "hk93" or (model == "asperity" and scene.render.asperity_base == "hk93")
+    params = {"model": model, "lights": [asdict(l) for l in lights], "camera": asdict(scene.camera),
+              "bump": bump, "seed": scene.mesh.seed,
+              "asperity_base": scene.render.asperity_base if model == "asperity" else None,
+              "optics": scene.optics.to_dict() if uses_optics else None}
+    for light in lights:
+        if light.type == "environment" and light.map != "procedural_sunset":
+            params[f"map_sha256_{light.name}"] = file_digest(Path(light.map))
+    node_id = f"render-{model}-{label}-{geometry}"
+
+    def fn(inputs, ctx):
+        from stages import render
+        from .artifacts import RenderedImage
+        from .imageio import write_exr
+        mesh = inputs[mesh_node]
+        p, base_params = _model_params(scene, model)
+        result = render.render(mesh, list(lights), model, p, scene.camera, maps=inputs.get("bake"),
+                               bump=bump, seed=scene.mesh.seed,
+                               visibility=_visibility(ctx, mesh_node, mesh),
+                               asperity_base=scene.render.asperity_base if model == "asperity"
+                               else None, base_params=base_params, cl_env=ctx.cl,
+                               progress=ctx.progress)
+        name = f"{model}-{label}-{geometry}"
+        write_exr(ctx.out_dir / f"{name}.exr", result.linear)
+        image = RenderedImage(result.linear, result.mask, dict(result.timings),
+                              {**result.info, "model": model, "light": label,
+                               "geometry": geometry})
+        return StageResult(image, files=[f"{name}.exr"],
+                           info={"timings": result.timings,
+                                 "kernel_seconds": result.timings.get("kernel_seconds", 0.0)})
+
+    return Node(node_id, "render", "stages.render", params, deps, fn,
+                f"{model} / {label} / {geometry}")
+
+
+def _images(scene: Scene, render_ids: list[str]) -> Node:
+    """Tone-map every rendered image with ONE shared exposure; write PNGs and a contact sheet."""
+    params = {"renders": sorted(render_ids)}
+
+    def fn(inputs, ctx):
+        from reports import comparison
+        files = comparison.write_pngs({nid: inputs[nid] for nid in render_ids}, ctx.out_dir)
+        return StageResult(files=[f.name for f in files])
+
+    return Node("images", "images", "reports.comparison", params, tuple(render_ids), fn,
+                "tone-mapped PNGs")
+
+
 # --------------------------------------------------------------------------- graph
 def build_graph(scene: Scene) -> tuple[dict[str, Node], list[str]]:
     """Nodes needed by the scene's requested outputs, and the target node ids.
@@ -192,4 +272,15 @@ def build_graph(scene: Scene) -> tuple[dict[str, Node], list[str]]:
         add(_mesh_previews(scene, needs_bake), target=True)
     if needs_profiles:
         add(_profiles(scene), target=True)
+    render_ids = []
+    for model in scene.render.models:
+        if model not in BRDF_MODELS:
+            continue  # the BSSRDF renders through its own stages
+        for label, lights in scene.light_groups():
+            for geometry in scene.render.geometries:
+                node = _render(scene, model, label, lights, geometry)
+                add(node)
+                render_ids.append(node.id)
+    if render_ids:
+        add(_images(scene, render_ids), target=True)
     return nodes, targets

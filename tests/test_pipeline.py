@@ -23,11 +23,16 @@ def built(tmp_path_factory):
 
 def test01_first_run_builds_every_requested_stage(built):
     scene, root, first = built
-    assert first.ran() == ["mesh_source", "mesh_high", "mesh_low", "bake", "mesh_previews",
-                           "profiles"]
+    ran = first.ran()
+    assert ran[:6] == ["mesh_source", "mesh_high", "mesh_low", "bake", "mesh_previews",
+                       "profiles"]
+    renders = [r for r in ran if r.startswith("render-")]
+    assert len(renders) == 3 * 4 * 3                    # BRDF models x lighting x geometries
+    assert "render-hk93-dir_left+dir_right-low_bump_blur" in renders
+    assert ran[-1] == "images"
     out = root / "out" / "quick"
     assert (out / "run.json").is_file()
-    assert sorted(p.name for p in out.glob("*.png"))  # previews were exported
+    assert sorted(p.name for p in out.glob("mesh_previews/*.png"))  # previews were exported
 
 
 def test02_second_run_runs_nothing(built):
@@ -44,7 +49,11 @@ def test03_one_parameter_reruns_exactly_downstream(built):
     assert status["bake"].reasons == ["config_changed blur_sigma_px"]
     assert status["mesh_previews"].reasons == ["upstream_changed bake (stale)"]
     s = api.run(blurrier, cache=root / "cache")
-    assert s.ran() == ["bake", "mesh_previews"]
+    low_bump = [r for r in s.ran() if r.startswith("render-")]
+    assert s.ran()[:2] == ["bake", "mesh_previews"] and s.ran()[-1] == "images"
+    assert low_bump and all(r.endswith("-low_bump") or r.endswith("-low_bump_blur")
+                            for r in low_bump)          # the high-mesh renders stay cached
+    assert len(low_bump) == 3 * 4 * 2
 
 
 def test04_until_builds_only_what_the_stage_needs(built, tmp_path):
@@ -57,11 +66,13 @@ def test05_graph_holds_only_what_outputs_need():
     brdf_high = load_scene(QUICK, overrides={"render": {"models": ["lafortune"],
                                                         "geometries": ["high"]}})
     nodes, _ = build_graph(brdf_high)
-    assert set(nodes) == {"mesh_source", "mesh_high", "mesh_previews"}
+    assert set(nodes) == {"mesh_source", "mesh_high", "mesh_previews", "images"} | {
+        f"render-lafortune-{l}-high" for l in ("point", "area", "dir_left+dir_right", "sunset")}
     unbumped = load_scene(QUICK, overrides={"render": {"geometries": ["low"]},
                                             "output": {"previews": False}})
     nodes, _ = build_graph(unbumped)
-    assert set(nodes) == {"mesh_source", "mesh_high", "mesh_low", "profiles"}
+    assert {n for n in nodes if not n.startswith("render-")} == {
+        "mesh_source", "mesh_high", "mesh_low", "profiles", "images"}
 
 
 def test06_cli_run_status_clean(built, capsys):
@@ -71,7 +82,7 @@ def test06_cli_run_status_clean(built, capsys):
     out = capsys.readouterr().out
     assert "mesh_source" in out and "cached" in out and " ran " not in out
     assert main(["status", str(QUICK), "--cache", cache]) == 0
-    assert "0 of 6 stages stale" in capsys.readouterr().out
+    assert "0 of 43 stages stale" in capsys.readouterr().out
     assert main(["run", str(QUICK), "--cache", cache, "--until", "nope"]) == 2
     capsys.readouterr()
     assert main(["clean", "--cache", cache, "--stage", "profiles"]) == 0
