@@ -58,7 +58,11 @@ __kernel void shade_samples(
 #elif DERMIS_BASE == 1
     float3 f = lafortune_f(wo, wi, a, base_params);
 #elif DERMIS_BASE == 2
-    float3 f = hk93_f(wo, wi, base_params);
+    /* texture tint of the constant multiple-scattering term: the host passes albedo / Rd of
+     * the layers (1 where untextured), so rho_ms -> rho_ms * a (HK93Params.texture_reference) */
+    float3 f = hk93_f(wo, wi, base_params)
+             + vload3(0, base_params + 16) * (a - (float3)(1.0f)) * DERMIS_INV_PI;
+    if (!(wo.z > 0.0f && wi.z > 0.0f)) f = (float3)(0.0f);
 #else
     float3 f = (float3)(0.0f);
 #endif

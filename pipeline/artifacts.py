@@ -20,7 +20,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Mesh", "BakedMaps", "LayerProfile", "RenderedImage", "save", "load", "ARTIFACT_TYPES"]
+__all__ = ["Mesh", "BakedMaps", "LayerProfile", "RenderedImage", "SurfacePoints",
+           "PointIrradiance", "save", "load", "ARTIFACT_TYPES"]
 
 
 @dataclass
@@ -111,7 +112,34 @@ class RenderedImage:
     info: dict = field(default_factory=dict)
 
 
-ARTIFACT_TYPES = {cls.__name__: cls for cls in (Mesh, BakedMaps, LayerProfile, RenderedImage)}
+@dataclass
+class SurfacePoints:
+    """Points spread uniformly over a mesh for irradiance caching (Jensen-Buhler pass 1).
+
+    positions : (N, 3) float32, mm; normals : (N, 3) float32 unit; areas : (N,) float32 mm^2
+    (each point's share of the surface, summing to the mesh area); info : dict
+    """
+
+    positions: np.ndarray
+    normals: np.ndarray
+    areas: np.ndarray
+    info: dict = field(default_factory=dict)
+
+
+@dataclass
+class PointIrradiance:
+    """Irradiance at each :class:`SurfacePoints` point from one lighting condition.
+
+    irradiance : (N, 3) float32, light units / mm^2 (point, disc) or as the light's
+    intensity (directional) or radiance x sr (environment); info : dict (samples, timings)
+    """
+
+    irradiance: np.ndarray
+    info: dict = field(default_factory=dict)
+
+
+ARTIFACT_TYPES = {cls.__name__: cls for cls in (Mesh, BakedMaps, LayerProfile, RenderedImage,
+                                                SurfacePoints, PointIrradiance)}
 
 
 def _jsonable(value: Any) -> Any:

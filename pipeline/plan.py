@@ -22,7 +22,7 @@ __all__ = ["build_graph", "STAGE_NAMES", "file_digest"]
 
 # Every stage name, in pipeline order (for --until / --force / clean validation).
 STAGE_NAMES = ("mesh_source", "mesh_high", "mesh_low", "bake", "mesh_previews", "profiles",
-               "render", "images")
+               "samples", "irradiance", "render", "images")
 
 GEOMETRY_MESH = {"high": "mesh_high", "low": "mesh_low", "low_bump": "mesh_low",
                  "low_bump_blur": "mesh_low"}
@@ -225,6 +225,121 @@ def _render(scene: Scene, model: str, label: str, lights: tuple, geometry: str) 
                 f"{model} / {label} / {geometry}")
 
 
+def _samples(scene: Scene, mesh_node: str) -> Node:
+    """Uniform irradiance points on one mesh: cached per mesh, not per light."""
+    from stages.samples import spacing_from_mfp
+    spacing = spacing_from_mfp(scene.optics, scene.bssrdf.point_density)
+    params = {"spacing_mm": spacing, "seed": scene.mesh.seed}
+
+    def fn(inputs, ctx):
+        from stages import samples
+        from .artifacts import SurfacePoints
+        mesh = inputs[mesh_node]
+        pts = samples.run(mesh.vertices, mesh.faces, spacing_mm=spacing, seed=scene.mesh.seed,
+                          vertex_normals=mesh.normals)
+        return StageResult(SurfacePoints(pts.positions, pts.normals, pts.areas, pts.info),
+                           info={"points": int(len(pts.positions)), "spacing_mm": spacing})
+
+    return Node(f"samples-{mesh_node}", "samples", "stages.samples", params, (mesh_node,), fn,
+                "irradiance points")
+
+
+def _irradiance(scene: Scene, mesh_node: str, label: str, lights: tuple) -> Node:
+    """Irradiance at the sample points from one lighting condition (thesis: 64 shadow samples)."""
+    samples_id = f"samples-{mesh_node}"
+    params = {"lights": [asdict(l) for l in lights], "samples": scene.bssrdf.irradiance_samples,
+              "seed": scene.mesh.seed}
+    for light in lights:
+        if light.type == "environment" and light.map != "procedural_sunset":
+            params[f"map_sha256_{light.name}"] = file_digest(Path(light.map))
+
+    def fn(inputs, ctx):
+        import time
+        from .artifacts import PointIrradiance
+        from .lights import irradiance
+        pts, mesh = inputs[samples_id], inputs[mesh_node]
+        t0 = time.perf_counter()
+        vis = _visibility(ctx, mesh_node, mesh)
+        E = irradiance(pts.positions, pts.normals, list(lights), vis.occluded,
+                       samples=scene.bssrdf.irradiance_samples, seed=scene.mesh.seed)
+        info = {"seconds": time.perf_counter() - t0, "points": int(len(E)),
+                "samples": scene.bssrdf.irradiance_samples}
+        return StageResult(PointIrradiance(E, info), info=info)
+
+    return Node(f"irradiance-{mesh_node}-{label}", "irradiance", "pipeline.lights", params,
+                (samples_id, mesh_node), fn, f"irradiance {label}")
+
+
+def _render_bssrdf(scene: Scene, label: str, lights: tuple, geometry: str) -> Node:
+    """Jensen-Buhler pass 2 at every pixel: hierarchical gather, Fresnel exit, surface term."""
+    mesh_node, bump = GEOMETRY_MESH[geometry], GEOMETRY_BUMP[geometry]
+    samples_id, irr_id = f"samples-{mesh_node}", f"irradiance-{mesh_node}-{label}"
+    deps = (mesh_node, samples_id, irr_id, "profiles") + (("bake",) if bump else ())
+    b = scene.bssrdf
+    params = {"camera": asdict(scene.camera), "bump": bump, "bssrdf": asdict(b),
+              "lights": [asdict(l) for l in lights], "seed": scene.mesh.seed}
+    node_id = f"render-bssrdf-{label}-{geometry}"
+
+    def fn(inputs, ctx):
+        import time
+        import numpy as np
+        from stages import gather, render
+        from .artifacts import RenderedImage
+        from .imageio import write_exr
+        t_start = time.perf_counter()
+        mesh, maps, profile = inputs[mesh_node], inputs.get("bake"), inputs["profiles"]
+        vis = _visibility(ctx, mesh_node, mesh)
+        px = render.pixel_surface(mesh, scene.camera, maps=maps, bump=bump, visibility=vis,
+                                  cl_env=ctx.cl)
+        t_vis = time.perf_counter() - t_start
+        key = ("octree", irr_id)
+        t0 = time.perf_counter()
+        if key not in ctx.memo:  # one octree per (points, lighting), shared by geometries
+            pts = inputs[samples_id]
+            ctx.memo[key] = gather.build_octree(pts.positions, pts.areas,
+                                                inputs[irr_id].irradiance, leaf_size=b.leaf_size)
+        t_tree = time.perf_counter() - t0
+        front = px.front_idx
+        surf = px.surf
+        t0 = time.perf_counter()
+        M, stats = gather.gather(ctx.memo[key], profile, surf["position"][front],
+                                 epsilon=b.epsilon, normalisation=b.normalisation, env=ctx.cl,
+                                 brute_force=b.brute_force, progress=ctx.progress)
+        t_gather = time.perf_counter() - t0
+        cos_o = np.einsum("ij,ij->i", surf["shading_normal"][front], surf["wo"][front])
+        eta = scene.optics.layers[0].eta / scene.optics.eta_above
+        albedo = None if b.albedo_mode == "none" else surf["albedo"][front]
+        L = gather.exitance_to_radiance(M, cos_o, eta, albedo=albedo,
+                                        albedo_mode="replace" if albedo is None else b.albedo_mode,
+                                        rd=profile.Rd)
+        image = np.zeros((px.height * px.width, 3), np.float32)
+        image[px.hit_idx[front]] = L
+        timings = {"visibility": t_vis, "octree": t_tree, "gather": t_gather,
+                   "kernel_seconds": float(stats.get("kernel_seconds", 0.0)) + px.kernel_seconds}
+        if b.surface_reflection == "lafortune_lobes":
+            from stages.brdf_models import LafortuneParams
+            spec = render.render(mesh, list(lights), "lafortune",
+                                 LafortuneParams(rho_d=(0.0, 0.0, 0.0)), scene.camera,
+                                 maps=maps, bump=bump, seed=scene.mesh.seed, visibility=vis,
+                                 cl_env=ctx.cl, textured=False)
+            image += spec.linear.reshape(-1, 3)
+            timings["surface_reflection"] = spec.timings["total"]
+            timings["kernel_seconds"] += spec.timings.get("kernel_seconds", 0.0)
+        image = np.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0)
+        timings["total"] = time.perf_counter() - t_start
+        linear = image.reshape(px.height, px.width, 3)
+        mask = px.hits.hit.reshape(px.height, px.width)
+        name = f"bssrdf-{label}-{geometry}"
+        write_exr(ctx.out_dir / f"{name}.exr", linear)
+        info = {"model": "bssrdf", "light": label, "geometry": geometry,
+                "gather": {k: v for k, v in stats.items() if isinstance(v, (int, float, str))}}
+        return StageResult(RenderedImage(linear, mask, timings, info), files=[f"{name}.exr"],
+                           info={"timings": timings, "kernel_seconds": timings["kernel_seconds"]})
+
+    return Node(node_id, "render", "stages.gather", params, deps, fn,
+                f"bssrdf / {label} / {geometry}")
+
+
 def _images(scene: Scene, render_ids: list[str]) -> Node:
     """Tone-map every rendered image with ONE shared exposure; write PNGs and a contact sheet."""
     params = {"renders": sorted(render_ids)}
@@ -274,11 +389,15 @@ def build_graph(scene: Scene) -> tuple[dict[str, Node], list[str]]:
         add(_profiles(scene), target=True)
     render_ids = []
     for model in scene.render.models:
-        if model not in BRDF_MODELS:
-            continue  # the BSSRDF renders through its own stages
         for label, lights in scene.light_groups():
             for geometry in scene.render.geometries:
-                node = _render(scene, model, label, lights, geometry)
+                if model == "bssrdf":
+                    mesh_node = GEOMETRY_MESH[geometry]
+                    add(_samples(scene, mesh_node))
+                    add(_irradiance(scene, mesh_node, label, lights))
+                    node = _render_bssrdf(scene, label, lights, geometry)
+                else:
+                    node = _render(scene, model, label, lights, geometry)
                 add(node)
                 render_ids.append(node.id)
     if render_ids:

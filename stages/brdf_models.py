@@ -336,6 +336,14 @@ class HK93Params:
                f"{_fmt(np.round(limit, 4))} (else the directional albedo exceeds 1)")
         object.__setattr__(self, "multiple_scattering", ms)
 
+    def texture_reference(self) -> np.ndarray:
+        """(3,) diffusion total reflectance Rd of the layers: the albedo at which a texture
+        leaves rho_ms unchanged.  The renderer tints the multiple-scattering term per pixel as
+        rho_ms * albedo / Rd (the texture is read as total diffuse reflectance, as for the
+        BSSRDF's "replace" mode); with albedo <= 1 the directional albedo stays <= 1 because
+        rho_ms = Rd - max rho_ss."""
+        return np.asarray(_diffuse_reflectance(self.layers), dtype=np.float64)
+
     @classmethod
     def from_layers(cls, layers, *, multiple_scattering=None) -> "HK93Params":
         """HK93Params from duck-typed layers (list, or a LayerStack with ``.layers``)."""

@@ -282,12 +282,68 @@ def _surface(env, mesh, hits_tri, hits_bary, camera_pos, *, texture, bump_map, b
     return {k: v[:m] for k, v in outs.items()}, event_seconds(ev)
 
 
+@dataclass
+class PixelSurface:
+    """Surface attributes at every pixel whose camera ray hits the mesh.
+
+    hits : Embree hits of all pixels; hit_idx : (M,) flat pixel indices of the hits;
+    surf : dict of (M, k) float32 arrays: position (mm), geo_normal, shading_normal (bump-
+    mapped), wo (unit, towards the eye), uv, albedo (linear); front_idx : indices into the M
+    hits that face the camera (geometric and shading normal); texture : the albedo texture
+    used (None: ``albedo_const``).
+    """
+
+    width: int
+    height: int
+    hits: object
+    hit_idx: np.ndarray
+    surf: dict
+    front_idx: np.ndarray
+    texture: object
+    kernel_seconds: float
+
+
+def pixel_surface(mesh, camera, *, maps=None, bump: str | None = None,
+                  visibility: Visibility | None = None, cl_env=None, width: int | None = None,
+                  height: int | None = None, textured: bool = True,
+                  albedo_const=(0.5, 0.5, 0.5)) -> PixelSurface:
+    """Camera rays through Embree, then cl/surface.cl: the shading inputs of every pixel.
+
+    Shared by the BRDF renderer and the BSSRDF gather so both see the same surface.
+    ``textured=False`` ignores the albedo texture (``albedo_const`` everywhere).
+    """
+    from pipeline.cl import get_env
+
+    env_cl = cl_env or get_env()
+    visibility = visibility or Visibility(mesh.vertices, mesh.faces)
+    w = int(width or camera.width)
+    h = int(height or camera.height)
+    origins, directions = camera_rays(camera, width=w, height=h)
+    hits = visibility.intersect(origins, directions)
+    hit_idx = np.flatnonzero(hits.hit)
+    texture = maps.albedo_srgb if maps is not None else mesh.texture_srgb
+    if not textured or (texture is not None and mesh.uv is None):
+        texture = None  # no UVs (or asked for none): the constant albedo stands in
+    bump_map = None
+    if bump is not None:
+        bump_map = maps.bump if bump == "sharp" else maps.bump_blur
+    cam_pos = np.asarray(camera.position, dtype=np.float64)
+    surf, ks = _surface(env_cl, mesh, hits.tri[hit_idx], hits.bary[hit_idx], cam_pos,
+                        texture=texture, bump_map=bump_map,
+                        bump_range=float(maps.bump_range_mm) if maps is not None else 0.0,
+                        albedo_const=np.asarray(albedo_const, dtype=np.float32))
+    ng, ns, wo = surf["geo_normal"], surf["shading_normal"], surf["wo"]
+    # back faces and views below the shading horizon stay black (module docstring)
+    front = (np.einsum("ij,ij->i", ng, wo) > 0) & (np.einsum("ij,ij->i", ns, wo) > 0)
+    return PixelSurface(w, h, hits, hit_idx, surf, np.flatnonzero(front), texture, ks)
+
+
 # --------------------------------------------------------------------------- render
 def render(mesh, light, model: str, params, camera, *, maps=None, bump: str | None = None,
            shadow_samples: int | None = None, seed: int = 0, env: EnvironmentMap | None = None,
            visibility: Visibility | None = None, asperity_base: str | None = None,
            base_params=None, cl_env=None, width: int | None = None,
-           height: int | None = None,
+           height: int | None = None, textured: bool = True,
            progress: Callable[[float], None] | None = None) -> RenderResult:
     """Render one image of ``mesh`` under ``light`` with a BRDF model.
 
@@ -323,6 +379,9 @@ def render(mesh, light, model: str, params, camera, *, maps=None, bump: str | No
     cl_env : pipeline.cl.ClEnv, optional
     width, height : int, optional
         Override the camera's image size.
+    textured : bool
+        False ignores the albedo texture (the model's constant albedo everywhere), e.g. to
+        render only Lafortune's specular lobes (rho_d = 0) on top of a BSSRDF image.
     progress : callable(float), optional
         Called with the completed fraction in [0, 1].
 
@@ -366,27 +425,13 @@ def render(mesh, light, model: str, params, camera, *, maps=None, bump: str | No
     else:
         scene_build = 0.0
     t0 = time.perf_counter()
-    w = int(width or camera.width)
-    h = int(height or camera.height)
-    origins, directions = camera_rays(camera, width=w, height=h)
-    hits = visibility.intersect(origins, directions)
-    hit_idx = np.flatnonzero(hits.hit)
-    texture = maps.albedo_srgb if maps is not None else mesh.texture_srgb
-    if texture is not None and mesh.uv is None:
-        texture = None  # no UVs: the constant albedo of the model stands in
-    bump_map = None
-    if bump is not None:
-        bump_map = maps.bump if bump == "sharp" else maps.bump_blur
-    cam_pos = np.asarray(camera.position, dtype=np.float64)
-    surf, ks = _surface(env_cl, mesh, hits.tri[hit_idx], hits.bary[hit_idx], cam_pos,
-                        texture=texture, bump_map=bump_map,
-                        bump_range=float(maps.bump_range_mm) if maps is not None else 0.0,
-                        albedo_const=_fallback_albedo(base, bparams))
-    kernel_s += ks
+    px = pixel_surface(mesh, camera, maps=maps, bump=bump, visibility=visibility,
+                       cl_env=env_cl, width=width, height=height, textured=textured,
+                       albedo_const=_fallback_albedo(base, bparams))
+    w, h, hits, hit_idx, surf, texture = px.width, px.height, px.hits, px.hit_idx, px.surf, px.texture
+    kernel_s += px.kernel_seconds
     ng, ns, wo = surf["geo_normal"], surf["shading_normal"], surf["wo"]
-    # back faces and views below the shading horizon stay black (module docstring)
-    front = (np.einsum("ij,ij->i", ng, wo) > 0) & (np.einsum("ij,ij->i", ns, wo) > 0)
-    shade_idx = np.flatnonzero(front)
+    shade_idx = px.front_idx
     t_visibility = time.perf_counter() - t0
 
     # ---- per-model device program and constant buffers
@@ -398,7 +443,11 @@ def render(mesh, light, model: str, params, camera, *, maps=None, bump: str | No
     asp_buf = _buf(cl, env_cl, np.asarray(asp_block, dtype=np.float32))
     ns_buf = _buf(cl, env_cl, ns)
     wo_buf = _buf(cl, env_cl, wo)
-    albedo_buf = _buf(cl, env_cl, surf["albedo"])
+    albedo = surf["albedo"]
+    if base == "hk93":  # the texture tints rho_ms: shade.cl expects albedo / Rd (1 = untinted)
+        albedo = (albedo / bparams.texture_reference()).astype(np.float32) if texture is not None \
+            else np.ones_like(albedo)
+    albedo_buf = _buf(cl, env_cl, albedo)
 
     # ---- shadows and shading, in batches of points
     per_point = sum(1 if lt.type in ("point", "directional")

@@ -27,8 +27,13 @@ def test01_first_run_builds_every_requested_stage(built):
     assert ran[:6] == ["mesh_source", "mesh_high", "mesh_low", "bake", "mesh_previews",
                        "profiles"]
     renders = [r for r in ran if r.startswith("render-")]
-    assert len(renders) == 3 * 4 * 3                    # BRDF models x lighting x geometries
+    assert len(renders) == 4 * 4 * 3                    # models x lighting x geometries
     assert "render-hk93-dir_left+dir_right-low_bump_blur" in renders
+    assert "render-bssrdf-sunset-low_bump" in renders
+    # BSSRDF: points per mesh (not per light), irradiance per mesh and lighting condition
+    assert sorted(r for r in ran if r.startswith("samples-")) == ["samples-mesh_high",
+                                                                   "samples-mesh_low"]
+    assert len([r for r in ran if r.startswith("irradiance-")]) == 2 * 4
     assert ran[-1] == "images"
     out = root / "out" / "quick"
     assert (out / "run.json").is_file()
@@ -53,7 +58,7 @@ def test03_one_parameter_reruns_exactly_downstream(built):
     assert s.ran()[:2] == ["bake", "mesh_previews"] and s.ran()[-1] == "images"
     assert low_bump and all(r.endswith("-low_bump") or r.endswith("-low_bump_blur")
                             for r in low_bump)          # the high-mesh renders stay cached
-    assert len(low_bump) == 3 * 4 * 2
+    assert len(low_bump) == 4 * 4 * 2
 
 
 def test04_until_builds_only_what_the_stage_needs(built, tmp_path):
@@ -71,8 +76,11 @@ def test05_graph_holds_only_what_outputs_need():
     unbumped = load_scene(QUICK, overrides={"render": {"geometries": ["low"]},
                                             "output": {"previews": False}})
     nodes, _ = build_graph(unbumped)
-    assert {n for n in nodes if not n.startswith("render-")} == {
-        "mesh_source", "mesh_high", "mesh_low", "profiles", "images"}
+    assert {n for n in nodes if not n.startswith(("render-", "irradiance-"))} == {
+        "mesh_source", "mesh_high", "mesh_low", "profiles", "samples-mesh_low", "images"}
+    no_bssrdf = load_scene(QUICK, overrides={"render": {"models": ["lafortune", "hk93"]}})
+    nodes, _ = build_graph(no_bssrdf)                   # a BRDF-only run: no points, no profiles
+    assert not [n for n in nodes if n.startswith(("samples", "irradiance", "profiles"))]
 
 
 def test06_cli_run_status_clean(built, capsys):
@@ -82,7 +90,7 @@ def test06_cli_run_status_clean(built, capsys):
     out = capsys.readouterr().out
     assert "mesh_source" in out and "cached" in out and " ran " not in out
     assert main(["status", str(QUICK), "--cache", cache]) == 0
-    assert "0 of 43 stages stale" in capsys.readouterr().out
+    assert "0 of 65 stages stale" in capsys.readouterr().out
     assert main(["run", str(QUICK), "--cache", cache, "--until", "nope"]) == 2
     capsys.readouterr()
     assert main(["clean", "--cache", cache, "--stage", "profiles"]) == 0
