@@ -1,52 +1,74 @@
 /* rng.h - counter-based random numbers: Philox4x32-10 (Salmon, Moraes, Dror, Shaw 2011,
  * "Parallel random numbers: as easy as 1, 2, 3", SC11).  Stateless: the output is a pure
  * function of (counter, key), so a photon's random stream depends only on the seed, the
- * work-item and its own draw count, and results repeat exactly on any device.
+ * stream id and its own draw count, and results repeat exactly on any device.
  * Constants: multipliers 0xD2511F53, 0xCD9E8D57 and Weyl key increments 0x9E3779B9,
  * 0xBB67AE85 from the paper; 10 rounds (the paper's recommended Crush-resistant count).
- * Guarded by tests/test_mc_slab.py (repeatability, moments of the uniform stream).
+ *
+ * Two forms of the same function: PHILOX4X32_10(T, MULHILO, ...) is a statement macro for
+ * any uint type T (uint, uint8, uint16: one independent stream per lane, so a float16
+ * kernel draws 16 lanes' blocks at once in SIMD registers); philox4x32_10 is the scalar
+ * uint4 form.  Both give the paper's known-answer vectors (Random123 kat_vectors), checked
+ * by tests/test_mc_slab.py::test05_philox_known_answers_and_cheap_math.
  */
 #ifndef DERMIS_RNG_H
 #define DERMIS_RNG_H
 
-typedef struct { uint4 ctr; uint2 key; uint4 out; int used; } philox_t;
+#define PHILOX_M0 0xD2511F53u
+#define PHILOX_M1 0xCD9E8D57u
+#define PHILOX_W0 0x9E3779B9u
+#define PHILOX_W1 0xBB67AE85u
 
-inline uint4 philox_round(uint4 c, uint2 k) {
-    uint hi0 = mul_hi(0xD2511F53u, c.x), lo0 = 0xD2511F53u * c.x;
-    uint hi1 = mul_hi(0xCD9E8D57u, c.z), lo1 = 0xCD9E8D57u * c.z;
-    return (uint4)(hi1 ^ c.y ^ k.x, lo1, hi0 ^ c.w ^ k.y, lo0);
-}
+/* 32 x 32 -> 64-bit products of each lane of c with the constant m: high and low words.
+ * PHILOX_MULHILO is the plain form for any uint type.  PHILOX_MULHILO_WIDE is the same
+ * for uint vectors through an explicit 64-bit product (ULN: the ulong vector type of the
+ * same width, CVT_UL / CVT_U its convert_ functions): PoCL 3.1 compiles mul_hi on uint16
+ * to far slower code: the whole tracer ran 1.4x faster with this form (A/B timing of the
+ * MCML case; an even/odd-lane as_ulong8 variant was ~3 % slower than this one). */
+#define PHILOX_MULHILO(c, m, hi, lo) do {                                              \
+        hi = mul_hi(c, (__typeof__(c))(m)); lo = (c) * (m);                            \
+    } while (0)
 
+#define PHILOX_MULHILO_WIDE(c, m, hi, lo, ULN, CVT_UL, CVT_U) do {                     \
+        ULN p_ = CVT_UL(c) * (ulong)(m);                                               \
+        hi = CVT_U(p_ >> 32); lo = (c) * (m);                                          \
+    } while (0)
+
+/* One round on the four counter words c0..c3 (lvalues of one uint type T) with the scalar
+ * round keys k0, k1; MULHILO(c, m, hi, lo) is one of the two product forms above. */
+#define PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, k0, k1) do {                          \
+        T hi0_, lo0_, hi1_, lo1_;                                                      \
+        MULHILO(c0, PHILOX_M0, hi0_, lo0_);                                            \
+        MULHILO(c2, PHILOX_M1, hi1_, lo1_);                                            \
+        c0 = hi1_ ^ (c1) ^ (k0); c1 = lo1_; c2 = hi0_ ^ (c3) ^ (k1); c3 = lo0_;         \
+    } while (0)
+
+/* Ten rounds in place: c0..c3 become the four output words.  The key schedule is scalar
+ * (the same seed for every lane), so it costs nothing per lane. */
+#define PHILOX4X32_10(T, MULHILO, c0, c1, c2, c3, key0, key1) do {                     \
+        const uint pk0_ = (key0), pk1_ = (key1);                                       \
+        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_, pk1_);                          \
+        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 1u * PHILOX_W0, pk1_ + 1u * PHILOX_W1); \
+        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 2u * PHILOX_W0, pk1_ + 2u * PHILOX_W1); \
+        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 3u * PHILOX_W0, pk1_ + 3u * PHILOX_W1); \
+        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 4u * PHILOX_W0, pk1_ + 4u * PHILOX_W1); \
+        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 5u * PHILOX_W0, pk1_ + 5u * PHILOX_W1); \
+        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 6u * PHILOX_W0, pk1_ + 6u * PHILOX_W1); \
+        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 7u * PHILOX_W0, pk1_ + 7u * PHILOX_W1); \
+        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 8u * PHILOX_W0, pk1_ + 8u * PHILOX_W1); \
+        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 9u * PHILOX_W0, pk1_ + 9u * PHILOX_W1); \
+    } while (0)
+
+/* Scalar form: counter c, key k (the paper's Philox4x32-10). */
 inline uint4 philox4x32_10(uint4 c, uint2 k) {
-    #pragma unroll
-    for (int i = 0; i < 10; ++i) {
-        c = philox_round(c, k);
-        k += (uint2)(0x9E3779B9u, 0xBB67AE85u);
-    }
-    return c;
+    uint c0 = c.x, c1 = c.y, c2 = c.z, c3 = c.w;
+    PHILOX4X32_10(uint, PHILOX_MULHILO, c0, c1, c2, c3, k.x, k.y);
+    return (uint4)(c0, c1, c2, c3);
 }
 
-/* Stream for (seed, stream id): counter (0, id, 0, 0), key (seed lo, seed hi). */
-inline philox_t philox_init(uint seed_lo, uint seed_hi, uint stream, uint sub) {
-    philox_t s;
-    s.ctr = (uint4)(0u, stream, sub, 0u);
-    s.key = (uint2)(seed_lo, seed_hi);
-    s.used = 4;
-    s.out = (uint4)(0u);
-    return s;
-}
-
-/* Uniform float in (0, 1]: 24 random bits, never 0 (so -log(u) is finite). */
-inline float philox_uniform(philox_t *s) {
-    if (s->used == 4) {
-        s->out = philox4x32_10(s->ctr, s->key);
-        s->ctr.x += 1u;
-        if (s->ctr.x == 0u) s->ctr.w += 1u;
-        s->used = 0;
-    }
-    uint v = s->used == 0 ? s->out.x : s->used == 1 ? s->out.y : s->used == 2 ? s->out.z : s->out.w;
-    s->used += 1;
-    return ((float)(v >> 8) + 1.0f) * (1.0f / 16777216.0f);
-}
+/* Uniform float in (0, 1] from the top 24 bits, never 0 (so -log(u) is finite).  Works on
+ * uint and on uintN through the CONVERT argument (convert_float, convert_float16, ...). */
+#define PHILOX_UNIFORM(v, CONVERT) \
+    ((CONVERT((v) >> 8) + 1.0f) * (1.0f / 16777216.0f))
 
 #endif

@@ -10,15 +10,14 @@ output directory) so that the stage functions themselves stay pure.
 """
 from __future__ import annotations
 
-import hashlib
-import json
 from dataclasses import asdict
 from pathlib import Path
 
 from .config import Scene
 from .graph import Node, StageResult
+from .store import file_digest
 
-__all__ = ["build_graph", "STAGE_NAMES", "file_digest"]
+__all__ = ["build_graph", "STAGE_NAMES"]
 
 # Every stage name, in pipeline order (for --until / --force / clean validation).
 STAGE_NAMES = ("mesh_source", "mesh_high", "mesh_low", "bake", "mesh_previews", "profiles",
@@ -28,15 +27,6 @@ GEOMETRY_MESH = {"high": "mesh_high", "low": "mesh_low", "low_bump": "mesh_low",
                  "low_bump_blur": "mesh_low"}
 GEOMETRY_BUMP = {"high": None, "low": None, "low_bump": "sharp", "low_bump_blur": "blur"}
 BRDF_MODELS = ("lafortune", "hk93", "asperity")
-
-
-def file_digest(path: Path) -> str:
-    """sha256 of a file's bytes (input files enter cache keys by content, not by name)."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 # --------------------------------------------------------------------------- adapters

@@ -14,6 +14,7 @@ removed by the next run.  ``meta.json`` is the validity marker.
 from __future__ import annotations
 
 import fcntl
+import hashlib
 import json
 import os
 import shutil
@@ -23,10 +24,19 @@ from pathlib import Path
 
 from .errors import CacheLockedError, DermisError
 
-__all__ = ["Store", "CACHE_ENV_VAR"]
+__all__ = ["Store", "CACHE_ENV_VAR", "file_digest"]
 
 CACHE_ENV_VAR = "DERMIS_CACHE"
 META = "meta.json"
+
+
+def file_digest(path: str | os.PathLike) -> str:
+    """sha256 of a file's bytes (input files enter cache keys by content, not by name)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
 
 
 class Store:

@@ -21,12 +21,20 @@ from pipeline.layers import LayerStack
 
 __all__ = ["VERSION", "KERNELS", "McResult", "run"]
 
-VERSION = 1
+VERSION = 2   # 2: SIMD kernel (16 photons per work-item), new random streams
 KERNELS = ("mc_slab.cl",)
 
-# Work-items per channel.  Measured on PoCL 3.1, 2 cores: photons/s is flat from 256 to
-# 4096 items; 1024 keeps the per-item histograms small and batches balanced.
-ITEMS = 1024
+# Photons in flight per work-item (float16 lanes: one AVX-512 register; see cl/mc_slab.cl).
+LANES = 16
+# Work-items per channel = batches * k with k the largest value <= MAX_ITEMS_PER_BATCH that
+# leaves every lane at least MIN_PHOTONS_PER_LANE photons: a work-item ends with idle lanes
+# while its last photons finish (up to ~1e4 steps in high-albedo media), so lanes need many
+# photons each to amortise that tail; 3 * batches >= 48 work-items keep 2 cores balanced.
+MIN_PHOTONS_PER_LANE = 256
+MAX_ITEMS_PER_BATCH = 4
+# Per work-item totals written by the kernel (cl/mc_slab.cl N_TOTALS): R, T, absorbed, lost,
+# interactions, busy lane-trips, trips.
+N_TOTALS = 7
 
 
 @dataclass
@@ -38,6 +46,9 @@ class McResult:
     Rd, Tt, absorbed, lost : (3,) totals per entered photon (lost: photons cut at the step cap)
     Rd_err, Tt_err, absorbed_err : (3,) standard errors (from ``batches`` independent batches)
     photons : int per channel; seconds : kernel time; photons_per_second : 3 * photons / seconds
+    info : device, items (work-items per channel), lanes (photons in flight per work-item),
+        batches, seed, wall_seconds, interactions_per_second, lane_occupancy (fraction of
+        lane-trips with a live photon), layers
     """
 
     r_edges: np.ndarray
@@ -60,14 +71,16 @@ class McResult:
 
 
 def _layer_table(stack: LayerStack) -> np.ndarray:
-    """(3, L, 8) float32: z_top, z_bot, sigma_a, sigma_s, g, eta per channel and layer."""
+    """(3, L, 8) float32 per channel and layer: z_top, z_bot, sigma_t, 1/sigma_t,
+    sigma_a/sigma_t, g, eta, 0 (ratios in float64, then rounded once)."""
     lays = stack.layers
     tab = np.zeros((3, len(lays), 8), np.float32)
     z = 0.0
     for k, lay in enumerate(lays):
         z1 = z + lay.thickness_mm
         for c in range(3):
-            tab[c, k] = (z, z1, lay.sigma_a[c], lay.sigma_s[c], lay.g, lay.eta, 0, 0)
+            mut = float(lay.sigma_a[c]) + float(lay.sigma_s[c])
+            tab[c, k] = (z, z1, mut, 1.0 / mut, lay.sigma_a[c] / mut, lay.g, lay.eta, 0)
         z = z1
     return tab
 
@@ -107,21 +120,22 @@ def run(stack: LayerStack, *, photons: int, r_max_mm: float, bins: int, seed: in
         raise DermisError(f"mc_slab: seed = {seed}: must be in 0 .. 2**32 - 1")
     stack = stack.nonzero()
     env = env or dcl.get_env()
-    items = max(ITEMS, batches)
-    items -= items % batches
+    k = photons // (batches * LANES * MIN_PHOTONS_PER_LANE)
+    items = batches * max(1, min(MAX_ITEMS_PER_BATCH, k))
     per_item = int(math.ceil(photons / items))
     n_total = per_item * items
     tab = _layer_table(stack)
-    knl = cl.Kernel(env.program("mc_slab.cl"), "mc_slab")  # fresh object: no retrieval warning
+    # a fresh Kernel object: no pyopencl retrieval warning
+    knl = cl.Kernel(env.program("mc_slab.cl", {"LANES": LANES}), "mc_slab")
     mf = cl.mem_flags
     d_tab = cl.Buffer(env.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=tab)
     hist = np.zeros((3, items, 2, bins), np.float32)
-    tots = np.zeros((3, items, 5), np.float32)
+    tots = np.zeros((3, items, N_TOTALS), np.float32)
     d_hist = cl.Buffer(env.context, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=hist)
     d_tots = cl.Buffer(env.context, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=tots)
     dr = r_max_mm / bins
     t0 = time.perf_counter()
-    ev = knl(env.queue, (items, 3), None, d_tab, np.int32(len(stack.layers)),
+    ev = knl(env.queue, (items, 3), (1, 1), d_tab, np.int32(len(stack.layers)),
              np.float32(stack.eta_above), np.float32(stack.eta_below), np.uint32(seed),
              np.int32(per_item), np.int32(bins), np.float32(1.0 / dr), d_hist, d_tots)
     ev.wait()
@@ -133,7 +147,7 @@ def run(stack: LayerStack, *, photons: int, r_max_mm: float, bins: int, seed: in
     # batch b holds work-items b, b + batches, ...: per-batch means, then mean +- s.e.
     per_batch = n_total // batches
     hb = hist.astype(np.float64).reshape(3, items // batches, batches, 2, bins).sum(1)
-    tb = tots.astype(np.float64).reshape(3, items // batches, batches, 5).sum(1)
+    tb = tots[..., :4].astype(np.float64).reshape(3, items // batches, batches, 4).sum(1)
     hb /= per_batch
     tb /= per_batch
     edges = np.linspace(0.0, r_max_mm, bins + 1)
@@ -148,6 +162,7 @@ def run(stack: LayerStack, *, photons: int, r_max_mm: float, bins: int, seed: in
     T = (h_mean[:, 1] / area).T
     R_err = (h_err[:, 0] / area).T
     T_err = (h_err[:, 1] / area).T
+    counts = tots[..., 4:].astype(np.float64).sum((0, 1))   # interactions, busy, trips
     if not np.all(np.isfinite(tots)):
         raise DermisError("mc_slab: non-finite weights from the kernel "
                           f"(device {env.description}); please report this stack")
@@ -156,6 +171,9 @@ def run(stack: LayerStack, *, photons: int, r_max_mm: float, bins: int, seed: in
         T_err=T_err, Rd=t_mean[:, 0], Tt=t_mean[:, 1], absorbed=t_mean[:, 2],
         lost=t_mean[:, 3], Rd_err=t_err[:, 0], Tt_err=t_err[:, 1], absorbed_err=t_err[:, 2],
         photons=n_total, seconds=seconds, photons_per_second=3 * n_total / seconds,
-        info={"device": env.description, "items": items, "batches": batches, "seed": seed,
-              "wall_seconds": wall,
-              "interactions_per_second": float(tots[..., 4].astype(np.float64).sum() / seconds), "layers": stack.to_dict()})
+        info={"device": env.description, "items": items, "lanes": LANES, "batches": batches,
+              "seed": seed, "wall_seconds": wall,
+              "interactions_per_second": float(counts[0] / seconds),
+              # fraction of lane-trips that carried a live photon (the rest is the idle tail)
+              "lane_occupancy": float(counts[1] / max(counts[2] * LANES, 1.0)),
+              "layers": stack.to_dict()})

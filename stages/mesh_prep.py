@@ -22,7 +22,6 @@ the top is ``(1 - v) * (H - 1)``, column ``u * (W - 1)``.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import struct
@@ -33,6 +32,7 @@ import numpy as np
 
 from pipeline.artifacts import Mesh
 from pipeline.errors import DermisError
+from pipeline.store import file_digest
 
 __all__ = [
     "VERSION", "KERNELS", "LPS_DISPLACEMENT_SCALE_MM", "LPS_DISPLACEMENT_MID",
@@ -99,15 +99,6 @@ _GLTF_OBJ_CONVENTION_SHA256 = {
 }
 
 
-def _file_sha256(path: Path) -> str:
-    """SHA-256 hex digest of a file."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def load_scan(path, *, units: str = "mm", texture=None, flip_v: bool | None = None) -> Mesh:
     """Read a textured triangle mesh (OBJ, PLY, glTF, GLB) into a :class:`Mesh` in mm.
 
@@ -171,7 +162,7 @@ def load_scan(path, *, units: str = "mm", texture=None, flip_v: bool | None = No
     if flip_v is None:
         flip_v = False
         if ext in (".gltf", ".glb"):
-            digest = _file_sha256(path)
+            digest = file_digest(path)
             known = _GLTF_OBJ_CONVENTION_SHA256.get(digest)
             flip_v = known is None
             info["uv_convention"] = (f"stored in OBJ convention ({known}); not flipped" if known

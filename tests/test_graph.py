@@ -1,6 +1,5 @@
 """Stage graph and cache semantics on toy stages (the product has only real stages)."""
 import json
-import sys
 
 import numpy as np
 import pytest

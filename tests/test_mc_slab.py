@@ -77,3 +77,69 @@ def test04_extremes_finite(env, lay):
     r = M.run(LayerStack((lay,)), photons=6000, r_max_mm=5, bins=10, env=env)
     for a in (r.R, r.T, r.Rd, r.Tt, r.absorbed):
         assert np.all(np.isfinite(a)) and np.all(a >= 0)
+
+
+def test05_philox_known_answers_and_cheap_math(env):
+    # Philox4x32-10 known-answer vectors (Random123 kat_vectors; Salmon et al. 2011) from
+    # the scalar and the vector (uint16 lanes) forms in cl/rng.h.
+    import pyopencl as cl
+    knl = cl.Kernel(env.program("mc_slab.cl", {"LANES": M.LANES}), "mc_selftest")
+    n = 1 << 16
+    # u = (k + 1) / 2^24: the tracer's uniforms, k spread over [0, 2^24) plus both ends
+    k = (np.arange(n, dtype=np.uint64) * 2654435761) % (1 << 24)
+    k[:2] = (0, (1 << 24) - 1)
+    u = ((k + 1).astype(np.float64) / 2.0**24).astype(np.float32)
+    mf = cl.mem_flags
+    d_kat = cl.Buffer(env.context, mf.READ_WRITE, 12 * 4)
+    d_u = cl.Buffer(env.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=u)
+    d_m = cl.Buffer(env.context, mf.READ_WRITE, 3 * n * 4)
+    knl(env.queue, (n // M.LANES,), None, d_kat, d_u, d_m)
+    kat = np.zeros(12, np.uint32)
+    m = np.zeros(3 * n, np.float32)
+    cl.enqueue_copy(env.queue, kat, d_kat)
+    cl.enqueue_copy(env.queue, m, d_m)
+    want = [0x6627e8d5, 0xe169c58d, 0xbc57ac4c, 0x9b00dbd8,
+            0x408f276d, 0x41c83b0e, 0xa20bc7c6, 0x6d5451fd,
+            0xd16cfe09, 0x94fdcceb, 0x5001e420, 0x24126ea1]
+    assert [int(v) for v in kat] == want
+    # -ln u: series error < 7e-10 plus float32 rounding of the result (|ln u| <= 16.7,
+    # 2^-24 relative -> 1e-6) and of the intermediate (a few ulp): 2e-6 absolute.
+    u64 = u.astype(np.float64)
+    np.testing.assert_allclose(m[:n], -np.log(u64), rtol=0, atol=2e-6)
+    # cos, sin of 2 pi u - pi: Taylor remainder < 6e-8, float rounding of pi (u - 1/2)
+    # (~1e-7 relative) and the double-angle step: 1e-6 absolute.
+    phi = 2 * np.pi * u64 - np.pi
+    np.testing.assert_allclose(m[n:2 * n], np.cos(phi), rtol=0, atol=1e-6)
+    np.testing.assert_allclose(m[2 * n:], np.sin(phi), rtol=0, atol=1e-6)
+
+
+def test06_split_layer_is_identity(env):
+    # Splitting a layer into two identical layers must not change R or T: exercises the
+    # boundary hit, the carried-over free path and the transmission between layers of the
+    # SIMD kernel.  Different seeds -> independent estimates; 5 combined standard errors.
+    one = LayerStack((Layer(1.0, 1.4, (0.1, 0.3, 0.02), (2.0, 4.0, 1.0), 0.5),))
+    two = LayerStack((Layer(0.3, 1.4, (0.1, 0.3, 0.02), (2.0, 4.0, 1.0), 0.5),
+                      Layer(0.7, 1.4, (0.1, 0.3, 0.02), (2.0, 4.0, 1.0), 0.5)))
+    a = M.run(one, photons=40000, r_max_mm=5, bins=10, seed=3, env=env)
+    b = M.run(two, photons=40000, r_max_mm=5, bins=10, seed=4, env=env)
+    assert np.all(np.abs(a.Rd - b.Rd) < 5 * np.hypot(a.Rd_err, b.Rd_err))
+    assert np.all(np.abs(a.Tt - b.Tt) < 5 * np.hypot(a.Tt_err, b.Tt_err))
+
+
+def test07_ballistic_two_layer_absorber(env):
+    # Pure absorbers (sigma_s = 0): photons fly along the normal, a free path that
+    # reaches the inner boundary carries its optical depth into the second layer, so the
+    # survival per pass is exp(-tau), tau = sum sigma_a d, and Fresnel at normal incidence
+    # R = ((n - 1) / (n + 1))^2 reflects at the faces.  Exact: T = (1 - R) e^-tau / (1 -
+    # R^2 e^-2tau), Rd = R (1 - R) e^-2tau / (1 - R^2 e^-2tau) (geometric series of
+    # reflections).  5 standard errors + 1e-4 (float32 layer table).
+    sa1, sa2 = np.array([1.0, 2.0, 0.5]), np.array([0.5, 0.2, 1.0])
+    st = LayerStack((Layer(0.5, 1.4, tuple(sa1), (0.0,) * 3),
+                     Layer(1.0, 1.4, tuple(sa2), (0.0,) * 3)))
+    r = M.run(st, photons=50000, r_max_mm=5, bins=10, env=env)
+    e = np.exp(-(0.5 * sa1 + 1.0 * sa2))
+    R = (0.4 / 2.4) ** 2
+    T = (1 - R) * e / (1 - R**2 * e**2)
+    Rd = R * (1 - R) * e**2 / (1 - R**2 * e**2)
+    assert np.all(np.abs(r.Tt - T) < 5 * r.Tt_err + 1e-4), (r.Tt, T)
+    assert np.all(np.abs(r.Rd - Rd) < 5 * r.Rd_err + 1e-4), (r.Rd, Rd)
