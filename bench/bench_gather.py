@@ -94,7 +94,8 @@ def main():
 
     env = get_env()
     res = {"device": env.description, "preset": args.preset, "note":
-           "2-core shared machine, other jobs running: times noisy (+-20 %)"}
+           "2-core shared machine, other jobs running: times noisy (+-20 %)",
+           "loadavg_start": list(__import__("os").getloadavg())}
     prof = profiles.run(PRESETS[args.preset])
     res["cutoff_mm"] = prof.cutoff_mm.tolist()
     v, f, mesh_name = load_mesh()
@@ -119,7 +120,8 @@ def main():
     sub = rng.choice(len(q), min(args.brute_queries, len(q)), replace=False)
 
     t = time.perf_counter()
-    tree = G.build_octree(sp.positions, sp.areas, e, leaf_size=8)
+    tree = G.build_octree(sp.positions, sp.areas, e, leaf_size=8,
+                          kernel_sigma_mm=sp.info.get("kernel_sigma_mm"))
     res["octree_build_seconds"] = time.perf_counter() - t
     res["octree"] = tree.info
     print(f"{mesh_name}: {len(sp.positions)} points, {len(q)} queries, tree {tree.info}", flush=True)
@@ -161,7 +163,8 @@ def main():
     # leaf size (at the default epsilon)
     leaf_rows = []
     for ls in (4, 8, 16):
-        tr = G.build_octree(sp.positions, sp.areas, e, leaf_size=ls)
+        tr = G.build_octree(sp.positions, sp.areas, e, leaf_size=ls,
+                            kernel_sigma_mm=sp.info.get("kernel_sigma_mm"))
         h, st = G.gather(tr, prof, q, env=env, epsilon=G.DEFAULT_EPSILON)
         leaf_rows.append({"leaf_size": ls, "kernel_s": st["kernel_seconds"],
                           "rel_rmse": rel_rmse(h[sub], b), "nodes": tr.info["nodes"]})
@@ -174,7 +177,8 @@ def main():
     qg = q[rng.choice(len(q), min(64_000, len(q)), replace=False)]
     for n in sorted({args.points // 16, args.points // 4, args.points}):
         spn, en, _ = make_points(n, seed=2) if n != args.points else (sp, e, None)
-        tr = G.build_octree(spn.positions, spn.areas, en)
+        tr = G.build_octree(spn.positions, spn.areas, en,
+                            kernel_sigma_mm=spn.info.get("kernel_sigma_mm"))
         _, st = G.gather(tr, prof, qg, env=env, epsilon=G.DEFAULT_EPSILON)
         _, sbn = G.gather(tr, prof, qg[:500], env=env, brute_force=True)
         growth.append({"points": len(spn.positions), "tree_kernel_s": st["kernel_seconds"],

@@ -4,7 +4,9 @@
  * Model: M_o(x) = sum_p R(|x - p|) E_p A_p  (physics.md section 4; Jensen & Buhler 2002,
  * "A rapid hierarchical rendering technique for translucent materials", eq. 3-4).  R(r) is
  * the layer file's radial profile R(r) in 1/mm^2 (stages/profiles.py), resampled on the
- * host into a uniform table that is zero beyond the per-channel cut-off radius.
+ * host into a uniform table that is zero beyond the per-channel cut-off radius.  The host
+ * passes R convolved with the points' reconstruction Gaussian (stages/gather.py
+ * blurred_profile; the flat-slab bound rests on it), so nothing here depends on which.
  *
  * Tree walk: the octree is flattened in depth-first pre-order with one "skip" index per
  * node (the next node outside its subtree), so the walk is a single forward loop with no
@@ -35,7 +37,8 @@
  *   pts_pa[j] = (x, y, z, A), pts_e[j] = (E A rgb, 0)  points in leaf (DFS) order;
  *   table[k] = R(k * TABLE_H) rgb; deriv[2k], deriv[2k+1] = R'' - R'/r, R'/r at the same r;
  *   TABLE_N entries, the last two zero (beyond every cut-off).
- * Guarded by tests/test_gather.py (flat slab, hierarchy vs brute force, zero irradiance).
+ * Guarded by tests/test_gather.py (flat slab on hex and on samples.run points per preset,
+ * sphere, hierarchy vs brute force, zero irradiance).
  */
 #include "common.h"
 

@@ -209,7 +209,8 @@ class ClEnv:
             return prg
 
     def kernel(self, name: str, kernel_name: str, defines: dict | None = None):
-        return getattr(self.program(name, defines), kernel_name)
+        """A fresh kernel object (its arguments are its own) from a cached program."""
+        return _cl().Kernel(self.program(name, defines), kernel_name)
 
 
 def _first_error_location(log: str, path: Path) -> str:

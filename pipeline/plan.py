@@ -286,8 +286,9 @@ def _render_bssrdf(scene: Scene, label: str, lights: tuple, geometry: str) -> No
         t0 = time.perf_counter()
         if key not in ctx.memo:  # one octree per (points, lighting), shared by geometries
             pts = inputs[samples_id]
-            ctx.memo[key] = gather.build_octree(pts.positions, pts.areas,
-                                                inputs[irr_id].irradiance, leaf_size=b.leaf_size)
+            ctx.memo[key] = gather.build_octree(
+                pts.positions, pts.areas, inputs[irr_id].irradiance, leaf_size=b.leaf_size,
+                kernel_sigma_mm=pts.info.get("kernel_sigma_mm"))  # the areas' partition of unity
         t_tree = time.perf_counter() - t0
         front = px.front_idx
         surf = px.surf

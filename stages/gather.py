@@ -22,6 +22,19 @@ Choices made here (and why):
   energy-correct mode each channel is rescaled so the table's exact integral
   (piecewise-linear R, int 2 pi r R dr) equals the layer file's Rd: the <= 0.1 % the cut-off
   drops is put back, and a flat slab under uniform irradiance leaves M = Rd E.
+* **Reconstruction blur** (``kernel_sigma_mm``).  The points carry irradiance samples,
+  not cells: between them E is reconstructed as sum_p A_p E_p G_sigma(y - p) with the
+  2-D Gaussian of ``stages/samples.py`` (sigma = ``KERNEL_SIGMA_FACTOR`` x spacing, areas
+  solved so the Gaussians are a partition of unity).  Then M(x) = int R(|x - y|) E(y) dy =
+  sum_p E_p A_p (R * G_sigma)(|x - p|): the device gathers with the profile convolved with
+  G_sigma, built once on the host in float64 (radial convolution with the Bessel I0
+  kernel), which integrates to the same Rd.  On a flat slab the error per query is then at
+  most the partition-of-unity deviation (R >= 0 weights it), 0.7 % at the default, where
+  the raw profile on the same points is off by up to 25-48 % (blue, skin1: the density
+  rule's 1.2 mm spacing against a 0.67 mm mean free path).  A disc of one point's area
+  (the cell average) was measured too: max error 22 % even with Voronoi areas, because
+  an indicator's partition of unity is a point count.  The price is a blur of sigma
+  (1.2 mm for skin1 at point_density 1), the irradiance sampling's own resolution.
 * **Second-order clusters.**  Jensen-Buhler approximate a node by R(d) sum E A.  We add
   the second-order Taylor term over the node's positional covariance C (same weights as
   its mean position): sum w R(|x - p|) ~ W [R(d) + 1/2 ((R'' - R'/d) u^T C u + R'/d tr C)],
@@ -44,9 +57,10 @@ from pipeline.errors import DermisError
 
 __all__ = ["VERSION", "KERNELS", "Octree", "build_octree", "gather", "profile_table",
            "exitance_to_radiance", "fresnel_transmittance", "diffuse_fresnel_external",
-           "morton_order", "DEFAULT_EPSILON", "DEFAULT_LEAF_SIZE", "TABLE_N"]
+           "morton_order", "blurred_profile", "kernel_sigma", "DEFAULT_EPSILON",
+           "DEFAULT_LEAF_SIZE", "TABLE_N"]
 
-VERSION = 1
+VERSION = 2
 KERNELS = ("bssrdf_gather.cl",)
 
 # Jensen & Buhler 2002 and pbrt-v2 use leaves of at most 8 points.
@@ -164,7 +178,8 @@ def _check_points(positions, areas, irradiance):
 
 
 def build_octree(positions: np.ndarray, areas: np.ndarray, irradiance: np.ndarray, *,
-                 leaf_size: int = DEFAULT_LEAF_SIZE) -> Octree:
+                 leaf_size: int = DEFAULT_LEAF_SIZE,
+                 kernel_sigma_mm: float | None = None) -> Octree:
     """Build the flattened octree over irradiance sample points.
 
     Parameters
@@ -176,6 +191,9 @@ def build_octree(positions: np.ndarray, areas: np.ndarray, irradiance: np.ndarra
     leaf_size : int
         Maximum points per leaf (Jensen-Buhler: 8).  Only points with identical Morton
         keys at full depth can exceed it.
+    kernel_sigma_mm : float, optional
+        The points' reconstruction width (``SamplePoints.info["kernel_sigma_mm"]``), kept in
+        ``info`` for :func:`gather`; None: derived there from the mean area.
 
     Returns
     -------
@@ -282,6 +300,7 @@ def build_octree(positions: np.ndarray, areas: np.ndarray, irradiance: np.ndarra
 
     info = {"points": n, "nodes": k, "leaves": int(is_leaf.sum()), "max_depth": int(depth.max()),
             "max_leaf_points": int((end - start)[is_leaf].max()), "leaf_size": leaf_size,
+            "kernel_sigma_mm": None if kernel_sigma_mm is None else float(kernel_sigma_mm),
             "seconds": time.perf_counter() - t0}
     return Octree(
         position=position.astype(np.float32), area=area, ea_sum=ea_sum,
@@ -318,14 +337,58 @@ def _ranges(s: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- profile table
+# Gaussian tail kept by the blurred profile, in sigma: each channel's cut-off grows by this
+# much (2-D mass beyond 4 sigma is e^-8 = 3e-4, and the energy normalisation puts it back).
+BLUR_REACH = 4.0
+# Most grid points of the host convolution (row blocks of 512 x M float64 kernel values).
+BLUR_MAX_N = 4000
+
+
+def kernel_sigma(octree: Octree) -> float:
+    """The octree's reconstruction width: ``info["kernel_sigma_mm"]`` if set, else
+    ``samples.KERNEL_SIGMA_FACTOR`` x sqrt(total area / N) (the spacing)."""
+    s = octree.info.get("kernel_sigma_mm")
+    if s is not None:
+        return float(s)
+    from stages.samples import KERNEL_SIGMA_FACTOR
+    return KERNEL_SIGMA_FACTOR * math.sqrt(float(octree.area[0]) / max(len(octree.areas), 1))
+
+
+def blurred_profile(r: np.ndarray, R: np.ndarray, sigma: float, r_max: float):
+    """The radial profile convolved (2-D) with a normalised Gaussian of width sigma, float64.
+
+    (R * G)(r) = int_0^inf R(s) (s / sigma^2) exp(-(r - s)^2 / (2 sigma^2)) I0e(r s / sigma^2) ds
+    (the angular integral of the 2-D Gaussian is the Bessel I0; I0e keeps it finite), by the
+    trapezoid rule on a uniform grid of step <= sigma / 8 and <= the profile's own step,
+    with R linear between its samples.  Returns (grid (M,), blurred (M, 3)) on [0, r_max].
+    """
+    from scipy.special import i0e
+    step = min(sigma / 8.0, float(np.min(np.diff(r))))
+    step = max(step, (r_max + BLUR_REACH * sigma) / (BLUR_MAX_N - 1))
+    g = np.arange(0.0, r_max + 0.5 * step, step)
+    s = np.arange(0.0, min(float(r[-1]), r_max + BLUR_REACH * sigma) + 0.5 * step, step)
+    Rs = np.stack([np.interp(s, r, R[:, c], right=0.0) for c in range(R.shape[1])], axis=1)
+    wt = np.full(len(s), step)
+    wt[0] = wt[-1] = 0.5 * step
+    out = np.empty((len(g), R.shape[1]))
+    inv = 1.0 / (sigma * sigma)
+    for b in range(0, len(g), 512):  # row blocks bound the memory
+        gg = g[b:b + 512, None]
+        ker = (s * inv) * np.exp(-0.5 * inv * (gg - s) ** 2) * i0e(gg * s * inv) * wt
+        out[b:b + 512] = ker @ Rs
+    return g, out
+
+
 def profile_table(profile, *, normalisation: str = "energy", cutoff_mm: float | None = None,
-                  n: int = TABLE_N):
+                  n: int = TABLE_N, sigma_mm: float = 0.0):
     """Uniform device tables: R(r) (float32 (n, 4)), step h (mm), cut-off (mm), and the
     derivative terms (R'' - R'/r, R'/r) interleaved (float32 (2 n, 4)).
 
     Each channel is zero beyond its own cut-off (``profile.cutoff_mm``, or ``cutoff_mm`` for
-    all channels).  In "energy" mode each channel is scaled so that the exact integral of the
-    piecewise-linear table, int 2 pi r R dr, equals ``profile.Rd``.
+    all channels).  With ``sigma_mm`` > 0 the profile is first convolved with a 2-D
+    Gaussian of that width (:func:`blurred_profile`; module docstring) and every cut-off
+    grows by ``BLUR_REACH`` sigma.  In "energy" mode each channel is scaled so that the
+    exact integral of the piecewise-linear table, int 2 pi r R dr, equals ``profile.Rd``.
     """
     r = np.asarray(profile.r_mm, np.float64)
     R = np.asarray(profile.R, np.float64)
@@ -334,9 +397,14 @@ def profile_table(profile, *, normalisation: str = "energy", cutoff_mm: float | 
         raise DermisError(f"gather: profile r_mm {r.shape} / R {R.shape} must be (N,) and (N, 3)")
     if not (np.isfinite(R).all() and np.isfinite(rd).all()):
         raise DermisError("gather: the layer profile contains NaN or infinity")
+    if not (sigma_mm >= 0 and math.isfinite(sigma_mm)):
+        raise DermisError(f"gather: kernel_sigma_mm = {sigma_mm}: must be a finite number >= 0")
     cut = (np.full(3, float(cutoff_mm)) if cutoff_mm is not None
            else np.asarray(profile.cutoff_mm, np.float64))
     cut = np.where(cut > 0, cut, 0.0)
+    if sigma_mm > 0:
+        cut = np.where(cut > 0, cut + BLUR_REACH * sigma_mm, 0.0)
+        r, R = blurred_profile(r, R, float(sigma_mm), float(cut.max()))
     cmax = float(cut.max())
     if not cmax > 0:
         raise DermisError(f"gather: profile cut-off {cut.tolist()} mm: needs one > 0")
@@ -381,7 +449,8 @@ def gather(octree: Octree, profile, query_positions: np.ndarray, *,
            epsilon: float = DEFAULT_EPSILON, normalisation: str = "energy", env=None,
            brute_force: bool = False, cutoff_mm: float | None = None,
            sort_queries: bool = True, local_size: int | None = LOCAL_SIZE,
-           second_order: bool = True, progress=None) -> tuple[np.ndarray, dict]:
+           second_order: bool = True, kernel_sigma_mm: float | None = None,
+           progress=None) -> tuple[np.ndarray, dict]:
     """Radiant exitance M_o at query points from the octree's irradiance points.
 
     Parameters
@@ -412,6 +481,9 @@ def gather(octree: Octree, profile, query_positions: np.ndarray, *,
     second_order : bool
         Add the second-order (covariance) term to every cluster (see module docstring);
         False gives the plain Jensen-Buhler point-cluster approximation.
+    kernel_sigma_mm : float, optional
+        Width of the Gaussian that reconstructs irradiance between the points (module
+        docstring); default :func:`kernel_sigma` of the octree; 0 gathers the raw profile.
     progress : callable(float), optional
         Called with the fraction done (the launch is split into chunks when given).
 
@@ -445,7 +517,9 @@ def gather(octree: Octree, profile, query_positions: np.ndarray, *,
     if nq == 0:
         return np.zeros((0, 3), np.float32), {"kernel_seconds": 0.0, "wall_seconds": 0.0}
     env = env or get_env()
-    tab, h, cmax, deriv = profile_table(profile, normalisation=normalisation, cutoff_mm=cutoff_mm)
+    sigma = kernel_sigma(octree) if kernel_sigma_mm is None else float(kernel_sigma_mm)
+    tab, h, cmax, deriv = profile_table(profile, normalisation=normalisation, cutoff_mm=cutoff_mm,
+                                        sigma_mm=sigma)
     rd = np.zeros(4, np.float32)
     rd[:3] = np.asarray(profile.Rd, np.float32)
     rd_vec = cl.cltypes.make_float4(*rd)
@@ -515,6 +589,7 @@ def gather(octree: Octree, profile, query_positions: np.ndarray, *,
     stats = {"kernel_seconds": event_seconds(events), "wall_seconds": time.perf_counter() - t0,
              "epsilon": None if brute_force else float(epsilon), "normalisation": normalisation,
              "brute_force": bool(brute_force), "cutoff_mm": cmax, "queries": nq,
+             "kernel_sigma_mm": sigma,
              "points": int(len(pts_pa)), "device": env.description}
     if not brute_force:
         stats["mean_visits"] = float(vis.mean())

@@ -148,13 +148,14 @@ def test03_octree_rejects_bad_input():
 
 
 # ------------------------------------------------------------------ flat slab (energy)
-# Tolerance: the issue's 1 %.  Pointwise it holds when the points resolve the profile: a hex
-# lattice at 0.5 mm (blue mfp 0.67 mm) measured < 0.3 %.  Blue-noise points at the density
-# rule (1.2 mm) carry +-8 % low-frequency density noise (stages/samples.py docstring), so for
-# them only the mean over the interior is held to 1 % (energy conservation) and the pointwise
-# spread is bounded loosely (measured max ~0.6 at blue) -- a known weakness, reported.
+# Tolerance: the issue's 1 % per query.  Derivation: with partition-of-unity areas the
+# gathered exitance on a flat slab is M / (Rd E) - 1 = int R (PoU - 1) / Rd, the profile-
+# weighted mean of the partition-of-unity deviation (<= its max, 1.05 % measured over random
+# probes, tests/test_samples.py::test07), plus the clustering error (<= 0.1 % at the default
+# epsilon) and float32 sums (~1e-5).  Measured on samples.run points at the default density,
+# 2000 queries x 2 seeds: max 0.53 % (skin1 blue), 0.27 % (skin2), 0.10 % (two_layer);
+# RMS <= 0.09 %.  The raw profile on the same points: max 25-48 %.
 SLAB_RTOL = 0.01
-BLUE_NOISE_POINTWISE = 0.8
 
 
 def hex_plane(half, spacing):
@@ -207,16 +208,63 @@ def test04_flat_slab_energy(cl_env, skin1, rng):
     assert (me[0] / E / skin1.Rd < 0.7).all()
 
 
-def test04b_flat_slab_blue_noise_mean(cl_env, skin1, slab, rng):
-    """With blue-noise points at the density rule energy is conserved on average."""
-    sp, half = slab
-    t = G.build_octree(sp.positions, sp.areas, np.ones((len(sp.areas), 3)))
-    inner = half - float(skin1.cutoff_mm.max()) - 1.0
-    q = np.zeros((400, 3))
-    q[:, :2] = rng.uniform(-inner, inner, (400, 2))
-    ratio = G.gather(t, skin1, q, env=cl_env)[0] / skin1.Rd
-    assert np.abs(ratio.mean(0) - 1).max() < 2 * SLAB_RTOL, ratio.mean(0)
-    assert np.abs(ratio - 1).max() < BLUE_NOISE_POINTWISE
+@pytest.fixture(scope="module")
+def preset_profiles():
+    profiles = pytest.importorskip("stages.profiles")
+    from pipeline.layers import PRESETS
+    return {k: (PRESETS[k], profiles.run(PRESETS[k])) for k in ("skin1", "skin2", "two_layer")}
+
+
+@pytest.mark.parametrize("preset", ["skin1", "skin2", "two_layer"])
+def test04b_flat_slab_sample_points(cl_env, preset_profiles, preset):
+    """The real flat slab: samples.run's random blue-noise points at the default density on
+    a large plane, uniform normal irradiance, the presets' layer files: M / E = Rd within
+    1 % at every query farther than the kernel's reach from the edges."""
+    stack, prof = preset_profiles[preset]
+    spacing = S.spacing_from_mfp(stack, 1.0)
+    sigma = S.KERNEL_SIGMA_FACTOR * spacing
+    reach = float(prof.cutoff_mm.max()) + G.BLUR_REACH * sigma
+    half = reach + 2 * spacing + S.POU_RADIUS * sigma  # interior + the frozen rim band
+    v = np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0.0]])
+    sp = S.run(v, np.array([[0, 1, 2], [0, 2, 3]]), spacing_mm=spacing, seed=8)
+    E = 1.7
+    t = G.build_octree(sp.positions, sp.areas, np.full((len(sp.areas), 3), E),
+                       kernel_sigma_mm=sp.info["kernel_sigma_mm"])
+    inner = half - reach - 1.0
+    q = np.zeros((600, 3))
+    q[:, :2] = np.random.default_rng(9).uniform(-inner, inner, (600, 2))
+    m, st = G.gather(t, prof, q, env=cl_env)
+    err = m / E / prof.Rd - 1
+    assert st["kernel_sigma_mm"] == pytest.approx(sigma)
+    assert np.abs(err).max() < SLAB_RTOL, (np.abs(err).max(0), np.sqrt((err**2).mean(0)))
+    mb, _ = G.gather(t, prof, q[:60], env=cl_env, brute_force=True)
+    assert np.abs(mb / E / prof.Rd - 1).max() < SLAB_RTOL
+    if preset == "skin1":
+        # the test can fail: the raw profile (no reconstruction blur) on the same points
+        raw, _ = G.gather(t, prof, q, env=cl_env, kernel_sigma_mm=0.0)
+        assert np.abs(raw / E / prof.Rd - 1).max() > 5 * SLAB_RTOL
+
+
+# Sphere: the area of a sphere within chord distance d of a point is pi d^2 (Archimedes'
+# hat-box theorem) for d <= 2 R, so a radial kernel of reach <= 2 R in chord distance
+# integrates over the sphere exactly as over a plane, and uniform irradiance must give
+# M = Rd E everywhere (no edges) with the flat slab's bound; the facets of the resolution-
+# 100 mesh sag by R (1 - cos(pi / 100)) = 0.01 mm, far below sigma.  Measured max 0.5 %.
+def test04c_sphere_uniform_irradiance(cl_env, preset_profiles):
+    import open3d as o3d
+    stack, prof = preset_profiles["skin1"]
+    radius = 20.0
+    spacing = S.spacing_from_mfp(stack, 1.0)
+    assert float(prof.cutoff_mm.max()) + G.BLUR_REACH * S.KERNEL_SIGMA_FACTOR * spacing < 2 * radius
+    mesh = o3d.geometry.TriangleMesh.create_sphere(radius=radius, resolution=100)
+    sp = S.run(np.asarray(mesh.vertices), np.asarray(mesh.triangles), spacing_mm=spacing, seed=3)
+    t = G.build_octree(sp.positions, sp.areas, np.ones((len(sp.areas), 3)),
+                       kernel_sigma_mm=sp.info["kernel_sigma_mm"])
+    q = np.random.default_rng(4).normal(size=(600, 3))
+    q *= radius / np.linalg.norm(q, axis=1, keepdims=True)
+    m, _ = G.gather(t, prof, q, env=cl_env)
+    err = m / prof.Rd - 1
+    assert np.abs(err).max() < SLAB_RTOL, (np.abs(err).max(0), np.sqrt((err**2).mean(0)))
 
 
 def test05_flat_slab_thesis_normalisation(cl_env, skin1, slab):
