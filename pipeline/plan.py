@@ -13,7 +13,7 @@ from __future__ import annotations
 from dataclasses import asdict
 from pathlib import Path
 
-from .config import Scene
+from .config import Scene, _resolve
 from .graph import Node, StageResult
 from .store import file_digest
 
@@ -60,10 +60,8 @@ def _mesh_source(scene: Scene) -> Node:
 
 
 def _resolved(scene: Scene, value: str) -> Path | None:
-    if not value:
-        return None
-    p = Path(value).expanduser()
-    return p if p.is_absolute() else Path(scene.path).parent / p
+    """A scene path value resolved against the scene file's folder (None if empty)."""
+    return _resolve(value, scene.path) if value else None
 
 
 def _mesh_high(scene: Scene) -> Node:

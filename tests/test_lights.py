@@ -242,3 +242,26 @@ def test12_shared_env_file_reads(shared_data):
     # the README puts the sun at row 246, column 614: 3.3 deg up, in front of the face (+z)
     d = env._dirs(np.array([614.5 / 1024]), np.array([246.5 / 512]))[0][0]
     assert d[2] > 0.7 and 0.0 < d[1] < 0.1
+
+
+def test13_irradiance_directional_is_E_cos_theta_and_shadowed(rng):
+    """BSSRDF pass 1: an unoccluded point under a directional light gets E cos(theta)
+    (0 below the horizon); a point under an occluder gets 0."""
+    ground = plane(size=400.0, n=4, z=0.0)
+    roof = plane(size=50.0, n=2, z=30.0, centre=(150.0, 150.0))
+    scene = merge(ground, roof)
+    vis = Visibility(scene.vertices, scene.faces)
+    light = LightConfig(name="sun", type="directional", direction=(0.0, 0.0, 1.0),
+                        intensity=(2.0, 1.0, 0.5))
+    # unoccluded points with random normals (also below the horizon)
+    n = rng.normal(size=(500, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    p = np.column_stack([rng.uniform(-100, 50, 500), rng.uniform(-100, 50, 500),
+                         np.full(500, 1e-3)])
+    E = irradiance(p, n, light, vis.occluded, seed=3)
+    expected = np.maximum(n[:, 2], 0.0)[:, None] * np.array([2.0, 1.0, 0.5])
+    np.testing.assert_allclose(E, expected, rtol=F32_RTOL, atol=1e-6)
+    # under the roof: fully shadowed
+    shadowed = irradiance(np.array([[150.0, 150.0, 1e-3]]), np.array([[0.0, 0.0, 1.0]]), light,
+                          vis.occluded, seed=3)
+    np.testing.assert_array_equal(shadowed, 0.0)
