@@ -95,6 +95,8 @@ def run(scene: Scene, *, cache=None, until: str | None = None, force=(), device:
     targets = _targets(nodes, targets, until)
     store = Store(cache_dir_for(scene, cache))
     ctx = RunContext(device=device)
+    if device is not None:
+        ctx.cl  # an explicit device is checked before any stage runs
     with store.locked():
         summary = execute(nodes, targets, store, ctx, force=tuple(force), progress=progress)
         if export:

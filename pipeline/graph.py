@@ -132,9 +132,12 @@ def staleness(store: Store, node: Node, parts: dict, key: str, stale_deps: set[s
         reasons.append(f"code_changed {node.module} or its kernels")
     for k in _diff_params(old_parts.get("params", {}), parts["params"]):
         reasons.append(f"config_changed {k}")
-    for d, k in parts["deps"].items():
-        if old_parts.get("deps", {}).get(d) != k:
-            reasons.append(f"upstream_changed {d}" + (" (stale)" if d in stale_deps else ""))
+    changed = [d + (" (stale)" if d in stale_deps else "") for d, k in parts["deps"].items()
+               if old_parts.get("deps", {}).get(d) != k]
+    if len(changed) > 3:  # e.g. the images node: name a few, count the rest
+        reasons.append(f"upstream_changed {len(changed)} nodes ({', '.join(changed[:2])}, ...)")
+    else:
+        reasons += [f"upstream_changed {d}" for d in changed]
     return reasons or ["missing_output"]
 
 
