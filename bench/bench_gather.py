@@ -133,23 +133,30 @@ def main():
     print(f"brute force: {sb['kernel_seconds']:.2f} s for {len(sub)} queries -> "
           f"estimated {brute_full:.0f} s for {len(q)}", flush=True)
 
-    for second in (True, False):  # build/warm the kernels
-        G.gather(tree, prof, q[:1000], env=env, epsilon=0.1, second_order=second)
+    # walks: the default tile walk (16 queries per work-item, far-field Taylor expansion),
+    # the tile walk with every source exact, and the per-query walk (tile=1)
+    walks = {"tile16": {}, "tile16_exact": {"expand_mm": 1e30}, "query": {"tile": 1}}
+    for kw in walks.values():  # build/warm the kernels
+        for second in (True, False):
+            G.gather(tree, prof, q[:1000], env=env, epsilon=0.1, second_order=second, **kw)
     rows = []
-    for second in (True, False):
-        for eps in (1.0, 0.6, 0.4, 0.25, 0.15, 0.1, 0.05):
-            if not second and eps > 0.4:
-                continue
-            h, st = G.gather(tree, prof, q, env=env, epsilon=eps, second_order=second)
-            err = rel_rmse(h[sub], b)
-            row = {"epsilon": eps, "second_order": second, "kernel_s": st["kernel_seconds"],
-                   "rel_rmse": err, "mean_visits": st["mean_visits"],
-                   "speedup": brute_full / st["kernel_seconds"]}
-            rows.append(row)
-            print(f"{'2nd' if second else 'plain'} eps {eps:5.3f}: {st['kernel_seconds']:6.2f} s  "
-                  f"rel RMSE {100 * err:.3f} %  visits {st['mean_visits']:.0f}  "
-                  f"speedup {row['speedup']:.0f}x", flush=True)
+    for walk, kw in walks.items():
+        for second in (True, False):
+            for eps in (1.0, 0.8, 0.6, 0.5, 0.4, 0.25, 0.15, 0.1, 0.05):
+                if (not second and (eps > 0.4 or walk != "query")) or \
+                        (walk == "tile16_exact" and eps not in (0.6, 0.4)):
+                    continue
+                h, st = G.gather(tree, prof, q, env=env, epsilon=eps, second_order=second, **kw)
+                err = rel_rmse(h[sub], b)
+                row = {"walk": walk, "epsilon": eps, "second_order": second,
+                       "kernel_s": st["kernel_seconds"], "rel_rmse": err,
+                       "mean_visits": st["mean_visits"], "speedup": brute_full / st["kernel_seconds"]}
+                rows.append(row)
+                print(f"{walk:12s} {'2nd' if second else 'plain'} eps {eps:5.3f}: "
+                      f"{st['kernel_seconds']:6.2f} s  rel RMSE {100 * err:.3f} %  visits "
+                      f"{st['mean_visits']:.0f}  speedup {row['speedup']:.0f}x", flush=True)
     res["epsilon_sweep"] = rows
+    res["loadavg_after_sweep"] = list(__import__("os").getloadavg())
 
     # query order (at the default epsilon): Morton vs scanline vs random
     order_rows = []
@@ -162,14 +169,15 @@ def main():
 
     # leaf size (at the default epsilon)
     leaf_rows = []
-    for ls in (4, 8, 16):
+    for ls in (4, 8, 16, 32):
         tr = G.build_octree(sp.positions, sp.areas, e, leaf_size=ls,
                             kernel_sigma_mm=sp.info.get("kernel_sigma_mm"))
-        h, st = G.gather(tr, prof, q, env=env, epsilon=G.DEFAULT_EPSILON)
-        leaf_rows.append({"leaf_size": ls, "kernel_s": st["kernel_seconds"],
-                          "rel_rmse": rel_rmse(h[sub], b), "nodes": tr.info["nodes"]})
-        print(f"leaf {ls}: {st['kernel_seconds']:.2f} s  rel RMSE {100 * leaf_rows[-1]['rel_rmse']:.3f} %",
-              flush=True)
+        for eps in (G.DEFAULT_EPSILON, 0.6):
+            h, st = G.gather(tr, prof, q, env=env, epsilon=eps)
+            leaf_rows.append({"leaf_size": ls, "epsilon": eps, "kernel_s": st["kernel_seconds"],
+                              "rel_rmse": rel_rmse(h[sub], b), "nodes": tr.info["nodes"]})
+            print(f"leaf {ls} eps {eps}: {st['kernel_seconds']:.2f} s  rel RMSE "
+                  f"{100 * leaf_rows[-1]['rel_rmse']:.3f} %", flush=True)
     res["leaf_size"] = leaf_rows
 
     # growth with the number of points (fixed query subset of 64k, default epsilon)

@@ -162,6 +162,324 @@ __kernel void gather_tree(__global const float4 *query,     /* (Q) x, y, z, unus
     visits[q] = count;
 }
 
+/* Tile walk (the default; stages/gather.py ``tile``): one work-item gathers for TILE queries
+ * that are neighbours on the Morton curve, walking the tree once for all of them.  The tile
+ * is bounded by a sphere (centre c, radius rt, host-computed), and every test uses the
+ * lower bound d_c - rt of the distance from any of its queries to the node: a node is
+ * skipped only when it is beyond the cut-off for every query, clustered only when every
+ * query may cluster it (so each query sees the same or finer clusters than its own walk
+ * would give it: the error at a given epsilon can only fall), otherwise opened.  At each
+ * cluster or leaf point the TILE queries are evaluated in a fixed-length loop over private
+ * arrays, which LLVM vectorises (PoCL cannot vectorise the data-dependent walk across
+ * work-items).  Node record for this walk: n0.w = reach = cut-off + radius, n1.w = open =
+ * max(sqrt(A / epsilon), radius) (distances, not squares, because of the - rt).
+ * ptab[3k..3k+2] = (R rgb, -), (R'' - R'/r rgb, -), (R'/r rgb, -) at r = k h.
+ * Output: out[g * TILE + l] = M rgb of lane l; visits[g] = nodes + points walked. */
+#ifndef TILE
+#define TILE 16
+#endif
+__kernel void gather_tile(__global const float4 *query,     /* (G TILE) x, y, z, - */
+                          __global const float4 *sphere,    /* (G) tile centre xyz, radius */
+                          __global const float4 *node,
+                          __global const int *node_start,
+                          const int n_nodes,
+                          __global const float4 *pts_pa,
+                          __global const float4 *pts_e,
+                          __global const float4 *table,
+                          __global const float4 *ptab,
+                          const float inv_h,
+                          const float4 rd,
+                          const int n_tiles,
+                          __global float4 *out,
+                          __global int *visits)
+{
+    int g = get_global_id(0);
+    if (g >= n_tiles) return;
+    float qx[TILE], qy[TILE], qz[TILE], mr[TILE], mg[TILE], mb[TILE];
+#if THESIS_NORM
+    float wr[TILE], wg[TILE], wb[TILE];
+#endif
+    for (int l = 0; l < TILE; ++l) {
+        float4 p = query[g * TILE + l];
+        qx[l] = p.x; qy[l] = p.y; qz[l] = p.z;
+        mr[l] = 0.0f; mg[l] = 0.0f; mb[l] = 0.0f;
+#if THESIS_NORM
+        wr[l] = 0.0f; wg[l] = 0.0f; wb[l] = 0.0f;
+#endif
+    }
+    const float tmax = (float)(TABLE_N - 2);
+    float4 ts = sphere[g];
+    int count = 0;
+    int i = 0;
+    while (i < n_nodes) {
+        float4 n0 = node[4 * i];
+        float4 n3 = node[4 * i + 3];
+        int skip = as_int(n3.w);
+        float3 dc = n0.xyz - ts.xyz;
+        float dlow = sqrt(dot(dc, dc)) - ts.w;
+        count++;
+        if (dlow > n0.w) { i = skip; continue; }                  /* beyond cut-off for all */
+        float4 n1 = node[4 * i + 1];
+        if (dlow > n1.w) {                                         /* cluster for all */
+            float4 c0 = node[4 * i + 2];
+            float ht = 0.5f * (c0.x + c0.w + n3.y);  /* 1/2 tr C */
+            for (int l = 0; l < TILE; ++l) {
+                float dx = n0.x - qx[l], dy = n0.y - qy[l], dz = n0.z - qz[l];
+                float d2 = dx * dx + dy * dy + dz * dz;
+                float t = fmin(sqrt(d2) * inv_h, tmax);
+                int k = (int)t;
+                float f = t - (float)k;
+#if SECOND_ORDER
+                float4 r0 = ptab[3 * k], a0 = ptab[3 * k + 1], b0 = ptab[3 * k + 2];
+                float4 r1 = ptab[3 * k + 3], a1 = ptab[3 * k + 4], b1 = ptab[3 * k + 5];
+                float cx = c0.x * dx + c0.y * dy + c0.z * dz;
+                float cy = c0.y * dx + c0.w * dy + n3.x * dz;
+                float cz = c0.z * dx + n3.x * dy + n3.y * dz;
+                float quad = 0.5f * (dx * cx + dy * cy + dz * cz) / d2;
+                float4 r = mix(r0, r1, f) + mix(a0, a1, f) * quad + mix(b0, b1, f) * ht;
+                r = fmax(r, 0.0f);
+#else
+                float4 r = mix(table[k], table[k + 1], f);
+#endif
+                mr[l] += r.x * n1.x; mg[l] += r.y * n1.y; mb[l] += r.z * n1.z;
+#if THESIS_NORM
+                wr[l] += r.x * n3.z; wg[l] += r.y * n3.z; wb[l] += r.z * n3.z;
+#endif
+            }
+            i = skip;
+            continue;
+        }
+        if (skip == i + 1) {                                       /* leaf: its points */
+            int end = node_start[i + 1];
+            int j = node_start[i];
+            count += end - j;
+            for (; j < end; ++j) {
+                float4 p = pts_pa[j];
+                float4 e = pts_e[j];
+                for (int l = 0; l < TILE; ++l) {
+                    float dx = p.x - qx[l], dy = p.y - qy[l], dz = p.z - qz[l];
+                    float t = fmin(sqrt(dx * dx + dy * dy + dz * dz) * inv_h, tmax);
+                    int k = (int)t;
+                    float f = t - (float)k;
+                    float4 r = mix(table[k], table[k + 1], f);
+                    mr[l] += r.x * e.x; mg[l] += r.y * e.y; mb[l] += r.z * e.z;
+#if THESIS_NORM
+                    wr[l] += r.x * p.w; wg[l] += r.y * p.w; wb[l] += r.z * p.w;
+#endif
+                }
+            }
+        }
+        i++;
+    }
+    for (int l = 0; l < TILE; ++l) {
+#if THESIS_NORM
+        out[g * TILE + l] = finish((float3)(mr[l], mg[l], mb[l]), (float3)(wr[l], wg[l], wb[l]), rd);
+#else
+        out[g * TILE + l] = (float4)(mr[l], mg[l], mb[l], 0.0f);
+#endif
+    }
+    visits[g] = count;
+}
+
+/* Explicit-vector variant of gather_tile: the TILE lanes are float<TILE> vectors (TILE 4, 8
+ * or 16); queries and results planar per tile: query[(g * 3 + axis) * TILE + l],
+ * out[(g * 3 + channel) * TILE + l].  Table rows are fetched lane by lane through a private
+ * index array (the only scalar part); everything else is vector arithmetic.
+ * ptab row k: 12 floats (R rgb, R''-R'/r rgb, R'/r rgb, 0 0 0); table row k: R rgb, 0. */
+#if TILE == 4 || TILE == 8 || TILE == 16   /* OpenCL vector widths */
+#define CATX(a, b) a##b
+#define CAT(a, b) CATX(a, b)
+#define VT CAT(float, TILE)
+#define VI CAT(int, TILE)
+#define VLOAD CAT(vload, TILE)
+#define VSTORE CAT(vstore, TILE)
+#define CONVI CAT(convert_int, TILE)
+#define CONVF CAT(convert_float, TILE)
+
+/* Far-field expansion about the tile centre c: for a query x = c + delta and a source (node
+ * or point) at c + v, d = |v|, u = v / d, s = u . delta, the second-order Taylor expansion of
+ * R(|v - delta|) plus the node's own covariance term is
+ *   R - R' s + 1/2 (R'' - R'/d)(s^2 + u^T C u) + 1/2 (R'/d)(|delta|^2 + tr C)
+ * (the tile offset enters exactly like the node's spread).  One scalar table lookup per
+ * source, then 3 fused multiply-adds per channel and lane.  Used when the source is at least
+ * `xd` = max(expand_mm, expand_rt * rt) from every query of the tile (third-order remainder
+ * ~ |d3R/dr3| rt^3 / 6); nearer sources are evaluated exactly lane by lane.
+ * xtab row k: 4 float4 = R, R', R'' - R'/r, R'/r (rgb, 0) at r = k h. */
+inline void xlookup(__global const float4 *xtab, float t, float4 *r, float4 *r1, float4 *ta,
+                    float4 *tb) {
+    int k = (int)t;
+    float f = t - (float)k;
+    __global const float4 *row = xtab + 4 * k;
+    *r = mix(row[0], row[4], f);
+    *r1 = mix(row[1], row[5], f);
+    *ta = mix(row[2], row[6], f);
+    *tb = mix(row[3], row[7], f);
+}
+
+/* Exact lane-by-lane evaluation (table rows fetched through a private index array). */
+#define LANE_TABLE(rr, rg, rb, dx, dy, dz)                                                   \
+    {                                                                                        \
+        VT t_ = fmin(sqrt(dx * dx + dy * dy + dz * dz) * inv_h, tmax);                      \
+        VI k_ = CONVI(t_);                                                                   \
+        VT f_ = t_ - CONVF(k_);                                                              \
+        VSTORE(k_, 0, kk);                                                                   \
+        for (int l = 0; l < TILE; ++l) {                                                     \
+            __global const float *row = table + 4 * kk[l];                                   \
+            for (int c = 0; c < 3; ++c) { lo[c][l] = row[c]; hi[c][l] = row[4 + c]; }        \
+        }                                                                                    \
+        rr = mix(VLOAD(0, lo[0]), VLOAD(0, hi[0]), f_);                                      \
+        rg = mix(VLOAD(0, lo[1]), VLOAD(0, hi[1]), f_);                                      \
+        rb = mix(VLOAD(0, lo[2]), VLOAD(0, hi[2]), f_);                                      \
+    }
+
+__kernel void gather_tile_v(__global const float *query,
+                            __global const float4 *sphere,
+                            __global const float4 *node,
+                            __global const int *node_start,
+                            const int n_nodes,
+                            __global const float4 *pts_pa,
+                            __global const float4 *pts_e,
+                            __global const float *table,   /* 4 floats per row */
+                            __global const float *ptab,    /* 12 floats per row */
+                            __global const float4 *xtab,   /* 4 float4 per row */
+                            const float inv_h,
+                            const float expand_mm,
+                            const float expand_rt,
+                            const float4 rd,
+                            const int n_tiles,
+                            __global float *out,
+                            __global int *visits)
+{
+    int g = get_global_id(0);
+    if (g >= n_tiles) return;
+    VT qx = VLOAD(3 * g, query), qy = VLOAD(3 * g + 1, query), qz = VLOAD(3 * g + 2, query);
+    VT mr = (VT)(0.0f), mg = (VT)(0.0f), mb = (VT)(0.0f);
+#if THESIS_NORM
+    VT wr = (VT)(0.0f), wg = (VT)(0.0f), wb = (VT)(0.0f);
+#endif
+    const float tmax = (float)(TABLE_N - 2);
+    float4 ts = sphere[g];
+    float xd = fmax(expand_mm, expand_rt * ts.w);
+    int kk[TILE];
+    float lo[9][TILE], hi[9][TILE];
+    int count = 0;
+    int i = 0;
+    while (i < n_nodes) {
+        float4 n0 = node[4 * i];
+        float4 n3 = node[4 * i + 3];
+        int skip = as_int(n3.w);
+        float3 dc = n0.xyz - ts.xyz;
+        float dcen = sqrt(dot(dc, dc));
+        float dlow = dcen - ts.w;
+        count++;
+        if (dlow > n0.w) { i = skip; continue; }
+        float4 n1 = node[4 * i + 1];
+        if (dlow > n1.w) {
+            float4 c0 = node[4 * i + 2];
+            float ht = 0.5f * (c0.x + c0.w + n3.y);
+            VT rr, rg, rb;
+            if (dlow > xd) {                       /* 1-D Taylor about the centre distance */
+                float4 R, R1, H2, H3;
+                xlookup(xtab, fmin(dcen * inv_h, tmax), &R, &R1, &H2, &H3);
+                VT dx = n0.x - qx, dy = n0.y - qy, dz = n0.z - qz;
+                VT d2 = dx * dx + dy * dy + dz * dz;
+                VT dl = sqrt(d2) - dcen;
+#if SECOND_ORDER
+                /* the covariance term per lane, with R'' - R'/d and R'/d at the centre */
+                float4 tb = R1 / dcen;
+                float4 ta = 2.0f * H2 - tb;
+                VT cx = c0.x * dx + c0.y * dy + c0.z * dz;
+                VT cy = c0.y * dx + c0.w * dy + n3.x * dz;
+                VT cz = c0.z * dx + n3.x * dy + n3.y * dz;
+                VT quad = 0.5f * (dx * cx + dy * cy + dz * cz) / d2;
+                /* and their first-order change with distance: (R'/d)' = ta / d,
+                 * ta' = d3R/dr3 - ta / d */
+                float4 dtb = ta / dcen, dta = 6.0f * H3 - dtb;
+                VT ax = ta.x + dl * dta.x, ay = ta.y + dl * dta.y, az = ta.z + dl * dta.z;
+                VT bx = tb.x + dl * dtb.x, by = tb.y + dl * dtb.y, bz = tb.z + dl * dtb.z;
+                rr = fmax(R.x + ax * quad + bx * ht + dl * (R1.x + dl * (H2.x + dl * H3.x)), 0.0f);
+                rg = fmax(R.y + ay * quad + by * ht + dl * (R1.y + dl * (H2.y + dl * H3.y)), 0.0f);
+                rb = fmax(R.z + az * quad + bz * ht + dl * (R1.z + dl * (H2.z + dl * H3.z)), 0.0f);
+#else
+                rr = fmax(R.x + dl * (R1.x + dl * (H2.x + dl * H3.x)), 0.0f);
+                rg = fmax(R.y + dl * (R1.y + dl * (H2.y + dl * H3.y)), 0.0f);
+                rb = fmax(R.z + dl * (R1.z + dl * (H2.z + dl * H3.z)), 0.0f);
+#endif
+            } else {
+                VT dx = n0.x - qx, dy = n0.y - qy, dz = n0.z - qz;
+#if SECOND_ORDER
+                VT d2 = dx * dx + dy * dy + dz * dz;
+                VT t = fmin(sqrt(d2) * inv_h, tmax);
+                VI k = CONVI(t);
+                VT f = t - CONVF(k);
+                VSTORE(k, 0, kk);
+                for (int l = 0; l < TILE; ++l) {
+                    __global const float *row = ptab + 12 * kk[l];
+                    for (int c = 0; c < 9; ++c) { lo[c][l] = row[c]; hi[c][l] = row[12 + c]; }
+                }
+                VT cx = c0.x * dx + c0.y * dy + c0.z * dz;
+                VT cy = c0.y * dx + c0.w * dy + n3.x * dz;
+                VT cz = c0.z * dx + n3.x * dy + n3.y * dz;
+                VT quad = 0.5f * (dx * cx + dy * cy + dz * cz) / d2;
+#define CH(c) fmax(mix(VLOAD(0, lo[c]), VLOAD(0, hi[c]), f) \
+                   + mix(VLOAD(0, lo[c + 3]), VLOAD(0, hi[c + 3]), f) * quad \
+                   + mix(VLOAD(0, lo[c + 6]), VLOAD(0, hi[c + 6]), f) * ht, 0.0f)
+                rr = CH(0); rg = CH(1); rb = CH(2);
+#undef CH
+#else
+                LANE_TABLE(rr, rg, rb, dx, dy, dz)
+#endif
+            }
+            mr += rr * n1.x; mg += rg * n1.y; mb += rb * n1.z;
+#if THESIS_NORM
+            wr += rr * n3.z; wg += rg * n3.z; wb += rb * n3.z;
+#endif
+            i = skip;
+            continue;
+        }
+        if (skip == i + 1) {
+            int end = node_start[i + 1];
+            int j = node_start[i];
+            count += end - j;
+            for (; j < end; ++j) {
+                float4 p = pts_pa[j];
+                float4 e = pts_e[j];
+                float3 v = p.xyz - ts.xyz;
+                float dp = sqrt(dot(v, v));
+                VT rr, rg, rb;
+                if (dp - ts.w > xd) {
+                    float4 R, R1, H2, H3;
+                    xlookup(xtab, fmin(dp * inv_h, tmax), &R, &R1, &H2, &H3);
+                    VT dx = p.x - qx, dy = p.y - qy, dz = p.z - qz;
+                    VT dl = sqrt(dx * dx + dy * dy + dz * dz) - dp;
+                    rr = fmax(R.x + dl * (R1.x + dl * (H2.x + dl * H3.x)), 0.0f);
+                    rg = fmax(R.y + dl * (R1.y + dl * (H2.y + dl * H3.y)), 0.0f);
+                    rb = fmax(R.z + dl * (R1.z + dl * (H2.z + dl * H3.z)), 0.0f);
+                } else {
+                    VT dx = p.x - qx, dy = p.y - qy, dz = p.z - qz;
+                    LANE_TABLE(rr, rg, rb, dx, dy, dz)
+                }
+                mr += rr * e.x; mg += rg * e.y; mb += rb * e.z;
+#if THESIS_NORM
+                wr += rr * p.w; wg += rg * p.w; wb += rb * p.w;
+#endif
+            }
+        }
+        i++;
+    }
+#if THESIS_NORM
+    mr = select((VT)(0.0f), rd.x * mr / wr, wr > 0.0f);
+    mg = select((VT)(0.0f), rd.y * mg / wg, wg > 0.0f);
+    mb = select((VT)(0.0f), rd.z * mb / wb, wb > 0.0f);
+#endif
+    VSTORE(mr, 3 * g, out);
+    VSTORE(mg, 3 * g + 1, out);
+    VSTORE(mb, 3 * g + 2, out);
+    visits[g] = count;
+}
+
+#endif  /* TILE is a vector width */
+
 /* Reference: every point, no clustering, same profile lookup and normalisation. */
 __kernel void gather_brute(__global const float4 *query,
                            __global const float4 *pts_pa,
