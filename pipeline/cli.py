@@ -52,6 +52,18 @@ def cmd_run(args) -> int:
     return 0
 
 
+def cmd_report(args) -> int:
+    """Build what the PDF report needs (renders, differences) and print where it is."""
+    from . import api
+    scene = _scene(args)
+    summary = api.run(scene, cache=args.cache, until="report", device=args.device,
+                      progress=None if args.quiet else _progress_bars())
+    print(summary.table())
+    out = os.path.join(scene.output.output_dir, scene.scene.name, "report", "report.pdf")
+    print(f"report: {out}")
+    return 0
+
+
 def cmd_status(args) -> int:
     from . import api
     scene = _scene(args)
@@ -107,6 +119,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--device", default=None, help="OpenCL device: P:D, P, or a name substring")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     r.set_defaults(func=cmd_run)
+
+    rp = sub.add_parser("report", help="build the renders, difference images and PDF report")
+    common(rp)
+    rp.add_argument("--device", default=None, help="OpenCL device: P:D, P, or a name substring")
+    rp.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    rp.set_defaults(func=cmd_report)
 
     s = sub.add_parser("status", help="what is cached, what is stale and why")
     common(s)

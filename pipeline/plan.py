@@ -21,7 +21,7 @@ __all__ = ["build_graph", "STAGE_NAMES"]
 
 # Every stage name, in pipeline order (for --until / --force / clean validation).
 STAGE_NAMES = ("mesh_source", "mesh_high", "mesh_low", "bake", "mesh_previews", "profiles",
-               "samples", "irradiance", "render", "images")
+               "samples", "irradiance", "render", "images", "report")
 
 GEOMETRY_MESH = {"high": "mesh_high", "low": "mesh_low", "low_bump": "mesh_low",
                  "low_bump_blur": "mesh_low"}
@@ -342,6 +342,30 @@ def _images(scene: Scene, render_ids: list[str]) -> Node:
                 "tone-mapped PNGs")
 
 
+def _report(scene: Scene, render_ids: list[str], irradiance_ids: list[str]) -> Node:
+    """Difference images against the BSSRDF, metrics, and the multi-page PDF report."""
+    params = {"renders": sorted(render_ids), "irradiance": sorted(irradiance_ids),
+              "scene_name": scene.scene.name}
+
+    def fn(inputs, ctx):
+        from reports import diff, pdf_report
+        images = {nid: inputs[nid] for nid in render_ids}
+        files, metrics = diff.write_differences(images, ctx.out_dir, reference_model="bssrdf")
+        extra = {}
+        for nid in irradiance_ids:  # irradiance-<mesh node>-<lighting label>
+            _, mesh_node, label = nid.split("-", 2)
+            extra[(label, mesh_node)] = float(inputs[nid].info.get("seconds", 0.0))
+        pdf = pdf_report.write_report(images, metrics, ctx.out_dir / "report.pdf",
+                                      scene_name=scene.scene.name, device=ctx.cl.description,
+                                      timings_extra=extra)
+        names = [Path(f).name for f in files] + [pdf.name]
+        return StageResult(files=names, info={"pages": pdf_report.report_page_count(images,
+                                                                                    metrics)})
+
+    return Node("report", "report", "reports.pdf_report", params,
+                tuple(render_ids) + tuple(irradiance_ids), fn, "differences + PDF")
+
+
 # --------------------------------------------------------------------------- graph
 def build_graph(scene: Scene) -> tuple[dict[str, Node], list[str]]:
     """Nodes needed by the scene's requested outputs, and the target node ids.
@@ -391,4 +415,7 @@ def build_graph(scene: Scene) -> tuple[dict[str, Node], list[str]]:
                 render_ids.append(node.id)
     if render_ids:
         add(_images(scene, render_ids), target=True)
+    if "bssrdf" in models and len(models) > 1:  # differences need the reference and another
+        irradiance_ids = [n for n in nodes if n.startswith("irradiance-")]
+        add(_report(scene, render_ids, irradiance_ids), target=True)
     return nodes, targets

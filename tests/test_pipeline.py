@@ -34,7 +34,9 @@ def test01_first_run_builds_every_requested_stage(built):
     assert sorted(r for r in ran if r.startswith("samples-")) == ["samples-mesh_high",
                                                                    "samples-mesh_low"]
     assert len([r for r in ran if r.startswith("irradiance-")]) == 2 * 4
-    assert ran[-1] == "images"
+    assert ran[-2:] == ["images", "report"]
+    report = root / "out" / "quick" / "report"
+    assert (report / "report.pdf").stat().st_size > 10_000 and (report / "metrics.json").is_file()
     out = root / "out" / "quick"
     assert (out / "run.json").is_file()
     assert sorted(p.name for p in out.glob("mesh_previews/*.png"))  # previews were exported
@@ -55,7 +57,7 @@ def test03_one_parameter_reruns_exactly_downstream(built):
     assert status["mesh_previews"].reasons == ["upstream_changed bake (stale)"]
     s = api.run(blurrier, cache=root / "cache")
     low_bump = [r for r in s.ran() if r.startswith("render-")]
-    assert s.ran()[:2] == ["bake", "mesh_previews"] and s.ran()[-1] == "images"
+    assert s.ran()[:2] == ["bake", "mesh_previews"] and s.ran()[-2:] == ["images", "report"]
     assert low_bump and all(r.endswith("-low_bump") or r.endswith("-low_bump_blur")
                             for r in low_bump)          # the high-mesh renders stay cached
     assert len(low_bump) == 4 * 4 * 2
@@ -71,13 +73,14 @@ def test05_graph_holds_only_what_outputs_need():
     brdf_high = load_scene(QUICK, overrides={"render": {"models": ["lafortune"],
                                                         "geometries": ["high"]}})
     nodes, _ = build_graph(brdf_high)
-    assert set(nodes) == {"mesh_source", "mesh_high", "mesh_previews", "images"} | {
+    assert set(nodes) == {"mesh_source", "mesh_high", "mesh_previews", "images"} | {  # no report
         f"render-lafortune-{l}-high" for l in ("point", "area", "dir_left+dir_right", "sunset")}
     unbumped = load_scene(QUICK, overrides={"render": {"geometries": ["low"]},
                                             "output": {"previews": False}})
     nodes, _ = build_graph(unbumped)
     assert {n for n in nodes if not n.startswith(("render-", "irradiance-"))} == {
-        "mesh_source", "mesh_high", "mesh_low", "profiles", "samples-mesh_low", "images"}
+        "mesh_source", "mesh_high", "mesh_low", "profiles", "samples-mesh_low", "images",
+        "report"}
     no_bssrdf = load_scene(QUICK, overrides={"render": {"models": ["lafortune", "hk93"]}})
     nodes, _ = build_graph(no_bssrdf)                   # a BRDF-only run: no points, no profiles
     assert not [n for n in nodes if n.startswith(("samples", "irradiance", "profiles"))]
@@ -90,7 +93,7 @@ def test06_cli_run_status_clean(built, capsys):
     out = capsys.readouterr().out
     assert "mesh_source" in out and "cached" in out and " ran " not in out
     assert main(["status", str(QUICK), "--cache", cache]) == 0
-    assert "0 of 65 stages stale" in capsys.readouterr().out
+    assert "0 of 66 stages stale" in capsys.readouterr().out
     assert main(["run", str(QUICK), "--cache", cache, "--until", "nope"]) == 2
     capsys.readouterr()
     assert main(["clean", "--cache", cache, "--stage", "profiles"]) == 0

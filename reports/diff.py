@@ -1,0 +1,438 @@
+"""Difference images and error metrics against a reference render (the BSSRDF by default).
+
+The thesis (Arizpe 2006) compares each model with the multi-layer BSSRDF by eye; here the
+comparison is also measured: per image RMSE, relative RMSE, per-channel bias, the 95th
+percentile of the per-pixel relative error, and SSIM on luminance.  The same functions
+compare geometries (low mesh + bump map vs the ~1M-triangle mesh, physics.md s7), the
+thesis's second question.
+
+Everything here is pure except :func:`write_differences`, which is the report writer.
+Conventions: images are linear RGB (H, W, 3); a pixel counts only where *both* images have
+a camera hit (``RenderedImage.mask``), intersected with an optional caller mask.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import DermisError
+
+__all__ = ["DiffResult", "difference", "difference_image", "diverging_lut", "diverging_colormap",
+           "write_differences", "image_labels", "REL_FLOOR_FRACTION", "SSIM_SIGMA_PX",
+           "DIFF_SCALE_PERCENTILE"]
+
+# Rec. 709 / sRGB luminance weights, the same as pipeline.lights.LUMINANCE (kept local so
+# this module needs no OpenCL import chain).
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722], dtype=np.float64)
+
+# Relative error = (image - reference) / max(reference, floor), floor per channel =
+# REL_FLOOR_FRACTION x the mean reference value over the mask.  Without a floor, shadowed
+# pixels (reference ~ 0) make the ratio infinite; 5 % of the mean keeps ordinary lit skin
+# (almost always > 5 % of the mean) exactly relative, and turns errors in deep shadow into
+# "absolute error in units of 5 % of the typical brightness".  Our choice, not a standard.
+REL_FLOOR_FRACTION = 0.05
+
+# SSIM (Wang, Bovik, Sheikh, Simoncelli 2004, IEEE TIP 13(4)): Gaussian window sigma 1.5 px
+# truncated to 11x11, K1 = 0.01, K2 = 0.03 -- the paper's values.
+SSIM_SIGMA_PX = 1.5
+SSIM_K1, SSIM_K2 = 0.01, 0.03
+# SSIM needs a dynamic range L; linear HDR renders have none, so both luminances are divided
+# by this percentile of the reference's luminance over the mask and L = 1 (the render
+# stage's tone mapping also maps a high percentile to white).
+SSIM_RANGE_PERCENTILE = 99.0
+
+# Default symmetric scale of a difference image: this percentile of |luminance difference|
+# over the mask, so a few outlier pixels (silhouette edges) do not wash out the rest.
+DIFF_SCALE_PERCENTILE = 99.0
+
+
+@dataclass
+class DiffResult:
+    """Difference of an image against a reference.
+
+    diff : (H, W, 3) float32, image - reference (0 outside ``mask``)
+    relative : (H, W, 3) float32, diff / max(reference, floor) (0 outside ``mask``)
+    mask : (H, W) bool, pixels that count (both images cover them)
+    metrics : dict of floats/lists -- rmse, rel_rmse, bias_rgb, flux_ratio_rgb, max_abs,
+        ssim, rel_p95, pixels, rel_floor_rgb (see :func:`difference`)
+    """
+
+    diff: np.ndarray
+    relative: np.ndarray
+    mask: np.ndarray
+    metrics: dict = field(default_factory=dict)
+
+
+def _as_arrays(obj, what: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """(linear (H,W,3) float64, mask or None) from a RenderedImage or an array."""
+    lin = getattr(obj, "linear", obj)
+    arr = np.asarray(lin, dtype=np.float64)
+    if arr.ndim != 3 or arr.shape[2] != 3:
+        raise DermisError(f"{what}: shape {arr.shape}; expected (H, W, 3) linear RGB")
+    mask = getattr(obj, "mask", None)
+    return arr, (None if mask is None else np.asarray(mask, dtype=bool))
+
+
+def _ssim_luminance(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
+    """Mean SSIM over ``mask`` of two (H, W) luminance images, both zeroed outside the mask."""
+    from scipy.ndimage import gaussian_filter
+
+    ref_vals = b[mask]
+    top = float(np.percentile(ref_vals, SSIM_RANGE_PERCENTILE)) if ref_vals.size else 0.0
+    if not top > 0:
+        top = float(max(np.abs(a[mask]).max(initial=0.0), 1.0))
+    # Work on the mask's bounding box plus the window radius: identical result, faster
+    # (a face fills ~40 % of the frame).
+    rows, cols = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
+    pad = 6
+    sl = (slice(max(rows[0] - pad, 0), rows[-1] + pad + 1),
+          slice(max(cols[0] - pad, 0), cols[-1] + pad + 1))
+    a, b, mask = a[sl], b[sl], mask[sl]
+    x = np.where(mask, a, 0.0) / top
+    y = np.where(mask, b, 0.0) / top
+    c1, c2 = SSIM_K1 ** 2, SSIM_K2 ** 2  # L = 1 after the normalisation above
+
+    def blur(v):
+        return gaussian_filter(v, SSIM_SIGMA_PX, truncate=3.5, mode="constant")  # 11x11 window
+
+    mx, my = blur(x), blur(y)
+    sxx = blur(x * x) - mx * mx
+    syy = blur(y * y) - my * my
+    sxy = blur(x * y) - mx * my
+    s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
+    return float(s[mask].mean())
+
+
+def difference(image, reference, *, mask: np.ndarray | None = None) -> DiffResult:
+    """Signed difference of ``image`` against ``reference`` and error metrics over a mask.
+
+    Parameters
+    ----------
+    image, reference : RenderedImage or (H, W, 3) array
+        Linear RGB radiance.  For RenderedImages, only pixels both masks cover count.
+    mask : (H, W) bool array, optional
+        Further restricts the pixels that count (intersected with the images' masks).
+
+    Returns
+    -------
+    DiffResult
+        ``metrics`` (all over the mask, all channels unless stated):
+
+        - ``rmse``: sqrt(mean (image - reference)^2), radiance units
+        - ``rel_rmse``: rmse / sqrt(mean reference^2) -- energy-normalised, needs no floor
+          (image = 1.1 x reference gives 0.1)
+        - ``bias_rgb``: per channel, mean of the signed relative error (floored, see
+          ``REL_FLOOR_FRACTION``) -- positive = brighter than the reference
+        - ``flux_ratio_rgb``: per channel, sum image / sum reference - 1 (bias of the totals)
+        - ``max_abs``: max |image - reference|
+        - ``rel_p95``: 95th percentile of |relative error|
+        - ``ssim``: mean SSIM of the luminances (Wang et al. 2004, 11x11 Gaussian window)
+        - ``pixels``: number of pixels that count; ``rel_floor_rgb``: the floor used
+
+        No metric is NaN: an empty mask gives zeros (``pixels`` = 0) and SSIM 1.
+    """
+    img, m_img = _as_arrays(image, "image")
+    ref, m_ref = _as_arrays(reference, "reference")
+    if img.shape != ref.shape:
+        raise DermisError(f"difference: image shape {img.shape} != reference shape {ref.shape}; "
+                          "renders must share the camera resolution")
+    valid = np.ones(img.shape[:2], bool)
+    for m, what in ((m_img, "image mask"), (m_ref, "reference mask"), (mask, "mask")):
+        if m is None:
+            continue
+        m = np.asarray(m, dtype=bool)
+        if m.shape != valid.shape:
+            raise DermisError(f"difference: {what} shape {m.shape}; expected {valid.shape}")
+        valid &= m
+    # Non-finite pixels (should not happen) are excluded rather than poisoning every metric.
+    valid &= np.isfinite(img).all(axis=2) & np.isfinite(ref).all(axis=2)
+
+    diff = np.where(valid[..., None], img - ref, 0.0)
+    n = int(valid.sum())
+    d, r, i = diff[valid], ref[valid], img[valid]  # (n, 3)
+    mean_ref = r.mean(axis=0) if n else np.zeros(3)
+    floor = REL_FLOOR_FRACTION * mean_ref
+    if not np.all(floor > 0):
+        # A black reference channel: fall back to 5 % of the mean of either image over all
+        # channels, then to 1 (both black: the relative error is 0 anyway).
+        alt = REL_FLOOR_FRACTION * float(np.maximum(r, i).mean()) if n else 0.0
+        floor = np.where(floor > 0, floor, alt if alt > 0 else 1.0)
+    rel = np.zeros_like(diff)
+    rel[valid] = d / np.maximum(r, floor)
+
+    if n:
+        rms_ref = math.sqrt(float((r * r).mean()))
+        rmse = math.sqrt(float((d * d).mean()))
+        sum_ref = r.sum(axis=0)
+        flux = np.where(sum_ref > 0, i.sum(axis=0) / np.where(sum_ref > 0, sum_ref, 1.0) - 1.0, 0.0)
+        metrics = {
+            "rmse": rmse,
+            "rel_rmse": rmse / rms_ref if rms_ref > 0 else (0.0 if rmse == 0 else float("inf")),
+            "bias_rgb": [float(v) for v in rel[valid].mean(axis=0)],
+            "flux_ratio_rgb": [float(v) for v in flux],
+            "max_abs": float(np.abs(d).max()),
+            "rel_p95": float(np.percentile(np.abs(rel[valid]), 95.0)),
+            "ssim": _ssim_luminance(img @ LUMINANCE, ref @ LUMINANCE, valid),
+        }
+        if not math.isfinite(metrics["rel_rmse"]):
+            # Reference black over the whole mask but the image is not: report the RMSE
+            # relative to the image instead of infinity (documented, never NaN).
+            metrics["rel_rmse"] = rmse / math.sqrt(float((i * i).mean()))
+    else:
+        metrics = {"rmse": 0.0, "rel_rmse": 0.0, "bias_rgb": [0.0] * 3,
+                   "flux_ratio_rgb": [0.0] * 3, "max_abs": 0.0, "rel_p95": 0.0, "ssim": 1.0}
+    metrics["pixels"] = n
+    metrics["rel_floor_rgb"] = [float(v) for v in floor]
+    return DiffResult(diff=diff.astype(np.float32), relative=rel.astype(np.float32),
+                      mask=valid, metrics=metrics)
+
+
+def diverging_lut(n: int = 256) -> np.ndarray:
+    """(n, 3) float RGB diverging colour table, blue (darker) -> grey -> red (brighter).
+
+    The red half is matplotlib's ``RdBu_r`` upper half; the blue half is its mirror with the
+    red and blue channels swapped, so equal and opposite differences get exactly mirrored
+    colours (``lut[n-1-k] == lut[k][::-1]``) -- ColorBrewer's RdBu is close to, but not
+    exactly, symmetric.
+    """
+    from matplotlib import colormaps
+
+    if n < 2 or n % 2:
+        raise DermisError(f"diverging_lut: n = {n}; must be an even number >= 2")
+    red = colormaps["RdBu_r"](np.linspace(0.5, 1.0, n // 2))[:, :3]  # grey -> red
+    blue = red[::-1, ::-1]  # reversed order, R and B swapped: blue -> grey
+    lut = np.concatenate([blue, red])
+    return lut
+
+
+def diverging_colormap():
+    """The :func:`diverging_lut` as a matplotlib colormap (for colour bars)."""
+    from matplotlib.colors import ListedColormap
+
+    return ListedColormap(diverging_lut(), name="dermis_diff")
+
+
+def _luminance_diff(diff) -> tuple[np.ndarray, np.ndarray]:
+    """(luminance difference (H, W), mask) from a DiffResult or an (H, W, 3) array."""
+    d = np.asarray(getattr(diff, "diff", diff), dtype=np.float64)
+    mask = getattr(diff, "mask", None)
+    mask = np.ones(d.shape[:2], bool) if mask is None else np.asarray(mask, bool)
+    return d @ LUMINANCE, mask
+
+
+def default_scale(diffs) -> float:
+    """Symmetric scale shared by several differences: the ``DIFF_SCALE_PERCENTILE`` of
+    |luminance difference| over all their masks (1.0 if they are all zero)."""
+    vals = []
+    for dr in diffs:
+        lum, mask = _luminance_diff(dr)
+        vals.append(np.abs(lum[mask]))
+    vals = np.concatenate(vals) if vals else np.zeros(0)
+    vals = vals[np.isfinite(vals)]
+    s = float(np.percentile(vals, DIFF_SCALE_PERCENTILE)) if vals.size else 0.0
+    return s if s > 0 else 1.0
+
+
+def difference_image(diff, *, scale: float | None = None) -> np.ndarray:
+    """Colour-coded luminance difference: red = brighter than the reference, blue = darker.
+
+    Parameters
+    ----------
+    diff : DiffResult (or (H, W, 3) signed difference array, all pixels counting)
+    scale : float, optional
+        Luminance difference mapped to full red / full blue (symmetric, clipped beyond).
+        Share one scale across a comparison; default :func:`default_scale` of this image.
+
+    Returns
+    -------
+    (H, W, 3) uint8 RGB; black outside the mask, neutral grey where the difference is 0.
+    """
+    lum, mask = _luminance_diff(diff)
+    if scale is None:
+        scale = default_scale([diff])
+    if not (math.isfinite(scale) and scale > 0):
+        raise DermisError(f"difference_image: scale = {scale}; must be finite and > 0")
+    lut = np.round(diverging_lut() * 255.0).astype(np.uint8)
+    n = len(lut)
+    t = np.clip(np.nan_to_num(lum) / scale, -1.0, 1.0)
+    # Symmetric binning: |t| picks a bin counted outward from the centre, the sign picks
+    # the half, so +t and -t land on mirrored entries k and n-1-k.
+    k = np.minimum((np.abs(t) * (n / 2)).astype(np.int64), n // 2 - 1)
+    idx = np.where(t >= 0, n // 2 + k, n // 2 - 1 - k)
+    out = lut[idx]
+    out[~mask] = 0
+    return out
+
+
+def image_labels(image) -> tuple[str, str, str]:
+    """(model, light, geometry) of a RenderedImage from its ``info``."""
+    info = getattr(image, "info", {}) or {}
+    return str(info.get("model", "?")), str(info.get("light", "?")), str(info.get("geometry", "?"))
+
+
+def _seconds(image) -> float | None:
+    t = (getattr(image, "timings", {}) or {}).get("total")
+    return float(t) if t is not None else None
+
+
+# Geometries compared with the ~1M-triangle mesh (the thesis's geometry question).
+GEOMETRY_REFERENCE = "high"
+GEOMETRY_COMPARED = ("low_bump", "low_bump_blur")
+
+
+def _grid_png(tiles: dict, rows: list, cols: list, scales: dict, path: Path, *,
+              title: str, captions: dict) -> Path:
+    """A labelled grid of difference images (rows x cols) with one colour bar per column."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+
+    fig, axes = plt.subplots(len(rows), len(cols), squeeze=False,
+                             figsize=(2.6 * len(cols), 2.6 * len(rows) + 1.0))
+    for ax in axes.flat:
+        ax.axis("off")
+    for (r, c), tile in tiles.items():
+        ax = axes[rows.index(r), cols.index(c)]
+        ax.imshow(tile)
+        ax.set_title(f"{r} / {c}\n{captions.get((r, c), '')}", fontsize=7)
+    cmap = diverging_colormap()
+    for j, c in enumerate(cols):
+        s = scales.get(c, 1.0)
+        cb = fig.colorbar(ScalarMappable(Normalize(-s, s), cmap), ax=list(axes[:, j]),
+                          orientation="horizontal", fraction=0.04, pad=0.02)
+        cb.ax.tick_params(labelsize=7)
+        cb.set_label("luminance difference", fontsize=7)
+    fig.suptitle(title, fontsize=10)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def _record(res: DiffResult, image, ref_image, fname: str, against: dict) -> dict:
+    model, light, geom = image_labels(image)
+    rec = {"model": model, "light": light, "geometry": geom, **against,
+           "seconds": _seconds(image), "reference_seconds": _seconds(ref_image), "file": fname}
+    rec.update(res.metrics)
+    return rec
+
+
+def write_differences(images: dict, out_dir, *, reference_model: str = "bssrdf"
+                      ) -> tuple[list[Path], dict]:
+    """Difference images and metrics of every model against the reference, and of the low
+    geometries against the high mesh.
+
+    Parameters
+    ----------
+    images : dict node id -> :class:`pipeline.artifacts.RenderedImage`
+        ``info`` must carry "model", "light" and "geometry".
+    out_dir : directory to write into (created)
+    reference_model : model every other model is compared with (default the BSSRDF)
+
+    Returns
+    -------
+    files : list of written paths -- ``diff-<model>-<light>-<geometry>.png``,
+        ``diffgrid-<geometry>.png`` (rows models, columns lights),
+        ``geomdiff-<model>-<light>-<geometry>.png``, ``geomgrid-<geometry>.png`` and
+        ``metrics.json``
+    metrics : the content of ``metrics.json``::
+
+        {"reference_model", "rel_floor_fraction", "scale_percentile",
+         "scales": {"model": {light: s}, "geometry": {light: s}},
+         "model_vs_reference": {"<model>-<light>-<geometry>": record},
+         "geometry_vs_high": {"<model>-<light>-<geometry>": record}}
+
+        record = the :func:`difference` metrics + model, light, geometry, seconds (this
+        image's ``timings["total"]``), reference_seconds, file, and what it is compared with.
+
+    Raises
+    ------
+    DermisError
+        If no image has ``reference_model``.
+    """
+    from pipeline.imageio import write_png
+
+    out_dir = Path(out_dir)
+    by_key = {}
+    for nid in sorted(images):
+        by_key[image_labels(images[nid])] = images[nid]
+    models = sorted({m for m, _, _ in by_key})
+    if reference_model not in models:
+        raise DermisError(
+            f"difference images: no render of the reference model {reference_model!r} among "
+            f"{len(by_key)} images (models present: {', '.join(models) or 'none'}); add "
+            f"{reference_model!r} to [render] models, or pick another reference_model")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    files: list[Path] = []
+    metrics: dict = {"reference_model": reference_model, "rel_floor_fraction": REL_FLOOR_FRACTION,
+                     "scale_percentile": DIFF_SCALE_PERCENTILE,
+                     "scales": {"model": {}, "geometry": {}},
+                     "model_vs_reference": {}, "geometry_vs_high": {}}
+
+    # --- models vs the reference, per (light, geometry) where the reference exists --------
+    pairs = {}  # (model, light, geom) -> DiffResult
+    for (m, l, g), im in by_key.items():
+        ref = by_key.get((reference_model, l, g))
+        if m == reference_model or ref is None:
+            continue
+        pairs[(m, l, g)] = difference(im, ref)
+    lights = sorted({l for _, l, _ in pairs})
+    for light in lights:
+        metrics["scales"]["model"][light] = default_scale(
+            [d for (m, l, g), d in pairs.items() if l == light])
+    tiles = {}
+    for (m, l, g), res in sorted(pairs.items()):
+        fname = f"diff-{m}-{l}-{g}.png"
+        tiles[(m, l, g)] = difference_image(res, scale=metrics["scales"]["model"][l])
+        files.append(write_png(out_dir / fname, tiles[(m, l, g)]))
+        metrics["model_vs_reference"][f"{m}-{l}-{g}"] = _record(
+            res, by_key[(m, l, g)], by_key[(reference_model, l, g)], fname,
+            {"reference": reference_model})
+    for geom in sorted({g for _, _, g in pairs}):
+        sel = {(m, l): t for (m, l, g), t in tiles.items() if g == geom}
+        caps = {(m, l): _caption(metrics["model_vs_reference"][f"{m}-{l}-{geom}"])
+                for (m, l) in sel}
+        files.append(_grid_png(sel, sorted({m for m, _ in sel}), sorted({l for _, l in sel}),
+                               metrics["scales"]["model"], out_dir / f"diffgrid-{geom}.png",
+                               title=f"difference vs {reference_model}, geometry {geom} "
+                                     "(red = brighter, blue = darker)", captions=caps))
+
+    # --- geometries vs the high mesh, same model and light --------------------------------
+    gpairs = {}
+    for (m, l, g), im in by_key.items():
+        hi = by_key.get((m, l, GEOMETRY_REFERENCE))
+        if g in GEOMETRY_COMPARED and hi is not None:
+            gpairs[(m, l, g)] = difference(im, hi)
+    for light in sorted({l for _, l, _ in gpairs}):
+        metrics["scales"]["geometry"][light] = default_scale(
+            [d for (m, l, g), d in gpairs.items() if l == light])
+    gtiles = {}
+    for (m, l, g), res in sorted(gpairs.items()):
+        fname = f"geomdiff-{m}-{l}-{g}.png"
+        gtiles[(m, l, g)] = difference_image(res, scale=metrics["scales"]["geometry"][l])
+        files.append(write_png(out_dir / fname, gtiles[(m, l, g)]))
+        metrics["geometry_vs_high"][f"{m}-{l}-{g}"] = _record(
+            res, by_key[(m, l, g)], by_key[(m, l, GEOMETRY_REFERENCE)], fname,
+            {"reference_geometry": GEOMETRY_REFERENCE})
+    for geom in sorted({g for _, _, g in gpairs}):
+        sel = {(m, l): t for (m, l, g), t in gtiles.items() if g == geom}
+        caps = {(m, l): _caption(metrics["geometry_vs_high"][f"{m}-{l}-{geom}"])
+                for (m, l) in sel}
+        files.append(_grid_png(sel, sorted({m for m, _ in sel}), sorted({l for _, l in sel}),
+                               metrics["scales"]["geometry"], out_dir / f"geomgrid-{geom}.png",
+                               title=f"{geom} vs {GEOMETRY_REFERENCE} mesh, same model and light "
+                                     "(red = brighter, blue = darker)", captions=caps))
+
+    (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=1, sort_keys=True))
+    files.append(out_dir / "metrics.json")
+    return files, metrics
+
+
+def _caption(rec: dict) -> str:
+    """One-line caption: relative RMSE and SSIM."""
+    return f"rel RMSE {rec['rel_rmse']:.3f}  SSIM {rec['ssim']:.3f}"

@@ -1,0 +1,480 @@
+"""The comparison report: one multi-page A4-landscape PDF (matplotlib ``PdfPages``).
+
+Pages, in order (Arizpe 2006 compares images, difference images and timings; this adds
+measured errors):
+
+1. title page: scene, device, date and a summary generated from the numbers;
+2. per geometry: images, rows models x columns lights, ONE exposure per light shared by all
+   models and geometries (:func:`stages.render.shared_exposure`), seconds under each;
+3. per geometry with reference renders: difference images vs the reference (BSSRDF), one
+   symmetric colour scale per light (the scales of :func:`reports.diff.write_differences`),
+   relative RMSE and SSIM under each;
+4. timing table (seconds per image; BSSRDF plus its irradiance pass) beside the thesis's
+   table (physics.md s7);
+5. error vs time scatter plot -- users trade speed for accuracy;
+6. geometry page: relative RMSE of the low mesh + bump maps vs the ~1M-triangle mesh.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import textwrap
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import DermisError
+from reports.diff import (GEOMETRY_COMPARED, GEOMETRY_REFERENCE, difference, difference_image,
+                          diverging_colormap, image_labels)
+
+__all__ = ["write_report", "THESIS_TIMES", "report_page_count", "summary_text"]
+
+A4_LANDSCAPE_IN = (11.69, 8.27)
+FONT_PT = 8          # body text; nothing in the report is set below MIN_FONT_PT
+MIN_FONT_PT = 7
+
+# Thesis render times, 800x800, pbrt on a dual-core Xeon 2.4 GHz (2006), m:ss or h:mm:ss
+# (Arizpe 2006, transcribed in physics.md s7).  mesh -> light type -> model -> time.
+THESIS_MODELS = ("lafortune", "asperity", "hk93", "bssrdf")
+THESIS_LIGHTS = ("directional", "point", "area", "environment")
+THESIS_TIMES = {
+    "1M": {
+        "directional": ("4:03", "3:46", "6:05", "10:42"),
+        "point": ("3:01", "2:55", "4:03", "10:32"),
+        "area": ("28:56", "19:45", "1:08:13", "19:17"),
+        "environment": ("40:14", "34:19", "1:12:27", "28:38"),
+    },
+    "16,750": {
+        "directional": ("4:33", "4:17", "6:31", "9:49"),
+        "point": ("3:53", "3:45", "4:52", "9:40"),
+        "area": ("23:01", "13:29", "1:02:14", "16:08"),
+        "environment": ("30:48", "23:54", "1:11:41", "22:51"),
+    },
+}
+THESIS_SHORT = {"directional": "dir", "point": "point", "area": "area", "environment": "env"}
+THESIS_HARDWARE = "pbrt on a dual-core Intel Xeon 2.4 GHz (2006)"
+
+# Two numbers closer than this (relative) are reported as "about equal" in the summary:
+# single renders, and timings from one run on a shared machine, do not support finer claims.
+ERROR_TIE_FRACTION = 0.10
+TIME_TIE_FRACTION = 0.25
+
+
+def _seconds(image) -> float | None:
+    t = (getattr(image, "timings", {}) or {}).get("total")
+    return float(t) if t is not None else None
+
+
+def _index(images: dict) -> dict:
+    """(model, light, geometry) -> RenderedImage (last node id wins on duplicates)."""
+    return {image_labels(images[nid]): images[nid] for nid in sorted(images)}
+
+
+def _irradiance_seconds(timings_extra: dict | None, light: str, geom: str) -> float | None:
+    """Irradiance-pass seconds for (light, mesh of ``geom``) from ``timings_extra``."""
+    if not timings_extra:
+        return None
+    mesh = "high" if geom == GEOMETRY_REFERENCE else "low"
+    for key in ((light, f"mesh_{mesh}"), (light, mesh), (light, geom)):
+        if key in timings_extra:
+            return float(timings_extra[key])
+    return None
+
+
+def _fmt_s(s: float | None) -> str:
+    if s is None:
+        return "-"
+    return f"{s:.2f} s" if s < 10 else f"{s:.1f} s"
+
+
+def _ordered_models(models) -> list[str]:
+    """Thesis order first (Lafortune, asperity, HK, BSSRDF), then anything else."""
+    models = set(models)
+    return [m for m in THESIS_MODELS if m in models] + sorted(models - set(THESIS_MODELS))
+
+
+def _ordered_geoms(geoms) -> list[str]:
+    order = ("high", "low_bump", "low_bump_blur", "low")
+    geoms = set(geoms)
+    return [g for g in order if g in geoms] + sorted(geoms - set(order))
+
+
+def summary_text(images: dict, metrics: dict, *, timings_extra: dict | None = None) -> str:
+    """A short summary from the numbers, one sentence per line: closest model to the reference
+    and fastest model per light, and the geometry errors.  Near-ties
+    (``ERROR_TIE_FRACTION``, ``TIME_TIE_FRACTION``) are called ties rather than ranked."""
+    ref = metrics.get("reference_model", "bssrdf")
+    mvr = metrics.get("model_vs_reference", {})
+    idx = _index(images)
+    geoms = _ordered_geoms({r["geometry"] for r in mvr.values()})
+    lines = []
+    if mvr:
+        geom = geoms[0]
+        lines.append(f"Distances are measured from the {ref} render (the reference, not ground "
+                     f"truth), on the {geom} geometry; times are seconds per image"
+                     + (f", the {ref}'s including its irradiance pass." if timings_extra else "."))
+        for light in sorted({r["light"] for r in mvr.values()}):
+            recs = sorted((r for r in mvr.values()
+                           if r["light"] == light and r["geometry"] == geom),
+                          key=lambda r: r["rel_rmse"])
+            if not recs:
+                continue
+            best = recs[0]
+            if len(recs) > 1 and recs[1]["rel_rmse"] <= best["rel_rmse"] * (1 + ERROR_TIE_FRACTION):
+                close = (f"{best['model']} and {recs[1]['model']} about equally close to {ref} "
+                         f"(relative RMSE {best['rel_rmse']:.3f}, {recs[1]['rel_rmse']:.3f})")
+            else:
+                close = (f"{best['model']} closest to {ref} (relative RMSE {best['rel_rmse']:.3f}, "
+                         f"SSIM {best['ssim']:.2f})")
+            if len(recs) > 2 or (len(recs) == 2 and close.startswith(f"{best['model']} closest")):
+                close += f", {recs[-1]['model']} farthest ({recs[-1]['rel_rmse']:.3f})"
+            times = []
+            for (m, l, g), im in idx.items():
+                if l == light and g == geom and _seconds(im) is not None:
+                    t = _seconds(im)
+                    if m == ref:
+                        t += _irradiance_seconds(timings_extra, l, g) or 0.0
+                    times.append((t, m))
+            times.sort()
+            if len(times) > 1 and times[1][0] <= times[0][0] * (1 + TIME_TIE_FRACTION):
+                fast = (f"{times[0][1]} and {times[1][1]} about equally fast "
+                        f"({times[0][0]:.2f} s, {times[1][0]:.2f} s)")
+            elif times:
+                fast = f"{times[0][1]} fastest ({times[0][0]:.2f} s)"
+            else:
+                fast = "no timings recorded"
+            ref_t = [t for t, m in times if m == ref]
+            if ref_t and times and times[0][1] != ref:
+                fast += f"; {ref} {ref_t[0]:.2f} s ({ref_t[0] / times[0][0]:.1f}x the fastest)"
+            lines.append(f"{light}: {close}; {fast}.")
+    gvh = metrics.get("geometry_vs_high", {})
+    for g in GEOMETRY_COMPARED:
+        vals = [r["rel_rmse"] for r in gvh.values() if r["geometry"] == g]
+        if vals:
+            lines.append(f"{g} vs the {GEOMETRY_REFERENCE} mesh (same model and light): median "
+                         f"relative RMSE {np.median(vals):.3f}, range {min(vals):.3f}-"
+                         f"{max(vals):.3f} over {len(vals)} model/light pairs.")
+    lines.append("Timings are single runs on one machine; treat time differences below about "
+                 f"{TIME_TIE_FRACTION:.0%} as noise.")
+    return "\n".join(lines)
+
+
+def report_page_count(images: dict, metrics: dict) -> int:
+    """Pages :func:`write_report` writes for these inputs."""
+    geoms = {g for _, _, g in _index(images)}
+    diff_geoms = {r["geometry"] for r in metrics.get("model_vs_reference", {}).values()}
+    return 1 + len(geoms) + len(diff_geoms) + 3
+
+
+def _new_page(plt, title: str):
+    fig = plt.figure(figsize=A4_LANDSCAPE_IN)
+    fig.suptitle(title, fontsize=12, y=0.975)
+    return fig
+
+
+def _grid_axes(fig, nrows: int, ncols: int, *, top=0.91, bottom=0.02, left=0.02, right=0.98,
+               hspace=0.22, wspace=0.04):
+    gs = fig.add_gridspec(nrows, ncols, top=top, bottom=bottom, left=left, right=right,
+                          hspace=hspace, wspace=wspace)
+    axes = np.array([[fig.add_subplot(gs[r, c]) for c in range(ncols)] for r in range(nrows)])
+    for ax in axes.flat:
+        ax.axis("off")
+    return axes
+
+
+def _title_page(plt, images, metrics, *, scene_name, device, timings_extra):
+    idx = _index(images)
+    fig = _new_page(plt, "")
+    fig.text(0.5, 0.88, "dermis: skin rendering comparison", ha="center", fontsize=20)
+    fig.text(0.5, 0.82, f"scene: {scene_name}", ha="center", fontsize=12)
+    date = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    facts = [
+        f"device: {device}",
+        f"date: {date}",
+        f"images: {len(idx)}   models: {', '.join(_ordered_models(m for m, _, _ in idx))}",
+        f"lights: {', '.join(sorted({l for _, l, _ in idx}))}",
+        f"geometries: {', '.join(_ordered_geoms(g for _, _, g in idx))}",
+        f"reference model for differences: {metrics.get('reference_model', '-')}",
+    ]
+    fig.text(0.08, 0.74, "\n".join(facts), va="top", fontsize=10, family="monospace")
+    summary = summary_text(images, metrics, timings_extra=timings_extra)
+    fig.text(0.08, 0.53, "Summary", fontsize=12, weight="bold")
+    text = "\n".join(textwrap.fill(line, 140, initial_indent="- ", subsequent_indent="  ")
+                     for line in summary.splitlines())
+    fig.text(0.08, 0.50, text, va="top", fontsize=9, linespacing=1.5)
+    floor = metrics.get("rel_floor_fraction")
+    howto = (
+        "Relative RMSE = RMSE / RMS of the reference over the pixels both renders cover. "
+        "SSIM: Wang et al. 2004 on luminance, 11x11 Gaussian window. Relative error per pixel "
+        f"= (image - reference) / max(reference, {floor} x mean reference); bias and 95th "
+        "percentile use it. Difference images: red = brighter than the reference, blue = "
+        "darker, one symmetric scale per light. Reproduces and extends A. Arizpe, A Critical "
+        "Comparison of Human Face Rendering Techniques, MIT MEng thesis, 2006.")
+    fig.text(0.08, 0.12, textwrap.fill(howto, 150), va="top", fontsize=7.5, color="0.3")
+    return fig
+
+
+def _image_pages(plt, images):
+    from stages.render import shared_exposure, tonemap
+
+    idx = _index(images)
+    lights = sorted({l for _, l, _ in idx})
+    models = _ordered_models(m for m, _, _ in idx)
+    exposure = {l: shared_exposure([im.linear for (_, ll, _), im in idx.items() if ll == l])
+                for l in lights}
+    for geom in _ordered_geoms(g for _, _, g in idx):
+        fig = _new_page(plt, f"Images, geometry {geom}  (one exposure per light, shared by all "
+                             "models and geometries)")
+        axes = _grid_axes(fig, len(models), len(lights))
+        for (m, l, g), im in idx.items():
+            if g != geom:
+                continue
+            ax = axes[models.index(m), lights.index(l)]
+            ax.imshow(tonemap([im.linear], exposure=exposure[l])[0])
+            ax.set_title(f"{m} / {l}\n{_fmt_s(_seconds(im))}", fontsize=MIN_FONT_PT + 0.5)
+        yield fig
+
+
+def _diff_pages(plt, images, metrics):
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+
+    idx = _index(images)
+    ref = metrics.get("reference_model", "bssrdf")
+    mvr = metrics.get("model_vs_reference", {})
+    scales = metrics.get("scales", {}).get("model", {})
+    lights = sorted({r["light"] for r in mvr.values()})
+    models = _ordered_models(r["model"] for r in mvr.values())
+    cmap = diverging_colormap()
+    for geom in _ordered_geoms(r["geometry"] for r in mvr.values()):
+        fig = _new_page(plt, f"Difference vs {ref}, geometry {geom}  (red = brighter, blue = "
+                             "darker than the reference)")
+        axes = _grid_axes(fig, len(models), len(lights), bottom=0.11)
+        for key, rec in mvr.items():
+            if rec["geometry"] != geom:
+                continue
+            m, l = rec["model"], rec["light"]
+            res = difference(idx[(m, l, geom)], idx[(ref, l, geom)])
+            ax = axes[models.index(m), lights.index(l)]
+            ax.imshow(difference_image(res, scale=scales.get(l)))
+            ax.set_title(f"{m} / {l}\nrel RMSE {rec['rel_rmse']:.3f}  SSIM {rec['ssim']:.3f}",
+                         fontsize=MIN_FONT_PT + 0.5)
+        for j, l in enumerate(lights):
+            s = float(scales.get(l, 1.0))
+            pos = axes[-1, j].get_position()
+            cax = fig.add_axes([pos.x0 + 0.1 * pos.width, 0.06, 0.8 * pos.width, 0.015])
+            cb = fig.colorbar(ScalarMappable(Normalize(-s, s), cmap), cax=cax,
+                              orientation="horizontal")
+            cb.ax.tick_params(labelsize=MIN_FONT_PT)
+            cb.set_label(f"{l}: luminance difference", fontsize=MIN_FONT_PT)
+        yield fig
+
+
+def _table(ax, cells: list[list[str]], header: list[str]) -> None:
+    """A table filling ``ax`` whose first column (row labels) is wider than the rest."""
+    n = len(header)
+    first = 0.32
+    widths = [first] + [(1 - first) / (n - 1)] * (n - 1)
+    rows = len(cells) + 1
+    height = min(1.0, rows * 0.075)  # ~0.075 of the axes per row, top-aligned
+    tab = ax.table(cellText=cells, colLabels=header, colWidths=widths, cellLoc="center",
+                   bbox=[0, 1 - height, 1, height])
+    tab.auto_set_font_size(False)
+    tab.set_fontsize(MIN_FONT_PT + 0.5)
+    for (r, c), cell in tab.get_celld().items():
+        if r == 0:
+            cell.set_text_props(weight="bold")
+        if c == 0:
+            cell.set_text_props(ha="left")
+            cell.PAD = 0.02
+
+
+def _timing_page(plt, images, metrics, *, device, timings_extra):
+    idx = _index(images)
+    ref = metrics.get("reference_model", "bssrdf")
+    lights = sorted({l for _, l, _ in idx})
+    models = _ordered_models(m for m, _, _ in idx)
+    geoms = _ordered_geoms(g for _, _, g in idx)
+    fig = _new_page(plt, "Render time per 800x800 image: this run vs the thesis")
+    rows, cells = [], []
+    for m in models:
+        for g in geoms:
+            row = []
+            for l in lights:
+                im = idx.get((m, l, g))
+                t = _seconds(im) if im is not None else None
+                cell = _fmt_s(t)
+                irr = _irradiance_seconds(timings_extra, l, g) if m == ref else None
+                if t is not None and irr is not None:
+                    cell = f"{t:.2f} + {irr:.2f} irr"
+                row.append(cell)
+            if any(c != "-" for c in row):
+                rows.append(f"{m} / {g}")
+                cells.append(row)
+    ax = fig.add_axes([0.02, 0.30, 0.62, 0.58])
+    ax.axis("off")
+    ax.set_title(f"this run: seconds per image\n{device}", fontsize=9)
+    if cells:
+        _table(ax, [[r] + c for r, c in zip(rows, cells)],
+               ["model / geometry"] + [l.replace("+", "+\n") for l in lights])
+    ax2 = fig.add_axes([0.67, 0.30, 0.31, 0.58])
+    ax2.axis("off")
+    ax2.set_title(f"thesis (physics.md s7), m:ss\n{THESIS_HARDWARE}", fontsize=9)
+    tcells = []
+    for mesh, by_light in THESIS_TIMES.items():
+        for k, m in enumerate(THESIS_MODELS):
+            tcells.append([f"{m} / {mesh}"] + [by_light[l][k] for l in THESIS_LIGHTS])
+    _table(ax2, tcells, ["model / triangles"] + [THESIS_SHORT[l] for l in THESIS_LIGHTS])
+    note = (f"Hardware differs: the thesis rendered with {THESIS_HARDWARE}; this run used "
+            f"{device}, through OpenCL. Absolute times are therefore not comparable; compare the "
+            "ratios between models under one light. Thesis geometries: 1M triangles ~ 'high', "
+            "16,750 triangles + bump map ~ 'low_bump'. Thesis light types: dir = the two "
+            "directional lights together, env = the environment (sunset) map. Times here are wall "
+            "seconds of the render stage (visibility, shadows, shading); "
+            f"'+ x irr' is the {ref}'s separate irradiance pass for that light and mesh (run once, "
+            "cached and shared by every geometry on that mesh).")
+    fig.text(0.03, 0.22, textwrap.fill(note, 170), va="top", fontsize=8)
+    return fig
+
+
+def _markers(models):
+    shapes = ("o", "s", "^", "D", "v", "P", "X", "*")
+    return {m: shapes[i % len(shapes)] for i, m in enumerate(models)}
+
+
+def _scatter_page(plt, images, metrics, *, timings_extra):
+    from matplotlib.lines import Line2D
+
+    idx = _index(images)
+    ref = metrics.get("reference_model", "bssrdf")
+    mvr = metrics.get("model_vs_reference", {})
+    lights = sorted({r["light"] for r in mvr.values()})
+    models = _ordered_models([r["model"] for r in mvr.values()] + [ref])
+    colours = {l: plt.get_cmap("tab10")(i % 10) for i, l in enumerate(lights)}
+    marks = _markers(models)
+    fig = _new_page(plt, "Error vs time: users trade speed for accuracy")
+    ax = fig.add_axes([0.08, 0.12, 0.62, 0.76])
+    pts = []
+    for rec in mvr.values():
+        if rec.get("seconds"):
+            pts.append((rec["model"], rec["light"], rec["geometry"], rec["seconds"],
+                        rec["rel_rmse"]))
+    for (m, l, g), im in idx.items():  # the reference itself: zero error, its full cost
+        if m == ref and l in colours and _seconds(im):
+            t = _seconds(im) + (_irradiance_seconds(timings_extra, l, g) or 0.0)
+            pts.append((m, l, g, t, 0.0))
+    for m, l, g, t, e in pts:
+        hollow = g != GEOMETRY_REFERENCE
+        ax.scatter([t], [e], marker=marks[m], s=46, linewidths=1.3,
+                   facecolors="none" if hollow else colours[l], edgecolors=colours[l])
+    ax.set_xscale("log")
+    ax.set_xlabel("seconds per image (log)" + (f"; {ref} includes its irradiance pass"
+                                                if timings_extra else ""), fontsize=9)
+    ax.set_ylabel(f"relative RMSE vs {ref}", fontsize=9)
+    ax.tick_params(labelsize=8)
+    ax.grid(True, which="both", alpha=0.3)
+    handles = [Line2D([], [], marker=marks[m], ls="", color="0.2", label=m) for m in models]
+    handles += [Line2D([], [], marker="s", ls="", color=colours[l], label=l) for l in lights]
+    handles += [Line2D([], [], marker="o", ls="", color="0.2", label=GEOMETRY_REFERENCE),
+                Line2D([], [], marker="o", ls="", mfc="none", color="0.2",
+                       label="low geometries (hollow)")]
+    ax.legend(handles=handles, fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0),
+              title="marker: model, colour: light", title_fontsize=8)
+    fig.text(0.08, 0.04, f"Lower left is better. The {ref} is the reference (error 0 by "
+             "definition); points to its left are faster, and the height shows what they give up.",
+             fontsize=8)
+    return fig
+
+
+def _geometry_page(plt, metrics):
+    gvh = metrics.get("geometry_vs_high", {})
+    fig = _new_page(plt, f"Geometry: low mesh + bump map vs the {GEOMETRY_REFERENCE} mesh, same "
+                         "model and light")
+    if not gvh:
+        fig.text(0.5, 0.5, f"No geometry comparison: the scene renders no "
+                 f"{GEOMETRY_REFERENCE!r} geometry together with "
+                 f"{' / '.join(GEOMETRY_COMPARED)}.", ha="center", fontsize=10)
+        return fig
+    lights = sorted({r["light"] for r in gvh.values()})
+    geoms = [g for g in GEOMETRY_COMPARED if any(r["geometry"] == g for r in gvh.values())]
+    ncols = min(3, len(lights))
+    nrows = -(-len(lights) // ncols)
+    gs = fig.add_gridspec(nrows, ncols, top=0.86, bottom=0.16, left=0.07, right=0.98,
+                          hspace=0.45, wspace=0.25)
+    width = 0.8 / max(len(geoms), 1)
+    for i, l in enumerate(lights):
+        ax = fig.add_subplot(gs[i // ncols, i % ncols])
+        models = _ordered_models(r["model"] for r in gvh.values() if r["light"] == l)
+        ymax = max(r["rel_rmse"] for r in gvh.values() if r["light"] == l)
+        for k, g in enumerate(geoms):
+            vals = [gvh.get(f"{m}-{l}-{g}", {}).get("rel_rmse", np.nan) for m in models]
+            x = np.arange(len(models)) + (k - (len(geoms) - 1) / 2) * width
+            ax.bar(x, vals, width, label=g, color=("tab:orange", "tab:green", "tab:purple")[k % 3])
+            for xx, v in zip(x, vals):
+                if np.isfinite(v):
+                    ax.text(xx, v, f"{v:.3f}", ha="center", va="bottom", fontsize=MIN_FONT_PT,
+                            rotation=90)
+        ax.set_xticks(np.arange(len(models)), models, fontsize=8)
+        ax.tick_params(axis="y", labelsize=8)
+        ax.set_ylim(0, ymax * 1.35 if ymax > 0 else 1.0)  # room for the value labels
+        ax.set_title(l, fontsize=9)
+        ax.set_ylabel("relative RMSE vs high", fontsize=8)
+        if i == 0:
+            ax.legend(fontsize=8)
+    fig.text(0.07, 0.06, textwrap.fill(
+        "The thesis's geometry question: does a 16,750-triangle mesh with baked albedo and bump "
+        "maps (sharp, or Gaussian-blurred to stand in for subsurface smoothing) look like the "
+        "~1M-triangle scan? Bars: relative RMSE of the low-geometry render against the high-mesh "
+        "render of the same model and light (lower = closer); each panel has its own y scale. "
+        "Difference images: geomdiff-*.png.",
+        170), fontsize=8, va="top")
+    return fig
+
+
+def write_report(images: dict, metrics: dict, out_pdf, *, scene_name: str, device: str,
+                 timings_extra: dict | None = None) -> Path:
+    """Write the multi-page comparison PDF.
+
+    Parameters
+    ----------
+    images : dict node id -> :class:`pipeline.artifacts.RenderedImage`
+        ``info`` has "model", "light", "geometry"; ``timings["total"]`` in seconds.
+    metrics : dict returned by :func:`reports.diff.write_differences` (its scales are reused
+        so the PDF's difference images match the PNGs)
+    out_pdf : path of the PDF to write (parent created)
+    scene_name : shown on the title page
+    device : OpenCL device description, shown on the title and timing pages
+    timings_extra : dict (light, mesh) -> seconds, optional
+        The BSSRDF's irradiance pass per lighting condition and mesh ("mesh_high"/"mesh_low",
+        or "high"/"low"); added to the BSSRDF's time in the table, summary and scatter plot.
+
+    Returns
+    -------
+    Path of the PDF; it has :func:`report_page_count` pages.
+    """
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.backends.backend_pdf import PdfPages
+
+    if not images:
+        raise DermisError("report: no rendered images to report on; [render] models, lights "
+                          "and geometries must select at least one image")
+    out_pdf = Path(out_pdf)
+    out_pdf.parent.mkdir(parents=True, exist_ok=True)
+    with plt.rc_context({"font.size": FONT_PT, "pdf.fonttype": 42}), PdfPages(out_pdf) as pdf:
+        builders = [lambda: [_title_page(plt, images, metrics, scene_name=scene_name,
+                                         device=device, timings_extra=timings_extra)],
+                    lambda: _image_pages(plt, images),
+                    lambda: _diff_pages(plt, images, metrics),
+                    lambda: [_timing_page(plt, images, metrics, device=device,
+                                          timings_extra=timings_extra)],
+                    lambda: [_scatter_page(plt, images, metrics, timings_extra=timings_extra)],
+                    lambda: [_geometry_page(plt, metrics)]]
+        for build in builders:
+            for fig in build():  # generators: one page in memory at a time
+                pdf.savefig(fig)
+                plt.close(fig)
+        info = pdf.infodict()
+        info["Title"] = f"dermis comparison: {scene_name}"
+        info["Creator"] = "dermis reports.pdf_report"
+    return out_pdf
