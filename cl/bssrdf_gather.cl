@@ -51,6 +51,12 @@
 #ifndef SECOND_ORDER
 #define SECOND_ORDER 1
 #endif
+/* Order of the far-field expansion in the distance (gather_tile_v): 1.0f adds the quartic
+ * term R''''/24 (xtab row k: .w of its float4 0, 1, 2 = red, green, blue), 0.0f stops at
+ * the cubic. */
+#ifndef QUARTIC
+#define QUARTIC 1.0f
+#endif
 
 /* Linear interpolation in the uniform profile table; zero past its end (beyond cut-off). */
 inline float3 profile_lookup(__global const float4 *table, float d, float inv_h) {
@@ -302,9 +308,11 @@ __kernel void gather_tile(__global const float4 *query,     /* (G TILE) x, y, z,
  *   R - R' s + 1/2 (R'' - R'/d)(s^2 + u^T C u) + 1/2 (R'/d)(|delta|^2 + tr C)
  * (the tile offset enters exactly like the node's spread).  One scalar table lookup per
  * source, then 3 fused multiply-adds per channel and lane.  Used when the source is at least
- * `xd` = max(expand_mm, expand_rt * rt) from every query of the tile (third-order remainder
- * ~ |d3R/dr3| rt^3 / 6); nearer sources are evaluated exactly lane by lane.
- * xtab row k: 4 float4 = R, R', R'' - R'/r, R'/r (rgb, 0) at r = k h. */
+ * `xd` = max(expand_mm, expand_rt * rt) from every query of the tile (remainder of the
+ * quartic ~ |d5R/dr5| rt^5 / 120); nearer sources are expanded about the sub-tile centres
+ * (SUBTILE, below) or evaluated exactly lane by lane.
+ * xtab row k: 4 float4 = R, R', R''/2, R'''/6 (rgb) at r = k h; their .w (rows 0-2) hold
+ * R''''/24 of red, green, blue (the quartic term, QUARTIC). */
 inline void xlookup(__global const float4 *xtab, float t, float4 *r, float4 *r1, float4 *ta,
                     float4 *tb) {
     int k = (int)t;
@@ -332,8 +340,53 @@ inline void xlookup(__global const float4 *xtab, float t, float4 *r, float4 *r1,
         rb = mix(VLOAD(0, lo[2]), VLOAD(0, hi[2]), f_);                                      \
     }
 
+/* Sub-tile expansion (TILE 16 only): the 16 lanes are 4 Morton-adjacent sub-tiles of 4
+ * queries, each with its own bounding sphere (host-computed, subsph[4 g + s]); the host
+ * interleaves them (lane l belongs to sub-tile l % 4) so a float4 over the sub-tiles spreads
+ * to the lanes as (float16)(v, v, v, v).  A source too near the tile centre for the tile's
+ * expansion but at least max(expand_mm, expand_rt x sub-tile radius) from every query of
+ * every sub-tile is expanded about each sub-tile's centre: 4 contiguous xtab lookups instead
+ * of 16 gathered table rows.  Same formula and error bound per sub-tile as the tile
+ * expansion, with the sub-tile's radius (median ~1/3 of the tile's on the bench head).
+ * Measured on bench/bench_gather.py's head: see stages/gather.py (subtiles). */
+#if TILE == 16
+#define SUBTILE 1
+#define S16(v) (float16)(v, v, v, v)
+/* distances from source P to the 4 sub-tile centres (float4), and whether all are far */
+#define SUB_DIST(P)                                                                          \
+    float4 ex_ = (P).x - scx, ey_ = (P).y - scy, ez_ = (P).z - scz;                          \
+    float4 sd4 = sqrt(ex_ * ex_ + ey_ * ey_ + ez_ * ez_);                                    \
+    bool sub_far = use_sub && all(sd4 > sx4);
+/* R, R', R''/2, R'''/6 at the 4 sub-tile distances, one float4 (over sub-tiles) per channel */
+#define SUB_LOOKUPS                                                                          \
+    float4 t4_ = fmin(sd4 * inv_h, tmax);                                                    \
+    int4 k4_ = convert_int4(t4_);                                                            \
+    float4 f4_ = t4_ - convert_float4(k4_);                                                  \
+    __global const float4 *w0_ = xtab + 4 * k4_.s0, *w1_ = xtab + 4 * k4_.s1;                \
+    __global const float4 *w2_ = xtab + 4 * k4_.s2, *w3_ = xtab + 4 * k4_.s3;                \
+    float4 Rx, Ry, Rz, Ax, Ay, Az, Bx, By, Bz, Cx, Cy, Cz;                                   \
+    float4 Qx, Qy, Qz, Q_;                                                                   \
+    SUB_ROW(0, Rx, Ry, Rz, Qx) SUB_ROW(1, Ax, Ay, Az, Qy) SUB_ROW(2, Bx, By, Bz, Qz)         \
+    SUB_ROW(3, Cx, Cy, Cz, Q_)                                                               \
+    Qx *= QUARTIC; Qy *= QUARTIC; Qz *= QUARTIC;
+#define SUB_ROW(o, X, Y, Z, W)                                                               \
+    {                                                                                        \
+        float4 a0 = w0_[o], a1 = w1_[o], a2 = w2_[o], a3 = w3_[o];                           \
+        float4 b0 = w0_[o + 4], b1 = w1_[o + 4], b2 = w2_[o + 4], b3 = w3_[o + 4];           \
+        X = mix((float4)(a0.x, a1.x, a2.x, a3.x), (float4)(b0.x, b1.x, b2.x, b3.x), f4_);    \
+        Y = mix((float4)(a0.y, a1.y, a2.y, a3.y), (float4)(b0.y, b1.y, b2.y, b3.y), f4_);    \
+        Z = mix((float4)(a0.z, a1.z, a2.z, a3.z), (float4)(b0.z, b1.z, b2.z, b3.z), f4_);    \
+        W = mix((float4)(a0.w, a1.w, a2.w, a3.w), (float4)(b0.w, b1.w, b2.w, b3.w), f4_);    \
+    }
+#else
+#define SUBTILE 0
+#endif
+
 __kernel void gather_tile_v(__global const float *query,
                             __global const float4 *sphere,
+                            __global const float4 *subsph,  /* (4 G) sub-tile spheres */
+                            const int use_sub,
+                            const float sub_rt,            /* expand_rt of the sub-tiles */
                             __global const float4 *node,
                             __global const int *node_start,
                             const int n_nodes,
@@ -362,6 +415,13 @@ __kernel void gather_tile_v(__global const float *query,
     float xd = fmax(expand_mm, expand_rt * ts.w);
     int kk[TILE];
     float lo[9][TILE], hi[9][TILE];
+#if SUBTILE
+    float4 s0 = subsph[4 * g], s1 = subsph[4 * g + 1], s2 = subsph[4 * g + 2], s3 = subsph[4 * g + 3];
+    float4 scx = (float4)(s0.x, s1.x, s2.x, s3.x), scy = (float4)(s0.y, s1.y, s2.y, s3.y);
+    float4 scz = (float4)(s0.z, s1.z, s2.z, s3.z), srad = (float4)(s0.w, s1.w, s2.w, s3.w);
+    /* a source is expanded about the sub-tile centres beyond these centre distances */
+    float4 sx4 = srad + fmax((float4)(expand_mm), sub_rt * srad);
+#endif
     int count = 0;
     int i = 0;
     while (i < n_nodes) {
@@ -381,6 +441,7 @@ __kernel void gather_tile_v(__global const float *query,
             if (dlow > xd) {                       /* 1-D Taylor about the centre distance */
                 float4 R, R1, H2, H3;
                 xlookup(xtab, fmin(dcen * inv_h, tmax), &R, &R1, &H2, &H3);
+                float4 Q4 = QUARTIC * (float4)(R.w, R1.w, H2.w, 0.0f);
                 VT dx = n0.x - qx, dy = n0.y - qy, dz = n0.z - qz;
                 VT d2 = dx * dx + dy * dy + dz * dz;
                 VT dl = sqrt(d2) - dcen;
@@ -397,16 +458,41 @@ __kernel void gather_tile_v(__global const float *query,
                 float4 dtb = ta / dcen, dta = 6.0f * H3 - dtb;
                 VT ax = ta.x + dl * dta.x, ay = ta.y + dl * dta.y, az = ta.z + dl * dta.z;
                 VT bx = tb.x + dl * dtb.x, by = tb.y + dl * dtb.y, bz = tb.z + dl * dtb.z;
-                rr = fmax(R.x + ax * quad + bx * ht + dl * (R1.x + dl * (H2.x + dl * H3.x)), 0.0f);
-                rg = fmax(R.y + ay * quad + by * ht + dl * (R1.y + dl * (H2.y + dl * H3.y)), 0.0f);
-                rb = fmax(R.z + az * quad + bz * ht + dl * (R1.z + dl * (H2.z + dl * H3.z)), 0.0f);
+                rr = fmax(R.x + ax * quad + bx * ht + dl * (R1.x + dl * (H2.x + dl * (H3.x + dl * Q4.x))), 0.0f);
+                rg = fmax(R.y + ay * quad + by * ht + dl * (R1.y + dl * (H2.y + dl * (H3.y + dl * Q4.y))), 0.0f);
+                rb = fmax(R.z + az * quad + bz * ht + dl * (R1.z + dl * (H2.z + dl * (H3.z + dl * Q4.z))), 0.0f);
 #else
-                rr = fmax(R.x + dl * (R1.x + dl * (H2.x + dl * H3.x)), 0.0f);
-                rg = fmax(R.y + dl * (R1.y + dl * (H2.y + dl * H3.y)), 0.0f);
-                rb = fmax(R.z + dl * (R1.z + dl * (H2.z + dl * H3.z)), 0.0f);
+                rr = fmax(R.x + dl * (R1.x + dl * (H2.x + dl * (H3.x + dl * Q4.x))), 0.0f);
+                rg = fmax(R.y + dl * (R1.y + dl * (H2.y + dl * (H3.y + dl * Q4.y))), 0.0f);
+                rb = fmax(R.z + dl * (R1.z + dl * (H2.z + dl * (H3.z + dl * Q4.z))), 0.0f);
 #endif
             } else {
                 VT dx = n0.x - qx, dy = n0.y - qy, dz = n0.z - qz;
+#if SUBTILE
+                SUB_DIST(n0.xyz)
+                if (sub_far) {
+                    SUB_LOOKUPS
+                    VT d2 = dx * dx + dy * dy + dz * dz;
+                    VT dl = sqrt(d2) - S16(sd4);
+#if SECOND_ORDER
+                    float4 tbx = Ax / sd4, tby = Ay / sd4, tbz = Az / sd4;
+                    float4 tax = 2.0f * Bx - tbx, tay = 2.0f * By - tby, taz = 2.0f * Bz - tbz;
+                    float4 ebx = tax / sd4, eby = tay / sd4, ebz = taz / sd4;
+                    float4 eax = 6.0f * Cx - ebx, eay = 6.0f * Cy - eby, eaz = 6.0f * Cz - ebz;
+                    VT cx = c0.x * dx + c0.y * dy + c0.z * dz;
+                    VT cy = c0.y * dx + c0.w * dy + n3.x * dz;
+                    VT cz = c0.z * dx + n3.x * dy + n3.y * dz;
+                    VT quad = 0.5f * (dx * cx + dy * cy + dz * cz) / d2;
+#define CH(c) fmax(S16(R##c) + (S16(ta##c) + dl * S16(ea##c)) * quad \
+                   + (S16(tb##c) + dl * S16(eb##c)) * ht \
+                   + dl * (S16(A##c) + dl * (S16(B##c) + dl * (S16(C##c) + dl * S16(Q##c)))), 0.0f)
+#else
+#define CH(c) fmax(S16(R##c) + dl * (S16(A##c) + dl * (S16(B##c) + dl * (S16(C##c) + dl * S16(Q##c)))), 0.0f)
+#endif
+                    rr = CH(x); rg = CH(y); rb = CH(z);
+#undef CH
+                } else {
+#endif
 #if SECOND_ORDER
                 VT d2 = dx * dx + dy * dy + dz * dz;
                 VT t = fmin(sqrt(d2) * inv_h, tmax);
@@ -429,6 +515,9 @@ __kernel void gather_tile_v(__global const float *query,
 #else
                 LANE_TABLE(rr, rg, rb, dx, dy, dz)
 #endif
+#if SUBTILE
+                }
+#endif
             }
             mr += rr * n1.x; mg += rg * n1.y; mb += rb * n1.z;
 #if THESIS_NORM
@@ -450,13 +539,24 @@ __kernel void gather_tile_v(__global const float *query,
                 if (dp - ts.w > xd) {
                     float4 R, R1, H2, H3;
                     xlookup(xtab, fmin(dp * inv_h, tmax), &R, &R1, &H2, &H3);
+                    float4 Q4 = QUARTIC * (float4)(R.w, R1.w, H2.w, 0.0f);
                     VT dx = p.x - qx, dy = p.y - qy, dz = p.z - qz;
                     VT dl = sqrt(dx * dx + dy * dy + dz * dz) - dp;
-                    rr = fmax(R.x + dl * (R1.x + dl * (H2.x + dl * H3.x)), 0.0f);
-                    rg = fmax(R.y + dl * (R1.y + dl * (H2.y + dl * H3.y)), 0.0f);
-                    rb = fmax(R.z + dl * (R1.z + dl * (H2.z + dl * H3.z)), 0.0f);
+                    rr = fmax(R.x + dl * (R1.x + dl * (H2.x + dl * (H3.x + dl * Q4.x))), 0.0f);
+                    rg = fmax(R.y + dl * (R1.y + dl * (H2.y + dl * (H3.y + dl * Q4.y))), 0.0f);
+                    rb = fmax(R.z + dl * (R1.z + dl * (H2.z + dl * (H3.z + dl * Q4.z))), 0.0f);
                 } else {
                     VT dx = p.x - qx, dy = p.y - qy, dz = p.z - qz;
+#if SUBTILE
+                    SUB_DIST(p.xyz)
+                    if (sub_far) {
+                        SUB_LOOKUPS
+                        VT dl = sqrt(dx * dx + dy * dy + dz * dz) - S16(sd4);
+#define CH(c) fmax(S16(R##c) + dl * (S16(A##c) + dl * (S16(B##c) + dl * (S16(C##c) + dl * S16(Q##c)))), 0.0f)
+                        rr = CH(x); rg = CH(y); rb = CH(z);
+#undef CH
+                    } else
+#endif
                     LANE_TABLE(rr, rg, rb, dx, dy, dz)
                 }
                 mr += rr * e.x; mg += rg * e.y; mb += rb * e.z;

@@ -51,6 +51,14 @@ Choices made here (and why):
   evaluated by a cubic Taylor expansion of R in the distance about the tile centre (one
   scalar table lookup per source instead of 16 gathered ones).  Measured on
   bench/bench_gather.py's head: ~2x less kernel time at equal error than the per-query walk.
+* **Sub-tile expansion** (``subtiles``, tile 16).  Sources too near for the tile's expansion
+  but far from each of its 4 sub-tiles (4 Morton-adjacent queries, own bounding sphere,
+  median radius ~1/3 of the tile's) are expanded about the sub-tile centres (4 contiguous
+  table rows instead of 16 gathered ones; lanes interleaved so the 4 coefficients spread as
+  one float4 repeated).  The expansion is quartic (d4R/dr4 / 24 in the table's spare
+  slots; measured 0.350 % vs 0.367 % rel RMSE against cubic at eps 0.5, same time).
+  Measured on the bench head (eps 0.6, leaf 16, old expansion radii): 0.196 s vs 0.216 s
+  at equal error; the cheaper expansion then allowed smaller radii (``DEFAULT_EXPAND_MM``).
 * **Default epsilon** ``DEFAULT_EPSILON``: see its comment (bench/bench_gather.py).
 """
 from __future__ import annotations
@@ -68,11 +76,13 @@ __all__ = ["VERSION", "KERNELS", "Octree", "build_octree", "gather", "profile_ta
            "morton_order", "blurred_profile", "kernel_sigma", "DEFAULT_EPSILON",
            "DEFAULT_LEAF_SIZE", "DEFAULT_TILE", "TABLE_N"]
 
-VERSION = 3
+VERSION = 4
 KERNELS = ("bssrdf_gather.cl",)
 
-# Jensen & Buhler 2002 and pbrt-v2 use leaves of at most 8 points.
-DEFAULT_LEAF_SIZE = 8
+# Jensen & Buhler 2002 and pbrt-v2 use leaves of at most 8 points; 16 measured faster with
+# the tile walk (bench/bench_gather.py head, eps 0.5: 0.179 s vs 0.195 s kernel, rel RMSE
+# 0.376 % vs 0.391 %; one tile visit then sums 16 points in vector lanes).
+DEFAULT_LEAF_SIZE = 16
 # Solid-angle criterion, chosen from measurements with second-order clusters.
 # bench/bench_gather.py (LPS head x10 mm, 250k points, 640k camera queries, skin2, cut-off
 # 24 mm, smooth lighting + hard shadow): relative RMSE vs brute force 0.11 % at 0.25, 0.35 %
@@ -90,12 +100,17 @@ MORTON_BITS = 21
 DEFAULT_TILE = 16
 # Far-field Taylor expansion about the tile centre (cl/bssrdf_gather.cl gather_tile_v) for
 # sources farther than max(DEFAULT_EXPAND_MM, DEFAULT_EXPAND_RT x tile radius) from every
-# query of the tile.  Measured (bench, LPS head, eps 0.4): rel RMSE 0.234 % vs 0.214 % with
-# every source evaluated exactly, 0.28 s vs 0.46 s; the radius factor keeps tiles that
-# straddle a gap of the Morton curve exact (a cubic diverges beyond its radius: without it
-# the error was 1-3 %).
-DEFAULT_EXPAND_MM = 3.0
-DEFAULT_EXPAND_RT = 6.0
+# query of the tile, and (tile 16) about the 4 sub-tile centres with the sub-tile radius
+# (its factor ``expand_sub_rt``, default the same).
+# The radius factor keeps tiles that straddle a gap of the Morton curve exact (a polynomial
+# diverges beyond its radius: without it the error was 1-3 %).  Measured (bench, LPS head,
+# 640k queries, leaf 16, quartic expansion; 2-core PoCL): eps 0.5 at (1.5 mm, 3.0) 0.179 s,
+# rel RMSE 0.376 %; (3 mm, 4.0) 0.193 s, 0.350 %; (3 mm, 6.0) 0.228 s, 0.318 %; (1.0 mm, 2.5)
+# 0.179 s, 0.390 %; every source exact 0.373 s, 0.281 %.  At the default epsilon 0.2:
+# 0.277 s, 0.059 % (before sub-tiles, cubic, (3 mm, 6.0): 0.386 s, 0.045 %).
+# The older cubic tile-only expansion with (3 mm, 6): eps 0.4, 0.234 % vs 0.214 % exact.
+DEFAULT_EXPAND_MM = 1.5
+DEFAULT_EXPAND_RT = 3.0
 # Work-group size for the PoCL CPU walk (measured: 64 vs None vs 256 made < 5 % difference).
 LOCAL_SIZE = 64
 
@@ -462,16 +477,20 @@ def profile_table(profile, *, normalisation: str = "energy", cutoff_mm: float | 
             deriv[:, 1, c] = np.where(inside, r1 / rr, 0.0)
     deriv[-2:] = 0.0
     if taylor:
-        # R, R', R''/2 and d3R/dr3 / 6 for gather_tile_v's 1-D Taylor expansion (same grid and scale)
+        # R, R', R''/2 and d3R/dr3 / 6 for gather_tile_v's 1-D Taylor expansion (same grid and
+        # scale), and the quartic coefficient d4R/dr4 / 24 per channel in the .w of rows 0-2
         tay = np.zeros((n, 4, 4))
         tay[:, 0] = tab
         for c in range(3):
             d1 = np.gradient(R[:, c], r)
             d2 = np.gradient(d1, r)
             d3 = np.gradient(d2, r)
+            d4 = np.gradient(d3, r)
             inside = rr <= cut[c]
             for o, (dd, fac) in enumerate(((d1, 1.0), (d2, 0.5), (d3, 1.0 / 6.0)), start=1):
                 tay[:, o, c] = np.where(inside, np.interp(rr, r, dd) * scale[c] * fac, 0.0)
+            # d4R/dr4 / 24 of channel c in the spare .w of float4 c (cl: QUARTIC)
+            tay[:, c, 3] = np.where(inside, np.interp(rr, r, d4) * scale[c] / 24.0, 0.0)
         tay[-2:] = 0.0
         return (tab.astype(np.float32), h, cmax, deriv.reshape(2 * n, 4).astype(np.float32),
                 tay.reshape(4 * n, 4).astype(np.float32))
@@ -486,6 +505,7 @@ def gather(octree: Octree, profile, query_positions: np.ndarray, *,
            second_order: bool = True, kernel_sigma_mm: float | None = None,
            tile: int = DEFAULT_TILE, vector: bool = True,
            expand_mm: float = DEFAULT_EXPAND_MM, expand_rt: float = DEFAULT_EXPAND_RT,
+           subtiles: bool = True, expand_sub_rt: float | None = None,
            progress=None) -> tuple[np.ndarray, dict]:
     """Radiant exitance M_o at query points from the octree's irradiance points.
 
@@ -527,6 +547,11 @@ def gather(octree: Octree, profile, query_positions: np.ndarray, *,
     vector : bool
         Use the explicit-vector tile kernel (tile 4, 8 or 16) with the far-field expansion;
         False (or another tile size) gives the scalar tile kernel, every source exact.
+    subtiles : bool
+        (tile 16, vector) Also expand nearer sources about the centres of the tile's 4
+        sub-tiles of 4 queries (module docstring); False: those are evaluated exactly.
+    expand_sub_rt : float, optional
+        The radius factor for the sub-tiles (default ``expand_rt``).
     expand_mm, expand_rt : float
         Sources farther than max(expand_mm, expand_rt x tile radius) from all of a tile's
         queries are evaluated by a Taylor expansion about the tile centre (``DEFAULT_EXPAND_MM``,
@@ -593,7 +618,7 @@ def gather(octree: Octree, profile, query_positions: np.ndarray, *,
     visits = np.zeros(nq, np.int32)
     events = []
     chunks = 16 if progress is not None else 1
-    bounds = np.linspace(0, nq, chunks + 1).astype(int)
+    bounds = _chunk_bounds(nq, chunks)
     if brute_force:
         knl = env.kernel("bssrdf_gather.cl", "gather_brute", defines)
         for c in range(chunks):
@@ -616,9 +641,18 @@ def gather(octree: Octree, profile, query_positions: np.ndarray, *,
         qt[nq:] = q4[-1]  # padding lanes repeat the last query (their results are dropped)
         sph = _tile_spheres(qt[:, :3].astype(np.float64).reshape(ntiles, tile, 3))
         vec = tile in (4, 8, 16) and vector
-        if vec:  # planar per tile: (G, 3, T)
-            qt = np.ascontiguousarray(qt[:, :3].reshape(ntiles, tile, 3).transpose(0, 2, 1))
-        d_qt, d_sph = to_device(env, qt), to_device(env, sph)
+        # sub-tile spheres: 4 per tile, each over 4 consecutive (Morton) queries; for the
+        # kernel the lanes are then interleaved, lane l in sub-tile l % 4 (cl: SUBTILE)
+        use_sub = vec and tile == 16 and bool(subtiles)
+        sub_rt = expand_rt if expand_sub_rt is None else expand_sub_rt
+        ssph = (_tile_spheres(qt[:, :3].astype(np.float64).reshape(ntiles * 4, tile // 4, 3))
+                if vec else sph)
+        if vec:  # planar per tile: (G, 3, T); with sub-tiles lane l is sub-tile l % 4
+            q3 = qt[:, :3].reshape(ntiles, tile, 3)
+            if use_sub:
+                q3 = q3.reshape(ntiles, 4, 4, 3).transpose(0, 2, 1, 3).reshape(ntiles, tile, 3)
+            qt = np.ascontiguousarray(q3.transpose(0, 2, 1))
+        d_qt, d_sph, d_ssph = to_device(env, qt), to_device(env, sph), to_device(env, ssph)
         d_node = to_device(env, _node_records(octree, epsilon, cmax, distances=True))
         d_start = to_device(env, octree.start.astype(np.int32))
         d_ptab = to_device(env, _packed_table(tab, deriv, planar=vec))
@@ -630,19 +664,22 @@ def gather(octree: Octree, profile, query_positions: np.ndarray, *,
         knl = env.kernel("bssrdf_gather.cl", "gather_tile_v" if vec else "gather_tile",
                          dict(defines, TILE=int(tile)))
         tl = min(local_size or 8, 8)  # few, heavy work-items: small groups keep both cores busy
-        tb = np.linspace(0, ntiles, chunks + 1).astype(int)
+        tb = _chunk_bounds(ntiles, chunks)
+        tbytes = tile * (12 if vec else 16)  # queries/results per tile: planar xyz or float4
         for c in range(chunks):
             a, b = tb[c], tb[c + 1]
             if b <= a:
                 continue
             whole = a == 0 and b == ntiles
-            sub_q = d_qt if whole else d_qt.get_sub_region(a * tile * 16, (b - a) * tile * 16)
+            sub_q = d_qt if whole else d_qt.get_sub_region(a * tbytes, (b - a) * tbytes)
             sub_s = d_sph if whole else d_sph.get_sub_region(a * 16, (b - a) * 16)
-            sub_o = d_out if whole else d_out.get_sub_region(a * tile * 16, (b - a) * tile * 16)
+            sub_ss = d_ssph if whole or not vec else d_ssph.get_sub_region(a * 64, (b - a) * 64)
+            sub_o = d_out if whole else d_out.get_sub_region(a * tbytes, (b - a) * tbytes)
             sub_v = d_vis if whole else d_vis.get_sub_region(a * 4, (b - a) * 4)
             extra = ((d_xtab, np.float32(1.0 / h), np.float32(expand_mm), np.float32(expand_rt))
                      if vec else (np.float32(1.0 / h),))
-            events.append(knl(env.queue, _global(b - a, tl), (tl,), sub_q, sub_s, d_node,
+            subarg = ((sub_ss, np.int32(use_sub), np.float32(sub_rt)) if vec else ())
+            events.append(knl(env.queue, _global(b - a, tl), (tl,), sub_q, sub_s, *subarg, d_node,
                               d_start, np.int32(k), d_pa, d_pe, d_tab, d_ptab, *extra,
                               rd_vec, np.int32(b - a), sub_o, sub_v))
             if progress is not None:
@@ -652,6 +689,9 @@ def gather(octree: Octree, profile, query_positions: np.ndarray, *,
         if vec:
             planar = np.empty((ntiles, 3, tile), np.float32)
             cl.enqueue_copy(env.queue, planar, d_out)
+            if use_sub:  # back from the interleaved lane order
+                planar = planar.reshape(ntiles, 3, 4, 4).transpose(0, 1, 3, 2).reshape(
+                    ntiles, 3, tile)
             outt[:, :3] = planar.transpose(0, 2, 1).reshape(-1, 3)
         else:
             cl.enqueue_copy(env.queue, outt, d_out)
@@ -757,6 +797,14 @@ def _expansion_table(tab: np.ndarray, deriv: np.ndarray, h: float) -> np.ndarray
     out[:, 1] = dv[:, 1] * (np.arange(n) * h)[:, None]
     out[:, 2:] = dv
     return out.reshape(4 * n, 4)
+
+
+def _chunk_bounds(n: int, chunks: int) -> np.ndarray:
+    """Launch chunk boundaries, multiples of 32 items (sub-buffer origins must be aligned to
+    the device's base address alignment, 128 bytes on PoCL; 32 x 4-byte visit counters)."""
+    b = (np.linspace(0, n, chunks + 1) // 32).astype(int) * 32
+    b[-1] = n
+    return np.maximum.accumulate(b)
 
 
 def _global(n: int, local: int | None) -> tuple[int]:
