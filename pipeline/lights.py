@@ -28,9 +28,29 @@ Light types (``pipeline.config.LightConfig``, lengths in mm):
   preserving), area-sampling estimator weight = L |cos theta_l| (pi r^2) / (d^2 S).
   Default S = 16, r = 70 mm (thesis, physics.md s6).
 * ``environment`` - a lat-long radiance map: an HDR/EXR read with OpenImageIO or the
-  embedded procedural sunset sky (sun 3 deg above the horizon, thesis).  Importance sampled
-  by pixel luminance x sin(theta) (the pixel's solid angle) with S samples per point,
-  stratified in the flattened CDF; weight = L / (pdf S).
+  embedded procedural sunset sky (sun 3 deg above the horizon, thesis).  Two strategies
+  (``env_strategy``):
+
+  - ``"luminance"``: S samples importance sampled by pixel luminance x sin(theta) (the
+    pixel's solid angle), stratified in the flattened CDF; weight = L / (S p_env).
+  - ``"mis"`` (default when normals are given): multiple importance sampling (Veach &
+    Guibas 1995; Veach's thesis 1997, ch. 9).  n_cos = round(3 S / 8) samples (6 of 16)
+    from the cosine-weighted hemisphere around the normal, p_cos = cos/pi (Malley's method
+    on a stratified concentric disc), and n_env = S - n_cos from p_env as above, combined
+    with the balance heuristic: every sample, whichever strategy drew it, gets weight
+    L / (n_env p_env + n_cos p_cos), both pdfs evaluated at its direction.  Unbiased
+    wherever either pdf covers the integrand (p_cos covers the whole upper hemisphere).
+    Why: 67 % of the procedural sunset's luminance mass is the sun 3 deg above the horizon;
+    on surfaces facing away from it (or where it is occluded) luminance sampling spends most
+    of the S samples on a zero contribution and the sky is estimated from one or two.
+    Measured on the procedural sunset at S = 16 (relative std of one point's estimate,
+    luminance -> mis): normal 60 deg above the anti-sun direction 36 % -> 13 %, anti-sun
+    62 % -> 18 %, straight down 42 % -> 7 %, up 6.9 % -> 2.7 %, sun-facing 7.2 % -> 6.2 %.
+    Choices, measured on the same normals (see MIS_COSINE_FRACTION): 3/8 of the samples
+    beats 1/4 and 1/2 (half leaves too few luminance samples for the sun: 9.2 % on the
+    sun-facing point); the balance heuristic beats the power heuristic (beta = 2) on the
+    sky-lit normals (up: 2.7 % vs 4.8 %) and ties elsewhere, and is simpler.  With S = 1 or
+    without normals the luminance strategy is used.
 
 Lat-long convention: y is up; image row 0 is the zenith; the image centre (u = 0.5) looks
 along +z, in front of the face and behind the default camera, and the panorama is seen
@@ -38,7 +58,8 @@ unmirrored from inside (u grows towards -x).  With it, the Venice sunset map's s
 (column 614/1024) lands in front of the face, on the screen's left.
 
 Guarded by tests/test_lights.py (inverse square, disc -> point limit and closed form,
-constant environment gives pi L, importance-sampling consistency) and tests/test_render.py.
+constant environment gives pi L, importance-sampling consistency, MIS unbiasedness and its
+variance reduction) and tests/test_render.py.
 """
 from __future__ import annotations
 
@@ -54,8 +75,18 @@ from .errors import ConfigError, DermisError
 
 __all__ = [
     "LightSamples", "EnvironmentMap", "sample_lights", "irradiance", "environment_map",
-    "procedural_sunset", "concentric_disc", "LUMINANCE", "SUNSET_SUN_ELEVATION_DEG",
+    "procedural_sunset", "concentric_disc", "cosine_hemisphere", "LUMINANCE",
+    "SUNSET_SUN_ELEVATION_DEG", "ENV_STRATEGIES",
 ]
+
+# Environment-light sampling strategies (module docstring); the first is the default.
+ENV_STRATEGIES = ("mis", "luminance")
+# Share of an environment light's samples drawn from the cosine hemisphere under "mis":
+# measured on the procedural sunset at S = 16 over 6 normals (module docstring), shares
+# 1/8, 1/4, 3/8, 1/2 tried: 3/8 is the largest that is nowhere noisier than pure luminance
+# sampling (1/2: 9.2 % vs 7.2 % on the sun-facing normal), and beats 1/8 and 1/4 on every
+# normal facing away from the sun (anti-sun: 18 % vs 34 % and 24 %).
+MIS_COSINE_FRACTION = 0.375
 
 # Rec. 709 / sRGB luminance weights (ITU-R BT.709), used for importance sampling.
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722], dtype=np.float64)
@@ -116,6 +147,34 @@ def _frame(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     t = np.array([1.0 + s * x * x * a, s * b, -s * x])
     bt = np.array([b, s + y * y * a, -y])
     return t, bt
+
+
+def _frames(axes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Vectorised :func:`_frame`: (N, 3) unit axes -> two (N, 3) orthonormal tangents."""
+    x, y, z = axes[:, 0], axes[:, 1], axes[:, 2]
+    s = np.where(z >= 0, 1.0, -1.0)
+    a = -1.0 / (s + z)
+    b = x * y * a
+    t = np.stack([1.0 + s * x * x * a, s * b, -s * x], axis=1)
+    bt = np.stack([b, s + y * y * a, -y], axis=1)
+    return t, bt
+
+
+def cosine_hemisphere(u: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cosine-weighted directions about each normal (Malley's method, concentric disc).
+
+    u : (N, S, 2) uniform numbers in [0, 1); normals : (N, 3) unit.
+    Returns (N, S, 3) float64 unit directions and their cosine with the normal (N, S);
+    the solid-angle pdf is cos / pi.
+    """
+    n = np.asarray(normals, dtype=np.float64)
+    n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+    xy = concentric_disc(u)
+    cos = np.sqrt(np.maximum(1.0 - (xy ** 2).sum(-1), 0.0))
+    t, b = _frames(n)
+    d = (xy[..., :1] * t[:, None, :] + xy[..., 1:] * b[:, None, :]
+         + cos[..., None] * n[:, None, :])
+    return _normalize(d), cos
 
 
 def concentric_disc(u: np.ndarray) -> np.ndarray:
@@ -218,17 +277,40 @@ def _disc(light, p: np.ndarray, rng, samples: int) -> tuple:
     return wi, w, dist
 
 
-def _environment(light, p: np.ndarray, rng, samples: int, env) -> tuple:
+def _environment(light, p: np.ndarray, rng, samples: int, env, normals, strategy: str
+                 ) -> tuple:
     if env is None:
         env = environment_map(light)
     n = len(p)
-    u = np.empty((n, samples, 3))
+    mis = strategy == "mis" and normals is not None and samples >= 2 and not env.black
+    n_cos = min(max(int(round(samples * MIS_COSINE_FRACTION)), 1), samples - 1) if mis else 0
+    n_env = samples - n_cos
+    u = np.empty((n, n_env, 3))
     # stratify the flattened-CDF coordinate per point; jitter inside the pixel at random
-    u[..., 0] = (np.arange(samples)[None, :] + rng.random((n, samples))) / samples
-    u[..., 1:] = rng.random((n, samples, 2))
-    wi, w = env.sample(u.reshape(-1, 3))
-    wi = wi.reshape(n, samples, 3)
-    w = (w / np.float32(samples)).reshape(n, samples, 3)
+    u[..., 0] = (np.arange(n_env)[None, :] + rng.random((n, n_env))) / n_env
+    u[..., 1:] = rng.random((n, n_env, 2))
+    if not mis:
+        wi, w = env.sample(u.reshape(-1, 3))
+        wi = wi.reshape(n, samples, 3)
+        w = (w / np.float32(samples)).reshape(n, samples, 3)
+        dist = np.full((n, samples), np.inf, dtype=np.float32)
+        return wi, w, dist
+    # multiple importance sampling, balance heuristic (module docstring): for a sample x of
+    # either strategy, w_i(x) L / (n_i p_i(x)) with w_i = n_i p_i / sum_j n_j p_j reduces to
+    # L(x) / (n_env p_env(x) + n_cos p_cos(x)) (Veach 1997, eq. 9.13)
+    nrm = np.asarray(normals, dtype=np.float64)
+    d_env, rad_env, pdf_env = env.sample_pdf(u.reshape(-1, 3))
+    d_env = d_env.reshape(n, n_env, 3)
+    cos_env = np.einsum("nsk,nk->ns", d_env, nrm) / np.maximum(
+        np.linalg.norm(nrm, axis=1), 1e-30)[:, None]
+    den_env = n_env * pdf_env.reshape(n, n_env) + n_cos * np.maximum(cos_env, 0.0) / math.pi
+    d_cos, cos_cos = cosine_hemisphere(_stratified_2d(rng, n, n_cos), nrm)
+    den_cos = n_env * env.pdf(d_cos) + n_cos * cos_cos / math.pi
+    rad_cos = env.lookup(d_cos).astype(np.float64)
+    w_env = rad_env.reshape(n, n_env, 3) / np.where(den_env > 0, den_env, np.inf)[..., None]
+    w_cos = rad_cos / np.where(den_cos > 0, den_cos, np.inf)[..., None]
+    wi = np.concatenate([d_env, d_cos], axis=1).astype(np.float32)
+    w = np.concatenate([w_env, w_cos], axis=1).astype(np.float32)
     dist = np.full((n, samples), np.inf, dtype=np.float32)
     return wi, w, dist
 
@@ -236,7 +318,8 @@ def _environment(light, p: np.ndarray, rng, samples: int, env) -> tuple:
 # --------------------------------------------------------------------------- public API
 def sample_lights(lights, points: np.ndarray, normals: np.ndarray | None = None, *,
                   samples: int | None = None, seed: int | Sequence[int] = 0,
-                  env: "EnvironmentMap | None" = None) -> LightSamples:
+                  env: "EnvironmentMap | None" = None,
+                  env_strategy: str = ENV_STRATEGIES[0]) -> LightSamples:
     """Sample one light or several (summed) for N surface points.
 
     Parameters
@@ -254,6 +337,11 @@ def sample_lights(lights, points: np.ndarray, normals: np.ndarray | None = None,
         Seeds ``numpy.random.default_rng`` (pass ``(seed, chunk)`` for chunked calls).
     env : EnvironmentMap, optional
         Pre-built map for an environment light (else built from ``light.map``, cached).
+    env_strategy : {"mis", "luminance"}
+        How environment lights are sampled (module docstring): "mis" (default) mixes
+        luminance and cosine-hemisphere samples about ``normals`` (3/8 of them) with the
+        balance heuristic; "luminance" is pure luminance importance sampling.  "mis" falls back to
+        "luminance" when ``normals`` is None or S = 1.
 
     Returns
     -------
@@ -264,6 +352,9 @@ def sample_lights(lights, points: np.ndarray, normals: np.ndarray | None = None,
     if not lights:
         raise DermisError("lights: no light given")
     p, n = _check_points(points, normals)
+    if env_strategy not in ENV_STRATEGIES:
+        raise ConfigError(f"env_strategy = {env_strategy!r}: must be one of "
+                          f"{', '.join(ENV_STRATEGIES)}")
     rng = np.random.default_rng(seed)
     parts = []
     for light in lights:
@@ -278,7 +369,7 @@ def sample_lights(lights, points: np.ndarray, normals: np.ndarray | None = None,
         elif kind == "disc":
             parts.append(_disc(light, p, rng, s))
         elif kind == "environment":
-            parts.append(_environment(light, p, rng, s, env))
+            parts.append(_environment(light, p, rng, s, env, n, env_strategy))
         else:
             raise ConfigError(f"lights.{light.name}.type = {kind!r}: must be one of point, "
                               "disc, directional, environment")
@@ -295,7 +386,7 @@ def sample_lights(lights, points: np.ndarray, normals: np.ndarray | None = None,
 def irradiance(points: np.ndarray, normals: np.ndarray, light,
                occlusion_fn: Callable | None, *, samples: int | None = None,
                seed: int = 0, env: "EnvironmentMap | None" = None,
-               chunk: int = 65536) -> np.ndarray:
+               chunk: int = 65536, env_strategy: str = ENV_STRATEGIES[0]) -> np.ndarray:
     """Irradiance E at surface points from one light (or a list of lights), with shadows.
 
     Parameters
@@ -312,6 +403,8 @@ def irradiance(points: np.ndarray, normals: np.ndarray, light,
     env : EnvironmentMap, optional
     chunk : int
         Points per batch (bounds memory to ~chunk x samples rays).
+    env_strategy : {"mis", "luminance"}
+        Environment sampling strategy (:func:`sample_lights`).
 
     Returns
     -------
@@ -325,7 +418,8 @@ def irradiance(points: np.ndarray, normals: np.ndarray, light,
     out = np.zeros((len(p), 3), dtype=np.float32)
     for c, start in enumerate(range(0, len(p), chunk)):
         sl = slice(start, start + chunk)
-        ls = sample_lights(light, p[sl], n[sl], samples=samples, seed=(seed, c), env=env)
+        ls = sample_lights(light, p[sl], n[sl], samples=samples, seed=(seed, c), env=env,
+                           env_strategy=env_strategy)
         cos = np.einsum("nsk,nk->ns", ls.directions, n[sl])
         contrib = ls.weights * np.maximum(cos, 0.0)[..., None]
         live = np.any(ls.weights > 0, axis=2)
@@ -400,27 +494,36 @@ class EnvironmentMap:
         p = self.pmf[row * self.width + col] * (self.height * self.width)
         return np.where(sin_t > 0, p / (2.0 * math.pi * math.pi * np.maximum(sin_t, 1e-30)), 0.0)
 
-    def sample(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Directions and radiance / pdf for uniform numbers ``u`` (M, 3) in [0, 1).
+    def sample_pdf(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Directions, radiance and solid-angle pdf for uniform numbers ``u`` (M, 3) in [0, 1).
 
         u[:, 0] picks the pixel through the flattened CDF, u[:, 1:] places the direction
-        uniformly inside it (in (u, v)); returns (M, 3) float32 unit directions and (M, 3)
-        float32 L / pdf (sr x radiance), 0 for a black map.
+        uniformly inside it (in (u, v)); returns (M, 3) float64 unit directions, (M, 3)
+        float32 radiance of the picked pixel and (M,) float64 pdf (1/sr; 0 for a black map).
         """
         m = len(u)
         if self.black:
-            d = np.zeros((m, 3), dtype=np.float32)
+            d = np.zeros((m, 3))
             d[:, 1] = 1.0
-            return d, np.zeros((m, 3), dtype=np.float32)
+            return d, np.zeros((m, 3), dtype=np.float32), np.zeros(m)
         idx = np.searchsorted(self.cdf, u[:, 0] * self.cdf[-1], side="right")
         idx = np.minimum(idx, len(self.pmf) - 1)
-        # guard: a zero-mass pixel can only be reached at the CDF's end; step back to mass
         row, col = np.divmod(idx, self.width)
         d, sin_t = self._dirs((col + u[:, 2]) / self.width, (row + u[:, 1]) / self.height)
-        # pdf over solid angle: pmf * H W / (2 pi^2 sin theta); weight = L / pdf
-        inv_pdf = (2.0 * math.pi * math.pi) * sin_t / (self.pmf[idx] * (self.height * self.width))
-        inv_pdf = np.where(self.pmf[idx] > 0, inv_pdf, 0.0)
-        w = self.radiance[row, col] * inv_pdf[:, None].astype(np.float32)
+        # pdf over solid angle: pmf * H W / (2 pi^2 sin theta)
+        pdf = self.pmf[idx] * (self.height * self.width) / (
+            2.0 * math.pi * math.pi * np.maximum(sin_t, 1e-30))
+        return d, self.radiance[row, col], np.where(sin_t > 0, pdf, 0.0)
+
+    def sample(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Directions and radiance / pdf for uniform numbers ``u`` (M, 3) in [0, 1).
+
+        As :meth:`sample_pdf`; returns (M, 3) float32 unit directions and (M, 3) float32
+        L / pdf (sr x radiance), 0 for a black map or a zero-mass pixel.
+        """
+        d, rad, pdf = self.sample_pdf(u)
+        inv_pdf = np.where(pdf > 0, 1.0 / np.where(pdf > 0, pdf, 1.0), 0.0)
+        w = rad * inv_pdf[:, None].astype(np.float32)
         return d.astype(np.float32), w.astype(np.float32)
 
 

@@ -6,7 +6,8 @@ Pipeline of :func:`render` (architecture.md "Where the work runs"):
    (:class:`pipeline.visibility.Visibility`); the hits (triangle id + barycentrics) go to
    ``cl/surface.cl``, which returns position, geometric and shading normal (interpolated,
    bump-mapped from the baked map for the low-mesh variants), UV and linear albedo.
-2. **shadows** - :func:`pipeline.lights.sample_lights` draws the light samples; samples
+2. **shadows** - :func:`pipeline.lights.sample_lights` draws the light samples (environment
+   lights: MIS of luminance and cosine samples about the geometric normal); samples
    below the geometric or the shading horizon are dropped before any ray is traced, and the
    rest go through Embree occlusion queries.  Pixels that miss the mesh or see a back face
    trace nothing.
@@ -343,7 +344,7 @@ def render(mesh, light, model: str, params, camera, *, maps=None, bump: str | No
            shadow_samples: int | None = None, seed: int = 0, env: EnvironmentMap | None = None,
            visibility: Visibility | None = None, asperity_base: str | None = None,
            base_params=None, cl_env=None, width: int | None = None,
-           height: int | None = None, textured: bool = True,
+           height: int | None = None, textured: bool = True, env_strategy: str = "mis",
            progress: Callable[[float], None] | None = None) -> RenderResult:
     """Render one image of ``mesh`` under ``light`` with a BRDF model.
 
@@ -382,6 +383,9 @@ def render(mesh, light, model: str, params, camera, *, maps=None, bump: str | No
     textured : bool
         False ignores the albedo texture (the model's constant albedo everywhere), e.g. to
         render only Lafortune's specular lobes (rho_d = 0) on top of a BSSRDF image.
+    env_strategy : {"mis", "luminance"}
+        Sampling of environment lights (:func:`pipeline.lights.sample_lights`): "mis"
+        (default) mixes luminance and cosine samples about the geometric normal.
     progress : callable(float), optional
         Called with the completed fraction in [0, 1].
 
@@ -461,7 +465,7 @@ def render(mesh, light, model: str, params, camera, *, maps=None, bump: str | No
         pts = shade_idx[start:start + chunk]
         t0 = time.perf_counter()
         ls = sample_lights(lights, pos[pts], ng[pts], samples=shadow_samples, seed=(seed, c),
-                           env=env)
+                           env=env, env_strategy=env_strategy)
         t_sampling += time.perf_counter() - t0
         cos_s = np.einsum("nsk,nk->ns", ls.directions, ns[pts])
         live = (cos_s > 0) & np.any(ls.weights > 0, axis=2)
@@ -510,7 +514,7 @@ def render(mesh, light, model: str, params, camera, *, maps=None, bump: str | No
         "model": model, "base": base if asp is not None else model,
         "lights": [lt.name for lt in lights], "light_types": [lt.type for lt in lights],
         "width": w, "height": h, "samples_per_pixel": per_point, "seed": int(seed),
-        "bump": bump, "textured": texture is not None,
+        "bump": bump, "textured": texture is not None, "env_strategy": env_strategy,
         "primary_rays": int(h * w), "hits": int(len(hit_idx)), "shaded_pixels": int(len(shade_idx)),
         "shadow_rays": int(n_shadow), "shaded_samples": int(n_shaded),
         "triangles": int(len(mesh.faces)), "nonfinite_pixels": nonfinite,
