@@ -67,6 +67,9 @@ class BakeConfig:
     blur_sigma_px: float = spec(8.0, lo=0.0, hi=1000.0)
     max_distance: float = spec(0.0, lo=0.0, unit="length", doc="0 = automatic")
     dilate_px: int = spec(16, lo=0, hi=4096)
+    reference: str = spec("phong", choices=("phong", "flat"),
+                          doc="surface bump heights are measured from: the low mesh's smooth "
+                              "Phong surface, or the flat triangles (thesis; facets show)")
 
 
 @dataclass(frozen=True)

@@ -111,7 +111,7 @@ def _bake(scene: Scene) -> Node:
         from stages import bake
         maps = bake.run(inputs["mesh_low"], inputs["mesh_high"], resolution=b.resolution,
                         max_distance_mm=b.max_distance or None, blur_sigma_px=b.blur_sigma_px,
-                        dilate_px=b.dilate_px, progress=ctx.progress)
+                        dilate_px=b.dilate_px, reference=b.reference, progress=ctx.progress)
         return StageResult(maps, info=maps.info)
 
     return Node("bake", "bake", "stages.bake", params, ("mesh_low", "mesh_high"), fn,

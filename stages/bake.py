@@ -36,7 +36,8 @@ __all__ = [
     "DEFAULT_MAX_DISTANCE_EDGE_FRACTION",
 ]
 
-VERSION = 1
+VERSION = 2
+PHONG_ALPHA = 0.5   # shape factor of the Phong reference surface (see the texel loop)
 KERNELS: tuple[str, ...] = ()
 
 # Default ray length: half the low mesh's mean edge length.  The low mesh deviates from the
@@ -320,9 +321,14 @@ def _squared_distance(idx: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
 # The bake
 # ----------------------------------------------------------------------------------------
 def run(low: Mesh, high: Mesh, *, resolution: int = 4096, max_distance_mm: float | None = None,
-        blur_sigma_px: float = 8.0, dilate_px: int = 16,
+        blur_sigma_px: float = 8.0, dilate_px: int = 16, reference: str = "phong",
         progress: Callable[[float], None] | None = None) -> BakedMaps:
     """Bake albedo and bump maps of ``high`` into the UV space of ``low``.
+
+    ``reference`` is the surface heights are measured from: "phong" (default) the low mesh's
+    Phong-tessellated smooth surface, which the renderer's interpolated normals already
+    describe; "flat" the flat triangle itself (the thesis's literal rule: on a coarse mesh it
+    adds each triangle's dip below the curved surface, seen as a facet pattern).
 
     Parameters
     ----------
@@ -391,6 +397,8 @@ def run(low: Mesh, high: Mesh, *, resolution: int = 4096, max_distance_mm: float
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
     _check_options(resolution, max_distance_mm, blur_sigma_px, dilate_px)
+    if reference not in ("phong", "flat"):
+        raise ConfigError(f"bake.reference = {reference!r}: must be 'phong' or 'flat'")
     _check_mesh(low, "low", need_uv=True)
     _check_mesh(high, "high", need_uv=False)
     resolution = int(resolution)
@@ -487,14 +495,33 @@ def run(low: Mesh, high: Mesh, *, resolution: int = 4096, max_distance_mm: float
         l2 /= over
         del g, dx, dy, over
         l1, l2 = l1[:, None], l2[:, None]
-        p = tri_p0[f_idx] + l1 * tri_e1[f_idx] + l2 * tri_e2[f_idx]
-        nrm = tri_n0[f_idx] + l1 * tri_dn1[f_idx] + l2 * tri_dn2[f_idx]
+        e1f, e2f = tri_e1[f_idx], tri_e2[f_idx]
+        d0 = l1 * e1f + l2 * e2f                                     # p - v0
+        p = tri_p0[f_idx] + d0
+        n0f = tri_n0[f_idx]
+        n1f, n2f = n0f + tri_dn1[f_idx], n0f + tri_dn2[f_idx]
+        nrm = n0f + l1 * tri_dn1[f_idx] + l2 * tri_dn2[f_idx]
         length = np.sqrt(np.einsum("nd,nd->n", nrm, nrm))
         bad = length < 1e-6         # opposite vertex normals cancel: use the face normal
         if bad.any():
             nrm[bad] = face_normals[f_idx[bad]]
             length[bad] = 1.0
         nrm /= length[:, None]
+        if reference == "phong":
+            # Height of the Phong-tessellated surface (Boubekeur & Alexa 2008) above the flat
+            # triangle, along nrm: alpha * sum_i l_i (projection of p on vertex i's tangent
+            # plane - p).  The renderer's interpolated normals already bend with that smooth
+            # surface, so the bump must hold only what lies beyond it, or every triangle's dip
+            # below the curved surface shows as a facet pattern.  alpha = 1/2 (not their 3/4):
+            # on a sphere the full projection sum is exactly twice the chord's dip to second
+            # order, so 1/2 reproduces the sphere (tests/test_bake.py test04b).
+            dot = lambda a, b: np.einsum("nd,nd->n", a, b)  # noqa: E731
+            h_ref = -PHONG_ALPHA * ((1.0 - l1[:, 0] - l2[:, 0]) * dot(d0, n0f) * dot(n0f, nrm)
+                                    + l1[:, 0] * dot(d0 - e1f, n1f) * dot(n1f, nrm)
+                                    + l2[:, 0] * dot(d0 - e2f, n2f) * dot(n2f, nrm))
+        else:
+            h_ref = np.zeros(len(nrm), np.float32)
+        del d0, e1f, e2f, n0f, n1f, n2f
         m = e - s
         rays = np.empty((2 * m, 6), dtype=np.float32)
         off = np.float32(backoff) * nrm
@@ -523,7 +550,7 @@ def run(low: Mesh, high: Mesh, *, resolution: int = 4096, max_distance_mm: float
         tb = np.where(ok[m:], t_hit[m:], np.inf)
         use_f = tf <= tb
         got = np.isfinite(np.minimum(tf, tb))
-        height[s:e] = np.where(got, np.where(use_f, tf, -tb), 0.0)
+        height[s:e] = np.where(got, np.where(use_f, tf, -tb) - h_ref, 0.0)
         hit[s:e] = got
         if has_texture and got.any():
             sel = np.nonzero(got)[0]
@@ -624,6 +651,7 @@ def run(low: Mesh, high: Mesh, *, resolution: int = 4096, max_distance_mm: float
         "height_min_mm": h_min,
         "height_max_mm": h_max,
         "miss_height_mm": 0.0,
+        "height_reference": reference,
         "dilated_texels": n_band,
         "dilate_px": int(dilate_px),
         "albedo_source": albedo_source,
