@@ -8,11 +8,19 @@ is cached per mesh.
 
 Choices made here (and why):
 
-* **Sampler.**  open3d's ``sample_points_poisson_disk`` (Yuksel 2015 sample elimination from
-  ``INIT_FACTOR`` x N uniform samples) gives exactly N blue-noise points.  libigl's
-  ``blue_noise`` was measured on the 9k-vertex LPS head (x10 to mm): 250k points took 90 s and
-  gave 453k points for the radius asked (the count is not controllable), open3d took 18 s for
-  exactly 250k.  An exact count lets every point carry exactly area / N.
+* **Sampler.**  open3d's ``sample_points_poisson_disk`` (Yuksel 2015 sample elimination)
+  gives exactly N blue-noise points from ``INIT_FACTOR`` x N candidates that this module
+  draws itself (:func:`_stratified_surface_samples`: area-stratified triangle counts, an R2
+  low-discrepancy sequence inside each triangle, seeded numpy generator, so the result is
+  deterministic per seed).  libigl's ``blue_noise`` was measured on the 9k-vertex LPS head
+  (x10 to mm): 250k points took 90 s and gave 453k points for the radius asked (the count
+  is not controllable).  An exact count lets every point carry exactly area / N.  The
+  elimination costs ~ INIT_FACTOR^2 (candidates x neighbours per candidate): on the LPS
+  head at 1M triangles, 245k points, 2 cores: 15.7 s at 5 (open3d's default), 5.7 s at 3,
+  2.0 s at 2.  With the stratified candidates and Lloyd samples below, factor 2 + 2 Lloyd
+  steps gives a better partition of unity than open3d's own factor-5 sampler did with 2
+  steps (max deviation 0.41-0.48 % vs 0.92-1.21 % on a finely tessellated plane, 3 seeds;
+  bench/bench_samples.py), so 2 it is.
 * **Normals.**  Each point's normal is the angle-weighted vertex normal (physics.md section 6)
   interpolated at the point's closest position on the mesh (open3d RaycastingScene closest
   points give triangle ids and barycentrics).
@@ -21,9 +29,12 @@ Choices made here (and why):
   sum G_sigma A has 8 % spread at sigma = spacing), which the gather inherits directly as
   exitance error.  Lloyd (centroidal Voronoi) relaxation on the surface removes most of it
   (tests/test_samples.py::test04); ``DEFAULT_RELAX_ITERATIONS`` = 2 because the
-  partition-of-unity weights below work far better on relaxed points (max deviation at
-  sigma = spacing: 2.9 % with 0 steps, 1.5 % with 1, 0.7 % with 2, 1.0 % with 4 -- the
-  centroids come from 16 random samples per point, so more steps only add noise).  A Turk (1992) repulsion step was tried first:
+  partition-of-unity weights below work far better on relaxed points.  The centroids come
+  from ``LLOYD_SAMPLES`` stratified low-discrepancy samples per point (uniform random ones
+  made centroid noise the limit: with them, max deviation at sigma = spacing was 2.9 % with
+  0 steps, 1.5 % with 1, 0.7 % with 2, 1.0 % with 4).  Measured now (bench/bench_samples.py,
+  finely tessellated plane, 3 seeds): 5.1 % with 0 steps, 1.05 % with 1, 0.48 % with 2;
+  a step costs ~2 s for 245k points on 2 cores.  A Turk (1992) repulsion step was tried first:
   it made the nearest-neighbour spread worse (CV 0.075 -> 0.107) and was dropped.
 * **Areas: partition of unity** (``area_weights="pou"``, default).  The gather
   (``stages/gather.py``) treats the irradiance as reconstructed from the points with a
@@ -60,17 +71,19 @@ __all__ = ["VERSION", "KERNELS", "SamplePoints", "run", "spacing_from_mfp", "mes
            "nearest_neighbour_spread", "density_spread", "pou_areas", "MAX_POINTS",
            "KERNEL_SIGMA_FACTOR", "DEFAULT_RELAX_ITERATIONS"]
 
-VERSION = 2
+VERSION = 3
 KERNELS = ()
 
-# open3d sample elimination starts from INIT_FACTOR x N uniform samples; 5 is open3d's
-# default and Yuksel 2015's recommendation (more gives little extra uniformity).
-INIT_FACTOR = 5
+# open3d sample elimination starts from INIT_FACTOR x N stratified candidates.  open3d's
+# default (and Yuksel 2015's) is 5; 2 was measured enough before 2 Lloyd steps and is ~8x
+# cheaper (module docstring, "Sampler").
+INIT_FACTOR = 2
 # Hard ceiling on the point count: 4M points is ~5 min of sampling and ~300 MB of tree on
 # the 2-core reference machine; beyond that the user surely mistyped the spacing.
 MAX_POINTS = 4_000_000
-# Lloyd relaxation: dense uniform surface samples per point per iteration (more gives
-# smoother centroids; 16 keeps an iteration at ~3 s for 250k points on 2 cores).
+# Lloyd relaxation: dense stratified surface samples per point per iteration (more gives
+# smoother centroids; 8 was measured 1.6x worse in partition-of-unity max deviation than 16;
+# 16 keeps an iteration at ~2 s for 250k points on 2 cores).
 LLOYD_SAMPLES = 16
 # Width of the Gaussian that reconstructs irradiance between points, in units of the
 # spacing (stages/gather.py convolves the profile with it).  Measured partition-of-unity
@@ -176,34 +189,74 @@ def _closest(scene, points: np.ndarray):
             res["primitive_uvs"].numpy())
 
 
-def _uniform_surface_samples(v, f, count, rng, return_triangles=False):
-    """``count`` uniform random points on the mesh (area-weighted triangles, uniform barycentrics)."""
-    e1 = v[f[:, 1]] - v[f[:, 0]]
-    e2 = v[f[:, 2]] - v[f[:, 0]]
-    w = np.linalg.norm(np.cross(e1, e2), axis=1)
-    tri = rng.choice(len(f), count, p=w / w.sum())
-    u = rng.random((count, 2))
+_PLASTIC = 1.324717957244746  # real root of x^3 = x + 1
+_R2_STEP = np.array([1.0 / _PLASTIC, 1.0 / _PLASTIC**2])
+
+
+def _stratified_surface_samples(v, f, count, rng, e1=None, e2=None, w=None,
+                                return_triangles=False):
+    """``count`` area-stratified points on the mesh, in triangle order.
+
+    Systematic sampling of the cumulative area (one random offset) gives every triangle the
+    floor or the ceiling of its expected count, so the per-triangle counts carry no Poisson
+    noise (uniform random allocation would: the Lloyd centroids inherit it), and the points
+    come out grouped by triangle, which keeps later tree queries cache-friendly (4M points
+    on the LPS head: 0.7-0.9 s, against 2.7 s for ``rng.choice`` allocation)."""
+    if e1 is None:
+        e1 = v[f[:, 1]] - v[f[:, 0]]
+        e2 = v[f[:, 2]] - v[f[:, 0]]
+        w = np.linalg.norm(np.cross(e1, e2), axis=1)
+    c = np.cumsum(w)
+    c *= count / c[-1]
+    c[-1] = count  # floor(count + offset) = count: exactly count points in all
+    k = np.floor(c + rng.random()).astype(np.int64)
+    cnt = np.diff(k, prepend=0)
+    tri = np.repeat(np.arange(len(f)), cnt)
+    # within a triangle: the R2 low-discrepancy sequence (Roberts 2018, the plastic number
+    # g: steps 1/g, 1/g^2) with a random shift per triangle, folded onto the triangle;
+    # uniform random barycentrics leave clumps and holes that add noise to Lloyd centroids
+    i = (np.arange(len(tri)) - np.repeat(k - cnt, cnt)).astype(np.float64)
+    # (np.repeat of per-triangle rows equals indexing by tri, and is ~3x faster)
+    u = np.multiply.outer(i, _R2_STEP)
+    u += np.repeat(rng.random((len(f), 2)), cnt, axis=0)
+    u -= np.floor(u)
     flip = u.sum(1) > 1
     u[flip] = 1 - u[flip]
-    pts = v[f[tri, 0]] + e1[tri] * u[:, :1] + e2[tri] * u[:, 1:]
+    pts = np.repeat(e1, cnt, axis=0)
+    pts *= u[:, :1]
+    pts += np.repeat(e2, cnt, axis=0) * u[:, 1:]
+    pts += np.repeat(v[f[:, 0]], cnt, axis=0)
     return (pts, tri) if return_triangles else pts
 
 
-def _relax(pos: np.ndarray, v, f, scene, iterations: int, seed: int) -> np.ndarray:
+def _relax(pos: np.ndarray, v, f, e1, e2, w, scene, iterations: int, seed: int):
     """Lloyd (centroidal Voronoi) relaxation on the surface: every point moves to the centroid
-    of the dense surface samples nearest to it, then back onto the surface."""
+    of the dense surface samples nearest to it, then back onto the surface.  Returns the
+    last projection (points, triangle ids, barycentrics), as :func:`_closest` does."""
     from scipy.spatial import cKDTree
     rng = np.random.default_rng(seed)
     n = len(pos)
     for _ in range(iterations):
-        dense = _uniform_surface_samples(v, f, LLOYD_SAMPLES * n, rng)
-        _, owner = cKDTree(pos).query(dense)
+        dense = _stratified_surface_samples(v, f, LLOYD_SAMPLES * n, rng, e1, e2, w)
+        _, owner = cKDTree(pos).query(dense, workers=-1)
         cnt = np.bincount(owner, minlength=n).astype(np.float64)
         cen = np.stack([np.bincount(owner, dense[:, k], minlength=n) for k in range(3)], 1)
         moved = np.where(cnt[:, None] > 0, cen / np.maximum(cnt, 1)[:, None], pos)
-        pos, _, _ = _closest(scene, moved)
-        pos = pos.astype(np.float64)
-    return pos
+        closest = _closest(scene, moved)
+        pos = closest[0].astype(np.float64)
+    return closest
+
+
+def _morton_order(p: np.ndarray) -> np.ndarray:
+    """Permutation that sorts points along a 3-D Morton (Z-order) curve, so that neighbours
+    sit close in memory for the tree queries and the sparse neighbour sums."""
+    lo = p.min(0)
+    q = ((p - lo) / max(float((p.max(0) - lo).max()), 1e-30) * 1023).astype(np.uint64)
+    code = np.zeros(len(p), np.uint64)
+    for bit in range(10):
+        for axis in range(3):
+            code |= ((q[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
+    return np.argsort(code, kind="stable")
 
 
 def density_spread(positions: np.ndarray, areas: np.ndarray, queries: np.ndarray,
@@ -288,8 +341,14 @@ def pou_areas(positions: np.ndarray, normals: np.ndarray | None, sigma: float,
         frozen = np.isfinite(d)
     a = np.full(n, total_area / n)
 
+    # symmetric neighbour matrix in CSR: one sparse product per step (was two bincounts over
+    # the pair list, 4x slower on 250k points)
+    import scipy.sparse as sps
+    wm = sps.coo_matrix((np.concatenate([w, w]), (np.concatenate([i, j]), np.concatenate([j, i]))),
+                        shape=(n, n)).tocsr()
+
     def pou(a):
-        return a * norm + np.bincount(i, w * a[j], n) + np.bincount(j, w * a[i], n)
+        return a * norm + wm @ a
 
     for _ in range(int(iterations)):
         a = np.where(frozen, a, a / pou(a))
@@ -316,13 +375,20 @@ def _probe_sums(p, normals, a, y, ny, sigma):
     rad = POU_RADIUS * sigma
     # neighbours inside the radius: ~ pi rad^2 / (mean area); 1.5x margin for density noise
     k = int(min(len(p), max(8, math.ceil(1.5 * math.pi * rad * rad / (a.sum() / len(p))))))
-    d, idx = cKDTree(p).query(y, k=k, distance_upper_bound=rad)
-    ok = np.isfinite(d)
-    idx = np.where(ok, idx, 0)
-    w = np.where(ok, np.exp(-np.where(ok, d, 0.0) ** 2 / (2 * sigma * sigma)), 0.0)
+    d, idx = cKDTree(p).query(y, k=k, distance_upper_bound=rad, workers=-1)
+    idx = np.minimum(idx, len(p) - 1)  # missing neighbours: d = inf, so their weight is 0
+    # float32 (M, k) arrays, one normal component at a time: the (M, k, 3) float64 gather
+    # was the slowest part of the area solve
+    w = np.exp(-(d.astype(np.float32) ** 2) * np.float32(0.5 / (sigma * sigma)))
+    w *= np.asarray(a, np.float32)[idx]
     if normals is not None:
-        w = w * ((np.asarray(normals)[idx] * ny[:, None, :]).sum(2) > 0)
-    return (w * a[idx]).sum(1) / (2 * np.pi * sigma * sigma)
+        nr = np.asarray(normals, np.float32)
+        ny = np.asarray(ny, np.float32)
+        dot = nr[:, 0][idx] * ny[:, :1]
+        dot += nr[:, 1][idx] * ny[:, 1:2]
+        dot += nr[:, 2][idx] * ny[:, 2:]
+        w *= dot > 0
+    return w.sum(1, dtype=np.float64) / (2 * np.pi * sigma * sigma)
 
 
 def run(vertices: np.ndarray, faces: np.ndarray, *, spacing_mm: float, seed: int = 0,
@@ -339,7 +405,7 @@ def run(vertices: np.ndarray, faces: np.ndarray, *, spacing_mm: float, seed: int
         Each point covers spacing_mm^2 of surface: N = round(area / spacing_mm^2)
         (see :func:`spacing_from_mfp`).
     seed : int
-        Seed of open3d's random generator (the sampler is otherwise nondeterministic).
+        Seed of the candidate, Lloyd and probe samples (same seed, same points).
     relax_iterations : int
         Lloyd relaxation steps after sampling (0 = none; default
         ``DEFAULT_RELAX_ITERATIONS``).
@@ -379,7 +445,10 @@ def run(vertices: np.ndarray, faces: np.ndarray, *, spacing_mm: float, seed: int
         raise DermisError(f"samples: area_weights = {area_weights!r}: must be 'pou' or 'uniform'")
     if not (kernel_sigma_factor > 0 and math.isfinite(kernel_sigma_factor)):
         raise DermisError(f"samples: kernel_sigma_factor = {kernel_sigma_factor}: must be > 0")
-    area = mesh_area(v, f)
+    e1 = v[f[:, 1]] - v[f[:, 0]]
+    e2 = v[f[:, 2]] - v[f[:, 0]]
+    tri_w = np.linalg.norm(np.cross(e1, e2), axis=1)  # twice the triangle areas
+    area = float(0.5 * tri_w.sum())
     if not area > 0:
         raise DermisError("samples: the mesh has zero surface area")
     n = max(1, int(round(area / spacing_mm**2)))
@@ -388,17 +457,29 @@ def run(vertices: np.ndarray, faces: np.ndarray, *, spacing_mm: float, seed: int
             f"samples: spacing_mm = {spacing_mm:g} on {area:.0f} mm^2 gives {n} points; at most "
             f"{MAX_POINTS} are allowed (lower bssrdf.point_density or coarsen the spacing)")
 
-    o3d.utility.random.seed(int(seed))
+    rng = np.random.default_rng(int(seed))
     mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(f))
-    pcd = mesh.sample_points_poisson_disk(number_of_points=n, init_factor=INIT_FACTOR)
+    cand = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(
+        _stratified_surface_samples(v, f, max(n, int(round(INIT_FACTOR * n))), rng,
+                                    e1, e2, tri_w)))
+    pcd = mesh.sample_points_poisson_disk(number_of_points=n, pcl=cand)
     pos = np.asarray(pcd.points, np.float64)
+    pos = pos[_morton_order(pos)]
     t_sample = time.perf_counter() - t0
 
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)),
                         o3d.core.Tensor(f.astype(np.uint32)))
+    t1 = time.perf_counter()
     if relax_iterations > 0:
-        pos = _relax(pos, v, f, scene, int(relax_iterations), int(seed))
+        # the last Lloyd projection already gives the closest triangles and barycentrics
+        pos_c, tri, uv = _relax(pos, v, f, e1, e2, tri_w, scene, int(relax_iterations),
+                                int(seed))
+        pos = pos_c.astype(np.float64)
+    else:
+        pos_c, tri, uv = _closest(scene, pos)
+    t_relax = time.perf_counter() - t1
+    t1 = time.perf_counter()
 
     # normals: angle-weighted vertex normals interpolated at the closest surface point
     if vertex_normals is None:
@@ -407,23 +488,24 @@ def run(vertices: np.ndarray, faces: np.ndarray, *, spacing_mm: float, seed: int
                                     igl.PER_VERTEX_NORMALS_WEIGHTING_TYPE_ANGLE)
     else:
         vn = np.asarray(vertex_normals, np.float64)
-    pos_c, tri, uv = _closest(scene, pos)
     w = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
     nrm = (vn[f[tri]] * w[..., None]).sum(axis=1)
     nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-30)
 
     sigma = float(kernel_sigma_factor) * float(spacing_mm)
     info = {"count": n, "spacing_mm": float(spacing_mm), "mesh_area_mm2": area,
-            "sampler": f"open3d sample_points_poisson_disk(init_factor={INIT_FACTOR})",
+            "sampler": f"open3d sample_points_poisson_disk on {INIT_FACTOR} x N stratified "
+                       "R2 candidates",
             "seed": int(seed), "relax_iterations": int(relax_iterations),
             "area_weights": area_weights, "kernel_sigma_mm": sigma,
-            "seconds_sampling": t_sample}
+            "seconds_sampling": t_sample, "seconds_relax": t_relax,
+            "seconds_normals": time.perf_counter() - t1}
     if area_weights == "pou" and n > 1:
         t1 = time.perf_counter()
         rng = np.random.default_rng(int(seed) + 7919)
-        probe, ptri = _uniform_surface_samples(v, f, min(max(n, 20000), POU_PROBES), rng,
-                                               return_triangles=True)
-        fn = np.cross(v[f[ptri, 1]] - v[f[ptri, 0]], v[f[ptri, 2]] - v[f[ptri, 0]])
+        probe, ptri = _stratified_surface_samples(v, f, min(max(n, 20000), POU_PROBES), rng,
+                                                  e1, e2, tri_w, return_triangles=True)
+        fn = np.cross(e1[ptri], e2[ptri])
         fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-30)
         areas, pinfo = pou_areas(pos_c.astype(np.float64), nrm, sigma, area,
                                  boundary=_boundary_points(v, f, sigma), probes=(probe, fn))
