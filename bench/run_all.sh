@@ -4,7 +4,7 @@
 set -uo pipefail
 cd "$(dirname "$0")/.."
 mkdir -p bench/results
-for b in bench_procedural_head bench_mesh_prep bench_bake bench_profiles bench_mc_speed \
+for b in bench_procedural_head bench_mesh_prep bench_bake bench_samples bench_profiles bench_mc_speed \
          bench_brdf bench_render bench_gather; do
   echo "=== $b ($(cut -d' ' -f1 /proc/loadavg) load)"
   python3 "bench/$b.py" || echo "!!! $b failed"
