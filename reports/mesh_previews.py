@@ -11,6 +11,7 @@ import numpy as np
 
 from pipeline.artifacts import BakedMaps, Mesh
 from pipeline.errors import DermisError
+from pipeline.imageio import linear_to_srgb
 from stages import bake
 
 __all__ = ["save_map_previews", "save_shaded_comparison", "lambert_render"]
@@ -103,7 +104,7 @@ def _shade(mask: np.ndarray, normals: np.ndarray, albedo: np.ndarray | float = 0
         radiance = radiance[:, None] * np.ones(3)
     img = np.zeros(mask.shape + (3,), np.float32)
     img[mask] = radiance
-    return np.rint(bake.linear_to_srgb(img) * 255).astype(np.uint8)
+    return np.rint(linear_to_srgb(img) * 255).astype(np.uint8)
 
 
 def lambert_render(mesh: Mesh, *, size: int = 800, maps: BakedMaps | None = None,

@@ -29,6 +29,7 @@ from scipy import ndimage
 
 from pipeline.artifacts import BakedMaps, Mesh
 from pipeline.errors import ConfigError, DermisError
+from pipeline.imageio import linear_to_srgb, srgb_to_linear
 
 __all__ = [
     "VERSION", "KERNELS", "run", "triangle_tangent_frames", "bump_shading_normals",
@@ -63,20 +64,8 @@ NEUTRAL_LINEAR_ALBEDO = 0.5
 
 
 # ----------------------------------------------------------------------------------------
-# Colour helpers
+# Colour helpers (the sRGB curves themselves live in pipeline.imageio)
 # ----------------------------------------------------------------------------------------
-def srgb_to_linear(c: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 sRGB decoding of values in [0, 1] (float in, float out)."""
-    c = np.asarray(c, dtype=np.float32)
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
-
-
-def linear_to_srgb(c: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 sRGB encoding of linear values (clipped to [0, 1])."""
-    c = np.clip(np.asarray(c, dtype=np.float32), 0.0, 1.0)
-    return np.where(c <= 0.0031308, c * 12.92, 1.055 * c ** (1.0 / 2.4) - 0.055).astype(np.float32)
-
-
 # Encoding table: linear quantised to 1/65535 (an sRGB step of <= 12.92 / 65535 = 2e-4,
 # far below the 1/255 output step) -> sRGB uint8; 50x faster than pow() on 16M texels.
 _ENCODE_LEVELS = 65535
