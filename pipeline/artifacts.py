@@ -49,6 +49,29 @@ class Mesh:
     def n_triangles(self) -> int:
         return int(len(self.faces))
 
+    def vertex_normals(self) -> np.ndarray:
+        """(V, 3) float32 unit normals: ``normals`` if set, else angle-weighted ones."""
+        if self.normals is None:
+            return angle_weighted_normals(self.vertices, self.faces)
+        n = np.asarray(self.normals, dtype=np.float32)
+        if n.shape != np.shape(self.vertices):
+            raise ValueError(f"mesh.normals has shape {n.shape}; need {np.shape(self.vertices)}")
+        return n
+
+
+def angle_weighted_normals(vertices, faces) -> np.ndarray:
+    """Angle-weighted unit vertex normals, (V, 3) float32; unused vertices get (0, 0, 0).
+
+    physics.md s6 ("area-independent, angle-weighted average of face normals"; Thuermer &
+    Wuethrich, JGT 3(1), 1998), computed by ``igl.per_vertex_normals`` (weighting ANGLE).
+    """
+    import igl
+
+    n = igl.per_vertex_normals(np.ascontiguousarray(vertices, dtype=np.float64),
+                               np.ascontiguousarray(faces, dtype=np.int64),
+                               igl.PerVertexNormalsWeightingType.PER_VERTEX_NORMALS_WEIGHTING_TYPE_ANGLE)
+    return np.nan_to_num(n, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
+
 
 @dataclass
 class BakedMaps:

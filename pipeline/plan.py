@@ -26,7 +26,6 @@ STAGE_NAMES = ("mesh_source", "mesh_high", "mesh_low", "bake", "mesh_previews", 
 GEOMETRY_MESH = {"high": "mesh_high", "low": "mesh_low", "low_bump": "mesh_low",
                  "low_bump_blur": "mesh_low"}
 GEOMETRY_BUMP = {"high": None, "low": None, "low_bump": "sharp", "low_bump_blur": "blur"}
-BRDF_MODELS = ("lafortune", "hk93", "asperity")
 
 
 # --------------------------------------------------------------------------- adapters

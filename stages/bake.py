@@ -145,18 +145,11 @@ def _check_options(resolution, max_distance_mm, blur_sigma_px, dilate_px) -> Non
 
 
 def _vertex_normals(mesh: Mesh) -> np.ndarray:
-    """The mesh's unit vertex normals; angle-weighted ones from libigl if absent (physics.md s6)."""
-    if mesh.normals is not None:
-        n = np.asarray(mesh.normals, dtype=np.float64)
-        if n.shape != np.asarray(mesh.vertices).shape:
-            raise DermisError(f"bake: low.normals has shape {n.shape}; need {mesh.vertices.shape}")
-    else:
-        import igl
-        n = igl.per_vertex_normals(
-            np.ascontiguousarray(mesh.vertices, dtype=np.float64),
-            np.ascontiguousarray(mesh.faces, dtype=np.int64),
-            igl.PerVertexNormalsWeightingType.PER_VERTEX_NORMALS_WEIGHTING_TYPE_ANGLE)
-    n = np.nan_to_num(n)
+    """The mesh's unit vertex normals (float64); angle-weighted ones if absent (physics.md s6)."""
+    try:
+        n = np.nan_to_num(mesh.vertex_normals().astype(np.float64))
+    except ValueError as exc:
+        raise DermisError(f"bake: {exc}") from None
     length = np.linalg.norm(n, axis=1, keepdims=True)
     return n / np.where(length > 0, length, 1.0)
 

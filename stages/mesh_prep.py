@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.artifacts import Mesh
+from pipeline.artifacts import Mesh, angle_weighted_normals
 from pipeline.errors import DermisError
 from pipeline.store import file_digest
 
@@ -777,13 +777,7 @@ def vertex_normals(vertices, faces) -> np.ndarray:
     G. Thuermer, C. Wuethrich, "Computing vertex normals from polygonal facets", JGT 3(1), 1998.
     Computed by ``igl.per_vertex_normals`` (weighting ANGLE).
     """
-    import igl
-
-    v = np.ascontiguousarray(vertices, dtype=np.float64)
-    f = np.ascontiguousarray(faces, dtype=np.int64)
-    n = igl.per_vertex_normals(v, f, igl.PerVertexNormalsWeightingType.PER_VERTEX_NORMALS_WEIGHTING_TYPE_ANGLE)
-    n = np.nan_to_num(n, nan=0.0, posinf=0.0, neginf=0.0)
-    return n.astype(np.float32)
+    return angle_weighted_normals(vertices, faces)
 
 
 # ----------------------------------------------------------------------------------------------

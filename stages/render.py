@@ -158,18 +158,11 @@ def camera_rays(camera, *, width: int | None = None, height: int | None = None
 
 # --------------------------------------------------------------------------- helpers
 def vertex_normals(mesh) -> np.ndarray:
-    """(V, 3) float32 unit vertex normals: the mesh's own, or libigl's angle-weighted ones
-    (physics.md s6: "area-independent, angle-weighted average of face normals")."""
-    if mesh.normals is not None:
-        n = np.asarray(mesh.normals, dtype=np.float32)
-        if n.shape != np.shape(mesh.vertices):
-            raise DermisError(f"mesh.normals has shape {n.shape}; need {np.shape(mesh.vertices)}")
-        return n
-    import igl
-    n = igl.per_vertex_normals(np.asarray(mesh.vertices, dtype=np.float64),
-                               np.asarray(mesh.faces, dtype=np.int64),
-                               igl.PER_VERTEX_NORMALS_WEIGHTING_TYPE_ANGLE)
-    return np.nan_to_num(n).astype(np.float32)
+    """(V, 3) float32 unit vertex normals: the mesh's own, or angle-weighted ones (physics.md s6)."""
+    try:
+        return mesh.vertex_normals()
+    except ValueError as exc:
+        raise DermisError(str(exc)) from None
 
 
 def _resolve_model(model: str, params, asperity_base, base_params):
