@@ -322,6 +322,33 @@ def _record(res: DiffResult, image, ref_image, fname: str, against: dict) -> dic
     return rec
 
 
+def _write_set(pairs: dict, refs: dict, by_key: dict, metrics: dict, scale_kind: str,
+               section: str, prefix: str, grid_prefix: str, out_dir: Path, extra: dict,
+               title) -> list[Path]:
+    """One comparison set: a shared scale per light, a PNG and a metrics record per pair, and
+    a labelled grid per geometry (models x lights)."""
+    from pipeline.imageio import write_png
+
+    files = []
+    for light in sorted({l for _, l, _ in pairs}):
+        metrics["scales"][scale_kind][light] = default_scale(
+            [d for (m, l, g), d in pairs.items() if l == light])
+    tiles = {}
+    for (m, l, g), res in sorted(pairs.items()):
+        fname = f"{prefix}-{m}-{l}-{g}.png"
+        tiles[(m, l, g)] = difference_image(res, scale=metrics["scales"][scale_kind][l])
+        files.append(write_png(out_dir / fname, tiles[(m, l, g)]))
+        metrics[section][f"{m}-{l}-{g}"] = _record(res, by_key[(m, l, g)], refs[(m, l, g)],
+                                                    fname, extra)
+    for geom in sorted({g for _, _, g in pairs}):
+        sel = {(m, l): t for (m, l, g), t in tiles.items() if g == geom}
+        caps = {(m, l): _caption(metrics[section][f"{m}-{l}-{geom}"]) for (m, l) in sel}
+        files.append(_grid_png(sel, sorted({m for m, _ in sel}), sorted({l for _, l in sel}),
+                               metrics["scales"][scale_kind], out_dir / f"{grid_prefix}-{geom}.png",
+                               title=title(geom), captions=caps))
+    return files
+
+
 def write_differences(images: dict, out_dir, *, reference_model: str = "bssrdf"
                       ) -> tuple[list[Path], dict]:
     """Difference images and metrics of every model against the reference, and of the low
@@ -355,8 +382,6 @@ def write_differences(images: dict, out_dir, *, reference_model: str = "bssrdf"
     DermisError
         If no image has ``reference_model``.
     """
-    from pipeline.imageio import write_png
-
     out_dir = Path(out_dir)
     by_key = {}
     for nid in sorted(images):
@@ -381,26 +406,11 @@ def write_differences(images: dict, out_dir, *, reference_model: str = "bssrdf"
         if m == reference_model or ref is None:
             continue
         pairs[(m, l, g)] = difference(im, ref)
-    lights = sorted({l for _, l, _ in pairs})
-    for light in lights:
-        metrics["scales"]["model"][light] = default_scale(
-            [d for (m, l, g), d in pairs.items() if l == light])
-    tiles = {}
-    for (m, l, g), res in sorted(pairs.items()):
-        fname = f"diff-{m}-{l}-{g}.png"
-        tiles[(m, l, g)] = difference_image(res, scale=metrics["scales"]["model"][l])
-        files.append(write_png(out_dir / fname, tiles[(m, l, g)]))
-        metrics["model_vs_reference"][f"{m}-{l}-{g}"] = _record(
-            res, by_key[(m, l, g)], by_key[(reference_model, l, g)], fname,
-            {"reference": reference_model})
-    for geom in sorted({g for _, _, g in pairs}):
-        sel = {(m, l): t for (m, l, g), t in tiles.items() if g == geom}
-        caps = {(m, l): _caption(metrics["model_vs_reference"][f"{m}-{l}-{geom}"])
-                for (m, l) in sel}
-        files.append(_grid_png(sel, sorted({m for m, _ in sel}), sorted({l for _, l in sel}),
-                               metrics["scales"]["model"], out_dir / f"diffgrid-{geom}.png",
-                               title=f"difference vs {reference_model}, geometry {geom} "
-                                     "(red = brighter, blue = darker)", captions=caps))
+    files += _write_set(pairs, {k: by_key[(reference_model, k[1], k[2])] for k in pairs},
+                        by_key, metrics, "model", "model_vs_reference", "diff", "diffgrid",
+                        out_dir, {"reference": reference_model},
+                        lambda geom: f"difference vs {reference_model}, geometry {geom} "
+                                     "(red = brighter, blue = darker)")
 
     # --- geometries vs the high mesh, same model and light --------------------------------
     gpairs = {}
@@ -408,25 +418,11 @@ def write_differences(images: dict, out_dir, *, reference_model: str = "bssrdf"
         hi = by_key.get((m, l, GEOMETRY_REFERENCE))
         if g in GEOMETRY_COMPARED and hi is not None:
             gpairs[(m, l, g)] = difference(im, hi)
-    for light in sorted({l for _, l, _ in gpairs}):
-        metrics["scales"]["geometry"][light] = default_scale(
-            [d for (m, l, g), d in gpairs.items() if l == light])
-    gtiles = {}
-    for (m, l, g), res in sorted(gpairs.items()):
-        fname = f"geomdiff-{m}-{l}-{g}.png"
-        gtiles[(m, l, g)] = difference_image(res, scale=metrics["scales"]["geometry"][l])
-        files.append(write_png(out_dir / fname, gtiles[(m, l, g)]))
-        metrics["geometry_vs_high"][f"{m}-{l}-{g}"] = _record(
-            res, by_key[(m, l, g)], by_key[(m, l, GEOMETRY_REFERENCE)], fname,
-            {"reference_geometry": GEOMETRY_REFERENCE})
-    for geom in sorted({g for _, _, g in gpairs}):
-        sel = {(m, l): t for (m, l, g), t in gtiles.items() if g == geom}
-        caps = {(m, l): _caption(metrics["geometry_vs_high"][f"{m}-{l}-{geom}"])
-                for (m, l) in sel}
-        files.append(_grid_png(sel, sorted({m for m, _ in sel}), sorted({l for _, l in sel}),
-                               metrics["scales"]["geometry"], out_dir / f"geomgrid-{geom}.png",
-                               title=f"{geom} vs {GEOMETRY_REFERENCE} mesh, same model and light "
-                                     "(red = brighter, blue = darker)", captions=caps))
+    files += _write_set(gpairs, {k: by_key[(k[0], k[1], GEOMETRY_REFERENCE)] for k in gpairs},
+                        by_key, metrics, "geometry", "geometry_vs_high", "geomdiff", "geomgrid",
+                        out_dir, {"reference_geometry": GEOMETRY_REFERENCE},
+                        lambda geom: f"{geom} vs {GEOMETRY_REFERENCE} mesh, same model and "
+                                     "light (red = brighter, blue = darker)")
 
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=1, sort_keys=True))
     files.append(out_dir / "metrics.json")
