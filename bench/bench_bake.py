@@ -88,8 +88,8 @@ def _read_image(path: Path) -> np.ndarray:
 def lps_case():
     import igl
 
-    from pipeline.artifacts import Mesh
-    from stages.bake import _bilinear
+    from dermis.pipeline.artifacts import Mesh
+    from dermis.stages.bake import _bilinear
     v_cm, f, vt, ft = _read_obj(DATA / "LeePerrySmith_cm.obj")
     v = v_cm * 10.0                                                 # cm -> mm
     low = Mesh(vertices=v, faces=f.astype(np.int32), uv=vt.astype(np.float32),
@@ -112,7 +112,7 @@ def lps_case():
 
 
 def worker(case: str, resolution: int, preview_dir: str | None) -> dict:
-    from stages import bake
+    from dermis.stages import bake
     t0 = time.perf_counter()
     low, high = synthetic_case() if case == "synthetic" else lps_case()
     build_s = time.perf_counter() - t0
@@ -123,7 +123,7 @@ def worker(case: str, resolution: int, preview_dir: str | None) -> dict:
     wall = time.perf_counter() - t0
     peak = _rss_mb("VmHWM")
     if preview_dir:
-        from reports import mesh_previews
+        from dermis.reports import mesh_previews
         out = Path(preview_dir) / case
         mesh_previews.save_map_previews(maps, out)
         mesh_previews.save_shaded_comparison(high, low, maps, out / "shaded.png", size=800)

@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import pyopencl as cl
 
-from pipeline.cl import event_seconds, get_env, to_device
-from stages.brdf_models import (KERNEL_FILES, MODELS, AsperityParams, HK93Params,
+from dermis.pipeline.cl import event_seconds, get_env, to_device
+from dermis.stages.brdf_models import (KERNEL_FILES, MODELS, AsperityParams, HK93Params,
                                 LafortuneParams)
 
 SIDE = 800                      # thesis images are 800 x 800 (physics.md s7)

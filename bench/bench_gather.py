@@ -88,9 +88,9 @@ def main():
     if args.quick:
         args.points, args.queries, args.brute_queries = 30_000, 50_000, 500
 
-    from pipeline.cl import get_env
-    from pipeline.layers import PRESETS
-    from stages import gather as G, profiles, samples
+    from dermis.pipeline.cl import get_env
+    from dermis.physics.layers import PRESETS
+    from dermis.stages import gather as G, profiles, samples
 
     env = get_env()
     res = {"device": env.description, "preset": args.preset, "note":

@@ -38,9 +38,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipeline import cl as dcl  # noqa: E402
-from pipeline.layers import PRESETS, Layer, LayerStack  # noqa: E402
-from stages import mc_slab  # noqa: E402
+from dermis.pipeline import cl as dcl  # noqa: E402
+from dermis.physics.layers import PRESETS, Layer, LayerStack  # noqa: E402
+from dermis.stages import mc_slab  # noqa: E402
 
 MCML_PHOTONS_PER_S_PER_CORE = 27000.0   # issue text: MCML 1.2.2, one core of this machine
 TARGET_PHOTONS_PER_S = 4 * MCML_PHOTONS_PER_S_PER_CORE

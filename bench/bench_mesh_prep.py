@@ -84,7 +84,7 @@ def main() -> int:
     if not DATA.is_dir():
         print(f"skip: {DATA} not found")
         return 0
-    from stages import mesh_prep as mp
+    from dermis.stages import mesh_prep as mp, scan_io
 
     res: dict = {"machine": f"{os.cpu_count()} cores", "steps": {}}
 
@@ -96,9 +96,9 @@ def main() -> int:
         return out
 
     obj = DATA / "LeePerrySmith_cm.obj"
-    scan = record("load", lambda: mp.load_scan(obj, units="cm"))
+    scan = record("load", lambda: scan_io.load_scan(obj, units="cm"))
     base, _ = record("validate", lambda: mp.validate(scan, source=str(obj)))
-    disp = mp.read_grey_image(DATA / "Infinite-Level_02_Disp_NoSmoothUV-4096.jpg")
+    disp = scan_io.read_grey_image(DATA / "Infinite-Level_02_Disp_NoSmoothUV-4096.jpg")
     high = record("make_high", lambda: mp.make_high(
         base, target_triangles=1_000_000, displacement=disp, displacement_scale_mm=mp.LPS_DISPLACEMENT_SCALE_MM,
         displacement_mid=mp.LPS_DISPLACEMENT_MID))

@@ -24,9 +24,9 @@ sys.path.insert(0, str(REPO))
 
 
 def main(argv=None) -> int:
-    from pipeline import api
-    from pipeline.config import load_scene
-    from pipeline.plan import GEOMETRY_MESH
+    from dermis.pipeline import api
+    from dermis.pipeline.config import load_scene
+    from dermis.pipeline.plan import GEOMETRY_MESH
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("scene", nargs="?", default=None)

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.layers import PRESETS, Layer, LayerStack
-from stages import mc_slab, profiles
+from dermis.physics.layers import PRESETS, Layer, LayerStack
+from dermis.stages import mc_slab, profiles
 
 MCML_PHOTONS_PER_S_PER_CORE = 27000.0  # issue text, MCML 1.2.2 on one core of this machine
 

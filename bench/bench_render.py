@@ -26,10 +26,10 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tests"))
 
-from pipeline.cl import get_env  # noqa: E402
-from pipeline.config import CameraConfig, LightConfig  # noqa: E402
-from pipeline.visibility import Visibility  # noqa: E402
-from stages.render import render  # noqa: E402
+from dermis.pipeline.cl import get_env  # noqa: E402
+from dermis.pipeline.config import CameraConfig, LightConfig  # noqa: E402
+from dermis.physics.visibility import Visibility  # noqa: E402
+from dermis.stages.render import render  # noqa: E402
 
 SHARED = REPO.parent / "shared" / "data" / "lps_head" / "LeePerrySmith_cm.obj"
 
@@ -53,7 +53,8 @@ def _lights(centre: np.ndarray) -> dict:
 def _meshes():
     """(name, mesh, source note) for the low and high geometry."""
     try:
-        from stages.mesh_prep import load_scan, make_high
+        from dermis.stages.mesh_prep import make_high
+        from dermis.stages.scan_io import load_scan
         if not SHARED.is_file():
             raise FileNotFoundError(SHARED)
         low = load_scan(SHARED, units="cm")
@@ -70,7 +71,7 @@ def _meshes():
 def _synthetic_maps(resolution: int = 4096):
     """BakedMaps of the thesis's size (4096^2) with a smooth random bump: timing stand-in."""
     from scipy.ndimage import zoom
-    from pipeline.artifacts import BakedMaps
+    from dermis.pipeline.artifacts import BakedMaps
     rng = np.random.default_rng(1)
     bump = zoom(rng.random((64, 64)).astype(np.float32), resolution / 64, order=1)
     albedo = np.full((resolution, resolution, 3), (200, 150, 130), np.uint8)
@@ -117,7 +118,7 @@ def main(argv=None) -> dict:
     args = ap.parse_args(argv)
 
     env = get_env(args.device)
-    from stages.brdf_models import AsperityParams
+    from dermis.stages.brdf_models import AsperityParams
     results = {"machine": platform.processor() or platform.machine(), "device": env.description,
                "size": args.size, "note": "shared 2-core machine: noisy", "meshes": {}}
     for gname, mesh, note in _meshes():

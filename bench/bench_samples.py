@@ -32,7 +32,7 @@ STEP_KEYS = ("seconds_sampling", "seconds_relax", "seconds_normals", "seconds_ar
 def load_module(ref: str | None):
     """stages.samples from the working tree (ref None) or from git at ``ref``."""
     if ref is None:
-        from stages import samples
+        from dermis.stages import samples
         return samples
     src = subprocess.run(["git", "show", f"{ref}:stages/samples.py"], cwd=ROOT, check=True,
                          capture_output=True, text=True).stdout
@@ -92,7 +92,8 @@ def main():
     args = ap.parse_args()
     if not DATA.exists():
         sys.exit(f"bench_samples: {DATA} not found")
-    from stages.mesh_prep import load_scan, make_high
+    from dermis.stages.mesh_prep import make_high
+    from dermis.stages.scan_io import load_scan
     load = os.getloadavg()
     print(f"load average before timing: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} "
           f"({os.cpu_count()} cores)")

@@ -32,7 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 DATA = ROOT.parent / "shared" / "data" / "lps_head"
 
-from stages import mesh_prep as mp  # noqa: E402
+from dermis.stages import mesh_prep as mp, scan_io  # noqa: E402
 
 
 def vertex_samples(mesh, image):
@@ -77,8 +77,8 @@ def main() -> int:
         print(f"skip: {DATA} not found")
         return 0
     t0 = time.perf_counter()
-    base, _ = mp.validate(mp.load_scan(DATA / "LeePerrySmith_cm.obj", units="cm"), source="lps")
-    disp = mp.read_grey_image(DATA / "Infinite-Level_02_Disp_NoSmoothUV-4096.jpg")
+    base, _ = mp.validate(scan_io.load_scan(DATA / "LeePerrySmith_cm.obj", units="cm"), source="lps")
+    disp = scan_io.read_grey_image(DATA / "Infinite-Level_02_Disp_NoSmoothUV-4096.jpg")
     import OpenImageIO as oiio
     nm = np.asarray(oiio.ImageBuf(str(DATA / "Infinite-Level_02_Tangent_SmoothUV.jpg")).get_pixels(oiio.FLOAT))[:, :, :3]
     result: dict = {"map_min": float(disp.min()), "map_max": float(disp.max()), "map_median": float(np.median(disp))}

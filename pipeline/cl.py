@@ -27,11 +27,11 @@ from .errors import DermisError
 
 __all__ = [
     "ClEnv", "KernelBuildError", "NoOpenCLError", "CL_DIR", "get_env", "list_devices",
-    "kernel_sources_hash", "event_seconds",
+    "kernel_sources_hash", "kernel_closure", "event_seconds",
 ]
 
 ENV_VAR = "DERMIS_CL_DEVICE"
-CL_DIR = Path(str(resources.files("cl")))
+CL_DIR = Path(str(resources.files("dermis.cl")))
 _INCLUDE_RE = re.compile(r'^\s*#\s*include\s*"([^"]+)"', re.M)
 
 INSTALL_HINT = (
@@ -154,13 +154,19 @@ def _resolve_includes(name: str, seen: set[str]) -> list[str]:
     return files
 
 
-def kernel_sources_hash(names: tuple[str, ...] | list[str]) -> str:
-    """Hash of the named ``cl/`` files and every header they include (for cache keys)."""
-    h = hashlib.sha256()
+def kernel_closure(names) -> list[Path]:
+    """The named ``cl/`` files and every header they include (recursively), sorted, deduplicated."""
     seen: set[str] = set()
     for name in names:
-        for f in _resolve_includes(name, seen):
-            h.update(f.encode() + b"\0" + (CL_DIR / f).read_bytes() + b"\0")
+        _resolve_includes(name, seen)
+    return [CL_DIR / f for f in sorted(seen)]
+
+
+def kernel_sources_hash(names: tuple[str, ...] | list[str]) -> str:
+    """Hash of the named ``cl/`` files and every header they include (program cache keys)."""
+    h = hashlib.sha256()
+    for path in kernel_closure(names):
+        h.update(path.name.encode() + b"\0" + path.read_bytes() + b"\0")
     return h.hexdigest()
 
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import DermisError
-from .layers import PRESETS, load_layers_toml
+from dermis.physics.layers import PRESETS, load_layers_toml
 
 __all__ = ["add_parser", "run"]
 
@@ -50,7 +50,7 @@ def _mc_on_rings(mc, n: int):
 
 def run(args) -> int:
     """Execute ``dermis profile``; returns the exit code."""
-    from stages import profiles
+    from dermis.stages import profiles
 
     src = args.layers
     stack = PRESETS[src] if src in PRESETS and not Path(src).exists() else load_layers_toml(src)
@@ -63,7 +63,7 @@ def run(args) -> int:
         cols[f"T_{c}"] = prof.T[:, i]
     mc = None
     if args.mc:
-        from stages import mc_slab
+        from dermis.stages import mc_slab
         from . import cl as dcl
         if args.mc < 1:
             raise DermisError(f"--mc = {args.mc}: must be a positive photon count")

@@ -294,7 +294,7 @@ def _resolve(path: str, scene_path: str) -> Path:
 
 def default_scene_path() -> Path:
     """The embedded default scene (procedural head), shipped inside the package."""
-    return Path(str(resources.files("scenes"))) / "default.toml"
+    return Path(str(resources.files("dermis.scenes"))) / "default.toml"
 
 
 def load_scene(path: str | Path | None = None, *, overrides: dict | None = None) -> Scene:
@@ -334,7 +334,7 @@ def _merge(base: dict, over: dict) -> dict:
 
 def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | None = None) -> Scene:
     """Validate an already-parsed scene table (see :func:`load_scene`)."""
-    from .layers import parse_layer_stack, PRESETS  # layer optics own their validation
+    from dermis.physics.layers import parse_layer_stack, PRESETS  # layer optics own their validation
 
     if overrides:
         table = _merge(table, overrides)

@@ -5,21 +5,20 @@ A :class:`Node` is one invocation of a stage: its id (``mesh_low``,
 scene config it reads, and the ids of the upstream nodes it consumes.  Its key is
 the hash of
 
-* the stage name, the module's ``VERSION`` and source text (so editing a stage
-  invalidates its artifacts, which joblib-style function hashing would miss for
-  helpers), and the text of its ``KERNELS`` and every header they include;
+* the stage name, the module's ``VERSION`` and the source text of its in-repository
+  import closure and of every kernel that closure builds (:mod:`.codehash`), so
+  editing any code a node runs invalidates exactly that node's artifacts;
 * the canonical JSON of its config slice (sorted keys);
 * the keys of its upstream nodes.
 
 Nothing else (progress, verbosity, output paths, the OpenCL device) enters the
-key.  The graph itself is built by :mod:`pipeline.plan` from what the scene asks
+key.  The graph itself is built by :mod:`dermis.pipeline.plan` from what the scene asks
 for, so nothing that no requested output needs is ever computed.
 """
 from __future__ import annotations
 
 import hashlib
 import importlib
-import inspect
 import json
 import time
 import traceback
@@ -28,7 +27,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from . import artifacts
-from .cl import kernel_sources_hash
+from .codehash import closure_hash
 from .errors import DermisError
 from .store import META, Store
 
@@ -48,26 +47,39 @@ class StageResult:
 class Node:
     """One stage invocation in the graph.
 
-    fn(inputs: dict[node_id, artifact], ctx: RunContext) -> StageResult
+    ``deps`` maps the role an input plays in the stage (``"mesh"``, ``"maps"``...) to the id
+    of the upstream node that provides it (a tuple of ids: each id is its own role).  The
+    node runs ``module.run(params, inputs, ctx)`` with ``inputs`` keyed by role, or ``fn``
+    (same signature without ``params``) when one is given (toy graphs in the tests).
     """
 
     id: str
-    stage: str                       # stage name, e.g. "mesh_prep"
-    module: str                      # its module, e.g. "stages.mesh_prep"
-    params: dict                     # config slice (JSON-able)
-    deps: tuple = ()
+    stage: str                       # stage name, e.g. "mesh_low"
+    module: str                      # the stage module, e.g. "dermis.stages.mesh_low"
+    params: dict                     # config slice (JSON-able): all the stage reads
+    deps: dict | tuple = ()
     fn: Callable[..., StageResult] | None = None
     label: str = ""                  # short human description
 
+    def __post_init__(self):
+        if not isinstance(self.deps, dict):
+            self.deps = {d: d for d in self.deps}
+
+    @property
+    def dep_ids(self) -> tuple[str, ...]:
+        return tuple(self.deps.values())
+
     def code_hash(self) -> str:
+        """Hash of the code this node runs (docs/architecture.md, "Cache keys")."""
         mod = importlib.import_module(self.module)
-        h = hashlib.sha256()
-        h.update(str(getattr(mod, "VERSION", 0)).encode())
-        h.update(Path(inspect.getfile(mod)).read_bytes())
-        kernels = tuple(getattr(mod, "KERNELS", ()))
-        if kernels:
-            h.update(kernel_sources_hash(kernels).encode())
-        return h.hexdigest()
+        return hashlib.sha256(f"{getattr(mod, 'VERSION', 0)}:{closure_hash(self.module)}"
+                              .encode()).hexdigest()
+
+    def call(self, inputs: dict, ctx) -> StageResult:
+        by_role = {role: inputs[nid] for role, nid in self.deps.items()}
+        if self.fn is not None:
+            return self.fn(by_role, ctx)
+        return importlib.import_module(self.module).run(self.params, by_role, ctx)
 
 
 def _canonical(obj) -> str:
@@ -79,7 +91,7 @@ def key_parts(node: Node, upstream_keys: dict[str, str]) -> dict:
         "stage": node.stage,
         "code": node.code_hash(),
         "params": json.loads(_canonical(node.params)),
-        "deps": {d: upstream_keys[d] for d in node.deps},
+        "deps": {d: upstream_keys[d] for d in node.dep_ids},
     }
 
 
@@ -97,7 +109,7 @@ def plan_order(nodes: dict[str, Node], targets: list[str]) -> list[str]:
         if state.get(nid) == "visiting":
             raise RuntimeError("cycle in stage graph: " + " -> ".join(chain + [nid]))
         state[nid] = "visiting"
-        for d in nodes[nid].deps:
+        for d in nodes[nid].dep_ids:
             visit(d, chain + [nid])
         state[nid] = "done"
         order.append(nid)
@@ -211,9 +223,8 @@ def execute(nodes: dict[str, Node], targets: list[str], store: Store, ctx, *,
         if dry_run:
             rep.status = "stale"
             continue
-        inputs = {d: loaded[d] if d in loaded else _load(store, d, keys[d]) for d in node.deps}
-        for d in node.deps:
-            loaded.setdefault(d, inputs[d])
+        inputs = {d: loaded[d] if d in loaded else _load(store, d, keys[d]) for d in node.dep_ids}
+        loaded.update(inputs)
         if progress:
             progress(node, 0.0)
         t0 = time.perf_counter()
@@ -221,7 +232,7 @@ def execute(nodes: dict[str, Node], targets: list[str], store: Store, ctx, *,
             ctx.out_dir = tmp
             ctx.progress = (lambda f, _n=node: progress(_n, f)) if progress else None
             try:
-                result = node.fn(inputs, ctx)
+                result = node.call(inputs, ctx)
             except DermisError:
                 raise
             except Exception as exc:

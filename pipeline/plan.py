@@ -36,11 +36,11 @@ def _mesh_source(scene: Scene) -> Node:
                   "texture_size": m.procedural_texture_size, "seed": m.seed}
 
         def fn(inputs, ctx):
-            from stages import procedural_head
+            from dermis.stages import procedural_head
             mesh = procedural_head.run(**params)
             return StageResult(mesh, info={"triangles": mesh.n_triangles})
 
-        return Node("mesh_source", "mesh_source", "stages.procedural_head", params, (), fn,
+        return Node("mesh_source", "mesh_source", "dermis.stages.procedural_head", params, (), fn,
                     "procedural head")
 
     path = scene.mesh_path()
@@ -50,12 +50,12 @@ def _mesh_source(scene: Scene) -> Node:
               "texture_sha256": file_digest(texture) if texture else ""}
 
     def fn(inputs, ctx):
-        from stages import mesh_prep
+        from dermis.stages import mesh_prep
         mesh = mesh_prep.load_scan(path, units=m.units, texture=texture)
         mesh, repairs = mesh_prep.validate(mesh, source=str(path))
         return StageResult(mesh, info={"repairs": repairs, "triangles": mesh.n_triangles})
 
-    return Node("mesh_source", "mesh_source", "stages.mesh_prep", params, (), fn, "load scan")
+    return Node("mesh_source", "mesh_source", "dermis.stages.mesh_prep", params, (), fn, "load scan")
 
 
 def _resolved(scene: Scene, value: str) -> Path | None:
@@ -73,7 +73,7 @@ def _mesh_high(scene: Scene) -> Node:
               "displacement_mid": m.displacement_mid}
 
     def fn(inputs, ctx):
-        from stages import mesh_prep
+        from dermis.stages import mesh_prep
         from .imageio import read_image
         image = read_image(disp, channels=1, what="mesh.displacement")[..., 0] if disp else None
         high = mesh_prep.make_high(inputs["mesh_source"], target_triangles=m.high_triangles,
@@ -83,7 +83,7 @@ def _mesh_high(scene: Scene) -> Node:
         high.normals = mesh_prep.vertex_normals(high.vertices, high.faces)
         return StageResult(high, info={"triangles": high.n_triangles})
 
-    return Node("mesh_high", "mesh_high", "stages.mesh_prep", params, ("mesh_source",), fn,
+    return Node("mesh_high", "mesh_high", "dermis.stages.mesh_prep", params, ("mesh_source",), fn,
                 "high mesh + normals")
 
 
@@ -91,14 +91,14 @@ def _mesh_low(scene: Scene) -> Node:
     params = {"target_triangles": scene.mesh.low_triangles}
 
     def fn(inputs, ctx):
-        from stages import mesh_prep
+        from dermis.stages import mesh_prep
         high = inputs["mesh_high"]
         low = mesh_prep.simplify(high, target_triangles=scene.mesh.low_triangles)
         low.normals = mesh_prep.vertex_normals(low.vertices, low.faces)
         low, report = mesh_prep.transfer_uv(high, low)
         return StageResult(low, info={"uv_transfer": report, "triangles": low.n_triangles})
 
-    return Node("mesh_low", "mesh_low", "stages.mesh_prep", params, ("mesh_high",), fn,
+    return Node("mesh_low", "mesh_low", "dermis.stages.mesh_prep", params, ("mesh_high",), fn,
                 "simplify + UV transfer")
 
 
@@ -107,13 +107,13 @@ def _bake(scene: Scene) -> Node:
     params = asdict(b)
 
     def fn(inputs, ctx):
-        from stages import bake
+        from dermis.stages import bake
         maps = bake.run(inputs["mesh_low"], inputs["mesh_high"], resolution=b.resolution,
                         max_distance_mm=b.max_distance or None, blur_sigma_px=b.blur_sigma_px,
                         dilate_px=b.dilate_px, reference=b.reference, progress=ctx.progress)
         return StageResult(maps, info=maps.info)
 
-    return Node("bake", "bake", "stages.bake", params, ("mesh_low", "mesh_high"), fn,
+    return Node("bake", "bake", "dermis.stages.bake", params, ("mesh_low", "mesh_high"), fn,
                 "bake albedo + bump")
 
 
@@ -122,7 +122,7 @@ def _mesh_previews(scene: Scene, low: bool) -> Node:
     deps = ("mesh_high", "mesh_low", "bake") if low else ("mesh_high",)
 
     def fn(inputs, ctx):
-        from reports import mesh_previews
+        from dermis.reports import mesh_previews
         files = []
         if low:
             files += mesh_previews.save_map_previews(inputs["bake"], ctx.out_dir)
@@ -136,7 +136,7 @@ def _mesh_previews(scene: Scene, low: bool) -> Node:
             files.append(out)
         return StageResult(files=[Path(f).name for f in files])
 
-    return Node("mesh_previews", "mesh_previews", "reports.mesh_previews", params, deps, fn,
+    return Node("mesh_previews", "mesh_previews", "dermis.reports.mesh_previews", params, deps, fn,
                 "PNG previews")
 
 
@@ -144,17 +144,17 @@ def _profiles(scene: Scene) -> Node:
     params = {"stack": scene.optics.to_dict()}
 
     def fn(inputs, ctx):
-        from stages import profiles
+        from dermis.stages import profiles
         prof = profiles.run(scene.optics)
         return StageResult(prof, info={"Rd": list(map(float, prof.Rd)),
                                        "Tt": list(map(float, prof.Tt))})
 
-    return Node("profiles", "profiles", "stages.profiles", params, (), fn, "layer profiles")
+    return Node("profiles", "profiles", "dermis.stages.profiles", params, (), fn, "layer profiles")
 
 
 def _visibility(ctx, mesh_node: str, mesh):
     """One Embree scene per mesh per run, shared by every image of that mesh."""
-    from .visibility import Visibility
+    from dermis.physics.visibility import Visibility
     key = ("visibility", mesh_node)
     if key not in ctx.memo:
         ctx.memo[key] = Visibility(mesh.vertices, mesh.faces)
@@ -163,7 +163,7 @@ def _visibility(ctx, mesh_node: str, mesh):
 
 def _model_params(scene: Scene, model: str):
     """The parameter objects of a BRDF model, all derived from the scene's one layer stack."""
-    from stages.brdf_models import AsperityParams, HK93Params, LafortuneParams
+    from dermis.stages.brdf_models import AsperityParams, HK93Params, LafortuneParams
     hk = lambda: HK93Params(layers=scene.optics)  # noqa: E731 - HK93 shares the BSSRDF's layers
     if model == "lafortune":
         return LafortuneParams(), None
@@ -188,7 +188,7 @@ def _render(scene: Scene, model: str, label: str, lights: tuple, geometry: str) 
     node_id = f"render-{model}-{label}-{geometry}"
 
     def fn(inputs, ctx):
-        from stages import render
+        from dermis.stages import render
         from .artifacts import RenderedImage
         from .imageio import write_exr
         mesh = inputs[mesh_node]
@@ -208,18 +208,18 @@ def _render(scene: Scene, model: str, label: str, lights: tuple, geometry: str) 
                            info={"timings": result.timings,
                                  "kernel_seconds": result.timings.get("kernel_seconds", 0.0)})
 
-    return Node(node_id, "render", "stages.render", params, deps, fn,
+    return Node(node_id, "render", "dermis.stages.render", params, deps, fn,
                 f"{model} / {label} / {geometry}")
 
 
 def _samples(scene: Scene, mesh_node: str) -> Node:
     """Uniform irradiance points on one mesh: cached per mesh, not per light."""
-    from stages.samples import spacing_from_mfp
+    from dermis.stages.samples import spacing_from_mfp
     spacing = spacing_from_mfp(scene.optics, scene.bssrdf.point_density)
     params = {"spacing_mm": spacing, "seed": scene.mesh.seed}
 
     def fn(inputs, ctx):
-        from stages import samples
+        from dermis.stages import samples
         from .artifacts import SurfacePoints
         mesh = inputs[mesh_node]
         pts = samples.run(mesh.vertices, mesh.faces, spacing_mm=spacing, seed=scene.mesh.seed,
@@ -227,7 +227,7 @@ def _samples(scene: Scene, mesh_node: str) -> Node:
         return StageResult(SurfacePoints(pts.positions, pts.normals, pts.areas, pts.info),
                            info={"points": int(len(pts.positions)), "spacing_mm": spacing})
 
-    return Node(f"samples-{mesh_node}", "samples", "stages.samples", params, (mesh_node,), fn,
+    return Node(f"samples-{mesh_node}", "samples", "dermis.stages.samples", params, (mesh_node,), fn,
                 "irradiance points")
 
 
@@ -243,7 +243,7 @@ def _irradiance(scene: Scene, mesh_node: str, label: str, lights: tuple) -> Node
     def fn(inputs, ctx):
         import time
         from .artifacts import PointIrradiance
-        from .lights import irradiance
+        from dermis.physics.lights import irradiance
         pts, mesh = inputs[samples_id], inputs[mesh_node]
         t0 = time.perf_counter()
         vis = _visibility(ctx, mesh_node, mesh)
@@ -253,7 +253,7 @@ def _irradiance(scene: Scene, mesh_node: str, label: str, lights: tuple) -> Node
                 "samples": scene.bssrdf.irradiance_samples}
         return StageResult(PointIrradiance(E, info), info=info)
 
-    return Node(f"irradiance-{mesh_node}-{label}", "irradiance", "pipeline.lights", params,
+    return Node(f"irradiance-{mesh_node}-{label}", "irradiance", "dermis.physics.lights", params,
                 (samples_id, mesh_node), fn, f"irradiance {label}")
 
 
@@ -270,7 +270,7 @@ def _render_bssrdf(scene: Scene, label: str, lights: tuple, geometry: str) -> No
     def fn(inputs, ctx):
         import time
         import numpy as np
-        from stages import gather, render
+        from dermis.stages import gather, render
         from .artifacts import RenderedImage
         from .imageio import write_exr
         t_start = time.perf_counter()
@@ -305,7 +305,7 @@ def _render_bssrdf(scene: Scene, label: str, lights: tuple, geometry: str) -> No
         timings = {"visibility": t_vis, "octree": t_tree, "gather": t_gather,
                    "kernel_seconds": float(stats.get("kernel_seconds", 0.0)) + px.kernel_seconds}
         if b.surface_reflection == "lafortune_lobes":
-            from stages.brdf_models import LafortuneParams
+            from dermis.stages.brdf_models import LafortuneParams
             spec = render.render(mesh, list(lights), "lafortune",
                                  LafortuneParams(rho_d=(0.0, 0.0, 0.0)), scene.camera,
                                  maps=maps, bump=bump, seed=scene.mesh.seed, visibility=vis,
@@ -324,7 +324,7 @@ def _render_bssrdf(scene: Scene, label: str, lights: tuple, geometry: str) -> No
         return StageResult(RenderedImage(linear, mask, timings, info), files=[f"{name}.exr"],
                            info={"timings": timings, "kernel_seconds": timings["kernel_seconds"]})
 
-    return Node(node_id, "render", "stages.gather", params, deps, fn,
+    return Node(node_id, "render", "dermis.stages.gather", params, deps, fn,
                 f"bssrdf / {label} / {geometry}")
 
 
@@ -333,11 +333,11 @@ def _images(scene: Scene, render_ids: list[str]) -> Node:
     params = {"renders": sorted(render_ids)}
 
     def fn(inputs, ctx):
-        from reports import comparison
+        from dermis.reports import comparison
         files = comparison.write_pngs({nid: inputs[nid] for nid in render_ids}, ctx.out_dir)
         return StageResult(files=[f.name for f in files])
 
-    return Node("images", "images", "reports.comparison", params, tuple(render_ids), fn,
+    return Node("images", "images", "dermis.reports.comparison", params, tuple(render_ids), fn,
                 "tone-mapped PNGs")
 
 
@@ -347,7 +347,7 @@ def _report(scene: Scene, render_ids: list[str], irradiance_ids: list[str]) -> N
               "scene_name": scene.scene.name}
 
     def fn(inputs, ctx):
-        from reports import diff, pdf_report
+        from dermis.reports import diff, pdf_report
         images = {nid: inputs[nid] for nid in render_ids}
         files, metrics = diff.write_differences(images, ctx.out_dir, reference_model="bssrdf")
         extra = {}
@@ -361,7 +361,7 @@ def _report(scene: Scene, render_ids: list[str], irradiance_ids: list[str]) -> N
         return StageResult(files=names, info={"pages": pdf_report.report_page_count(images,
                                                                                     metrics)})
 
-    return Node("report", "report", "reports.pdf_report", params,
+    return Node("report", "report", "dermis.reports.pdf_report", params,
                 tuple(render_ids) + tuple(irradiance_ids), fn, "differences + PDF")
 
 

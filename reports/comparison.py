@@ -32,8 +32,8 @@ def write_pngs(images: dict, out_dir: Path) -> list[Path]:
     -------
     list of written paths (PNGs and ``exposure.json``)
     """
-    from pipeline.imageio import write_png
-    from stages.render import shared_exposure, tonemap
+    from dermis.pipeline.imageio import write_png
+    from dermis.stages.render import shared_exposure, tonemap
 
     out_dir = Path(out_dir)
     ids = sorted(images)

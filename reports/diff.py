@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import DermisError
+from dermis.pipeline.errors import DermisError
 
 __all__ = ["DiffResult", "difference", "difference_image", "diverging_lut", "diverging_colormap",
            "write_differences", "image_labels", "REL_FLOOR_FRACTION", "SSIM_SIGMA_PX",
@@ -327,7 +327,7 @@ def _write_set(pairs: dict, refs: dict, by_key: dict, metrics: dict, scale_kind:
                title) -> list[Path]:
     """One comparison set: a shared scale per light, a PNG and a metrics record per pair, and
     a labelled grid per geometry (models x lights)."""
-    from pipeline.imageio import write_png
+    from dermis.pipeline.imageio import write_png
 
     files = []
     for light in sorted({l for _, l, _ in pairs}):

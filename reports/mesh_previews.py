@@ -9,10 +9,10 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.artifacts import BakedMaps, Mesh
-from pipeline.errors import DermisError
-from pipeline.imageio import linear_to_srgb
-from stages import bake
+from dermis.pipeline.artifacts import BakedMaps, Mesh
+from dermis.pipeline.errors import DermisError
+from dermis.pipeline.imageio import linear_to_srgb
+from dermis.stages import bake
 
 __all__ = ["save_map_previews", "save_shaded_comparison", "lambert_render"]
 

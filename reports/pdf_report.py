@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import DermisError
-from reports.diff import (GEOMETRY_COMPARED, GEOMETRY_REFERENCE, difference, difference_image,
+from dermis.pipeline.errors import DermisError
+from dermis.reports.diff import (GEOMETRY_COMPARED, GEOMETRY_REFERENCE, difference, difference_image,
                           diverging_colormap, image_labels)
 
 __all__ = ["write_report", "THESIS_TIMES", "report_page_count", "summary_text"]
@@ -214,7 +214,7 @@ def _title_page(plt, images, metrics, *, scene_name, device, timings_extra):
 
 
 def _image_pages(plt, images):
-    from stages.render import shared_exposure, tonemap
+    from dermis.stages.render import shared_exposure, tonemap
 
     idx = _index(images)
     lights = sorted({l for _, l, _ in idx})

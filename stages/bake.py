@@ -27,9 +27,9 @@ from typing import Callable
 import numpy as np
 from scipy import ndimage
 
-from pipeline.artifacts import BakedMaps, Mesh
-from pipeline.errors import ConfigError, DermisError
-from pipeline.imageio import linear_to_srgb, srgb_to_linear
+from dermis.pipeline.artifacts import BakedMaps, Mesh
+from dermis.pipeline.errors import ConfigError, DermisError
+from dermis.pipeline.imageio import linear_to_srgb, srgb_to_linear
 
 __all__ = [
     "VERSION", "KERNELS", "run", "triangle_tangent_frames", "bump_shading_normals",

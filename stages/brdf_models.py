@@ -26,7 +26,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from pipeline.errors import ConfigError
+from dermis.pipeline.errors import ConfigError
 
 __all__ = [
     "VERSION", "KERNELS", "MODELS", "LafortuneParams", "HK93Params", "HK93Layer",
@@ -284,7 +284,7 @@ def _default_hk93_layers() -> tuple:
     # Same skin as the multipole model (physics.md s2: "derive both layers from the same
     # epidermis/dermis optical parameters"): pipeline.layers PRESETS["two_layer"], an
     # epidermis of 0.25 mm over a semi-infinite dermis, eta 1.4, g 0.8.
-    from pipeline.layers import PRESETS
+    from dermis.physics.layers import PRESETS
     return tuple(PRESETS["two_layer"].layers)
 
 
@@ -546,7 +546,7 @@ def evaluate(model: str, wo, wi, params=None, *, albedo=None, env=None) -> np.nd
         return out
 
     import pyopencl as cl
-    from pipeline.cl import get_env, to_device
+    from dermis.pipeline.cl import get_env, to_device
     env = env or get_env()
     kernel = cl.Kernel(env.program(KERNEL_FILES[model]), f"{model}_eval")
     bufs = [to_device(env, a) for a in args] + [to_device(env, params.pack())]

@@ -69,7 +69,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.errors import DermisError
+from dermis.pipeline.errors import DermisError
 
 __all__ = ["VERSION", "KERNELS", "Octree", "build_octree", "gather", "profile_table",
            "exitance_to_radiance", "fresnel_transmittance", "diffuse_fresnel_external",
@@ -385,7 +385,7 @@ def kernel_sigma(octree: Octree) -> float:
     s = octree.info.get("kernel_sigma_mm")
     if s is not None:
         return float(s)
-    from stages.samples import KERNEL_SIGMA_FACTOR
+    from dermis.stages.samples import KERNEL_SIGMA_FACTOR
     return KERNEL_SIGMA_FACTOR * math.sqrt(float(octree.area[0]) / max(len(octree.areas), 1))
 
 
@@ -573,7 +573,7 @@ def gather(octree: Octree, profile, query_positions: np.ndarray, *,
         Bad shapes, NaN/infinite inputs, epsilon <= 0, unknown normalisation.
     """
     import pyopencl as cl
-    from pipeline.cl import event_seconds, get_env, to_device
+    from dermis.pipeline.cl import event_seconds, get_env, to_device
 
     t0 = time.perf_counter()
     if normalisation not in ("energy", "thesis"):

@@ -16,8 +16,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.errors import DermisError
-from pipeline.layers import LayerStack
+from dermis.pipeline.errors import DermisError
+from dermis.physics.layers import LayerStack
 
 __all__ = ["VERSION", "KERNELS", "McResult", "run"]
 
@@ -107,7 +107,7 @@ def run(stack: LayerStack, *, photons: int, r_max_mm: float, bins: int, seed: in
     -------
     McResult
     """
-    from pipeline import cl as dcl
+    from dermis.pipeline import cl as dcl
     import pyopencl as cl
 
     if photons < 1:

@@ -26,8 +26,8 @@ import math
 import numpy as np
 from scipy import ndimage
 
-from pipeline.artifacts import Mesh
-from pipeline.errors import ConfigError
+from dermis.pipeline.artifacts import Mesh
+from dermis.pipeline.errors import ConfigError
 
 __all__ = ["VERSION", "KERNELS", "run"]
 

@@ -46,9 +46,9 @@ import time
 import numpy as np
 import scipy.fft
 
-from pipeline.artifacts import LayerProfile
-from pipeline.errors import DermisError
-from pipeline.layers import Layer, LayerStack
+from dermis.pipeline.artifacts import LayerProfile
+from dermis.pipeline.errors import DermisError
+from dermis.physics.layers import Layer, LayerStack
 
 __all__ = ["VERSION", "KERNELS", "run", "multipole_profiles", "multipole_totals", "dipole_Rd",
            "fresnel_diffuse_reflectance", "DEFAULT_POLES", "CUTOFF_FRACTION"]

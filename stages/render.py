@@ -41,10 +41,10 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from pipeline.errors import ConfigError, DermisError
-from pipeline.imageio import linear_to_srgb, srgb_to_linear
-from pipeline.lights import EnvironmentMap, environment_map, sample_lights
-from pipeline.visibility import Visibility
+from dermis.pipeline.errors import ConfigError, DermisError
+from dermis.pipeline.imageio import linear_to_srgb, srgb_to_linear
+from dermis.physics.lights import EnvironmentMap, environment_map, sample_lights
+from dermis.physics.visibility import Visibility
 
 __all__ = ["VERSION", "KERNELS", "MODELS", "LambertParams", "RenderResult", "render",
            "camera_rays", "tonemap", "shared_exposure", "vertex_normals"]
@@ -167,7 +167,7 @@ def vertex_normals(mesh) -> np.ndarray:
 
 def _resolve_model(model: str, params, asperity_base, base_params):
     """(base name, base params, asperity params or None) for a model name."""
-    from stages.brdf_models import AsperityParams, HK93Params, LafortuneParams
+    from dermis.stages.brdf_models import AsperityParams, HK93Params, LafortuneParams
 
     defaults = {"lambert": LambertParams, "lafortune": LafortuneParams, "hk93": HK93Params}
     if model == "bssrdf":
@@ -272,7 +272,7 @@ def _surface(env, mesh, hits_tri, hits_bary, camera_pos, *, texture, bump_map, b
     for k in outs:
         cl.enqueue_copy(env.queue, outs[k], bufs[k], wait_for=[ev])
     env.queue.finish()
-    from pipeline.cl import event_seconds
+    from dermis.pipeline.cl import event_seconds
     return {k: v[:m] for k, v in outs.items()}, event_seconds(ev)
 
 
@@ -306,7 +306,7 @@ def pixel_surface(mesh, camera, *, maps=None, bump: str | None = None,
     Shared by the BRDF renderer and the BSSRDF gather so both see the same surface.
     ``textured=False`` ignores the albedo texture (``albedo_const`` everywhere).
     """
-    from pipeline.cl import get_env
+    from dermis.pipeline.cl import get_env
 
     env_cl = cl_env or get_env()
     visibility = visibility or Visibility(mesh.vertices, mesh.faces)
@@ -393,7 +393,7 @@ def render(mesh, light, model: str, params, camera, *, maps=None, bump: str | No
     DermisError
         Malformed mesh or maps, bump without maps/UVs.
     """
-    from pipeline.cl import event_seconds, get_env
+    from dermis.pipeline.cl import event_seconds, get_env
     import pyopencl as cl
 
     t_start = time.perf_counter()
@@ -521,7 +521,7 @@ def shared_exposure(images: Sequence[np.ndarray], *,
                     percentile: float = EXPOSURE_PERCENTILE) -> float:
     """One exposure for a whole comparison: 1 / the ``percentile`` of the luminance of every
     non-zero pixel of every image (1.0 if all are black)."""
-    from pipeline.lights import LUMINANCE
+    from dermis.physics.lights import LUMINANCE
 
     lum = [np.asarray(im, dtype=np.float32).reshape(-1, 3) @ LUMINANCE.astype(np.float32)
            for im in images]

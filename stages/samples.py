@@ -65,7 +65,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.errors import DermisError
+from dermis.pipeline.errors import DermisError
 
 __all__ = ["VERSION", "KERNELS", "SamplePoints", "run", "spacing_from_mfp", "mesh_area",
            "nearest_neighbour_spread", "density_spread", "pou_areas", "MAX_POINTS",

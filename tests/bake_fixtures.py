@@ -8,7 +8,7 @@ from typing import Callable
 
 import numpy as np
 
-from pipeline.artifacts import Mesh
+from dermis.pipeline.artifacts import Mesh
 
 
 def latlong_sphere(nlat: int, nlon: int, radius: float | Callable[[np.ndarray], np.ndarray],

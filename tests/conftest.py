@@ -13,7 +13,7 @@ SHARED_DATA = REPO.parent / "shared" / "data"
 @pytest.fixture(scope="session")
 def cl_env():
     """The default OpenCL env (PoCL CPU); tests run on it as CI does."""
-    from pipeline.cl import get_env
+    from dermis.pipeline.cl import get_env
     return get_env()
 
 

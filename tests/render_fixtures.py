@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.artifacts import Mesh
+from dermis.pipeline.artifacts import Mesh
 
 
 def icosphere(radius: float = 100.0, subdivisions: int = 5, centre=(0.0, 0.0, 0.0)) -> Mesh:

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from brdf_testutil import hemisphere, mc_albedo, sample_pairs, with_cos
-from pipeline.cl import CL_DIR
-from pipeline.errors import ConfigError
-from stages.brdf_models import (ASPERITY_NPARAMS, AsperityParams, LafortuneParams,
+from dermis.pipeline.cl import CL_DIR
+from dermis.pipeline.errors import ConfigError
+from dermis.stages.brdf_models import (ASPERITY_NPARAMS, AsperityParams, LafortuneParams,
                                 asperity_f_np, evaluate)
 
 # f = albedo tau / (4 pi m_i m_o): four float32 roundings and one division

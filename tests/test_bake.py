@@ -13,9 +13,9 @@ from matplotlib.tri import Triangulation
 
 from bake_fixtures import (bumpy_radius, direction_of_uv, latlong_sphere, latlong_texture,
                            smooth_colour, srgb8)
-from pipeline.artifacts import Mesh
-from pipeline.errors import ConfigError, DermisError
-from stages import bake
+from dermis.pipeline.artifacts import Mesh
+from dermis.pipeline.errors import ConfigError, DermisError
+from dermis.stages import bake
 
 R_MM = 100.0            # sphere radius
 AMPLITUDE_MM = 1.0      # bump amplitude a in r = R + a f, |f| <= 1

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from brdf_testutil import hemisphere, mc_albedo, sample_pairs, with_cos
-from pipeline.cl import CL_DIR
-from pipeline.errors import ConfigError
-from pipeline.layers import PRESETS, Layer
-from stages.brdf_models import (HK93_NPARAMS, HK93Params, dipole_total_reflectance, evaluate,
+from dermis.pipeline.cl import CL_DIR
+from dermis.pipeline.errors import ConfigError
+from dermis.physics.layers import PRESETS, Layer
+from dermis.stages.brdf_models import (HK93_NPARAMS, HK93Params, dipole_total_reflectance, evaluate,
                                 hk93_f_np, hk93_params_from_layers,
                                 hk93_single_scattering_albedo)
 

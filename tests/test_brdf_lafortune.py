@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from brdf_testutil import hemisphere, mc_albedo, sample_pairs, with_cos
-from pipeline.cl import CL_DIR
-from pipeline.errors import ConfigError
-from stages.brdf_models import LAFORTUNE_NPARAMS, LafortuneParams, evaluate, lafortune_f_np
+from dermis.pipeline.cl import CL_DIR
+from dermis.pipeline.errors import ConfigError
+from dermis.stages.brdf_models import LAFORTUNE_NPARAMS, LafortuneParams, evaluate, lafortune_f_np
 
 # float32 kernel vs float64 reference: the lobe base carries a few ulp (2^-24) of relative
 # error, which the exponent n <= 64.2 multiplies: 64 * 8 ulp ~ 3e-5.  Near a zero base the

@@ -3,8 +3,8 @@ import numpy as np
 import pyopencl as cl
 import pytest
 
-from pipeline import cl as dcl
-from pipeline.errors import DermisError
+from dermis.pipeline import cl as dcl
+from dermis.pipeline.errors import DermisError
 
 
 def test01_default_device_is_pocl_cpu(cl_env):

@@ -1,9 +1,9 @@
 """Scene files: defaults, unit conversion, and one clear error (exit code 2) per bad input."""
 import pytest
 
-from pipeline.cli import main
-from pipeline.config import default_scene_path, load_scene
-from pipeline.errors import ConfigError
+from dermis.pipeline.cli import main
+from dermis.pipeline.config import default_scene_path, load_scene
+from dermis.pipeline.errors import ConfigError
 
 GOOD_LAYER = """
 [[optics.layers]]

@@ -11,10 +11,10 @@ import math
 import numpy as np
 import pytest
 
-from pipeline.artifacts import LayerProfile
-from pipeline.errors import DermisError
-from stages import gather as G
-from stages import samples as S
+from dermis.pipeline.artifacts import LayerProfile
+from dermis.pipeline.errors import DermisError
+from dermis.stages import gather as G
+from dermis.stages import samples as S
 
 # Jensen et al. 2001 measured skin1 (physics.md section 3), 1/mm, eta 1.3.
 SKIN1_SIGMA_A = np.array([0.032, 0.17, 0.48])
@@ -210,8 +210,8 @@ def test04_flat_slab_energy(cl_env, skin1, rng):
 
 @pytest.fixture(scope="module")
 def preset_profiles():
-    profiles = pytest.importorskip("stages.profiles")
-    from pipeline.layers import PRESETS
+    from dermis.stages import profiles
+    from dermis.physics.layers import PRESETS
     return {k: (PRESETS[k], profiles.run(PRESETS[k])) for k in ("skin1", "skin2", "two_layer")}
 
 
@@ -431,8 +431,8 @@ def test11_albedo_replace_mode(skin1):
 # ------------------------------------------------------------------ the real layer file
 def test12_flat_slab_with_profiles_stage(cl_env, rng):
     """The flat-slab test with stages/profiles.py's own skin1 layer file."""
-    profiles = pytest.importorskip("stages.profiles")
-    from pipeline.layers import PRESETS
+    from dermis.stages import profiles
+    from dermis.physics.layers import PRESETS
     prof = profiles.run(PRESETS["skin1"])
     half = float(prof.cutoff_mm.max()) + 12.0
     p, a = hex_plane(half, 0.5)

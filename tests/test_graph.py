@@ -4,10 +4,10 @@ import json
 import numpy as np
 import pytest
 
-from pipeline.artifacts import LayerProfile
-from pipeline.errors import CacheLockedError
-from pipeline.graph import Node, StageResult, execute, plan_order
-from pipeline.store import Store
+from dermis.pipeline.artifacts import LayerProfile
+from dermis.pipeline.errors import CacheLockedError
+from dermis.pipeline.graph import Node, StageResult, execute, plan_order
+from dermis.pipeline.store import Store
 
 VERSION = 1          # toy stages live in this module: its source text enters their keys
 CALLS = []
@@ -91,7 +91,7 @@ def test04_results_flow_through_cache(tmp_path):
     store = Store(tmp_path)
     s = run(store, a=1.5, b=2.0)
     rep = {r.id: r for r in s.nodes}["add_b"]
-    from pipeline.artifacts import load
+    from dermis.pipeline.artifacts import load
     assert load(rep.path).Rd[0] == pytest.approx(1.5 * 2 + 2.0)
 
 

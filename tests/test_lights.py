@@ -13,13 +13,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.config import LightConfig
-from pipeline.errors import ConfigError
-from pipeline.lights import (ENV_STRATEGIES, LUMINANCE, EnvironmentMap, concentric_disc,
+from dermis.pipeline.config import LightConfig
+from dermis.pipeline.errors import ConfigError
+from dermis.physics.lights import (ENV_STRATEGIES, LUMINANCE, EnvironmentMap, concentric_disc,
                              cosine_hemisphere, environment_map, irradiance, procedural_sunset,
                              sample_lights, SUNSET_SUN_AZIMUTH_DEG, SUNSET_SUN_ELEVATION_DEG,
                              SUNSET_SUN_IRRADIANCE)
-from pipeline.visibility import Visibility
+from dermis.physics.visibility import Visibility
 
 sys.path.insert(0, str(Path(__file__).parent))
 from render_fixtures import merge, plane  # noqa: E402

@@ -4,14 +4,14 @@ import math
 import numpy as np
 import pytest
 
-from pipeline.layers import PRESETS, Layer, LayerStack
-from stages import mc_slab as M
-from stages import profiles as P
+from dermis.physics.layers import PRESETS, Layer, LayerStack
+from dermis.stages import mc_slab as M
+from dermis.stages import profiles as P
 
 
 @pytest.fixture(scope="module")
 def env():
-    from pipeline import cl as dcl
+    from dermis.pipeline import cl as dcl
     try:
         return dcl.get_env()
     except Exception as exc:  # pragma: no cover

@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.artifacts import Mesh
-from pipeline.errors import DermisError
-from stages import mesh_prep as mp
+from dermis.pipeline.artifacts import Mesh
+from dermis.pipeline.errors import DermisError
+from dermis.stages import mesh_prep as mp, scan_io
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 TEX = np.full((8, 8, 3), 128, np.uint8)
@@ -269,13 +269,13 @@ def write_png(path: Path, rgb: np.ndarray):
 
 def test14_load_missing_and_unreadable(tmp_path):
     with pytest.raises(DermisError, match=r"mesh file not found: .*nope\.obj"):
-        mp.load_scan(tmp_path / "nope.obj")
+        scan_io.load_scan(tmp_path / "nope.obj")
     bad = tmp_path / "bad.ply"
     bad.write_text("this is not a ply\n")
     with pytest.raises(DermisError, match=r"bad\.ply"):
-        mp.load_scan(bad)
+        scan_io.load_scan(bad)
     with pytest.raises(DermisError, match=r"units = 'inch'"):
-        mp.load_scan(bad, units="inch")
+        scan_io.load_scan(bad, units="inch")
 
 
 def test15_load_obj_welds_seams_and_converts_units(tmp_path):
@@ -289,7 +289,7 @@ def test15_load_obj_welds_seams_and_converts_units(tmp_path):
         "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 1 1 0\n"
         "vt 0 0\nvt 0.5 0\nvt 0.5 0.5\nvt 0 0.5\nvt 0.9 0.9\n"
         "f 1/1 2/2 3/3\nf 1/1 5/5 4/4\n")
-    m = mp.load_scan(tmp_path / "m.obj", units="cm")
+    m = scan_io.load_scan(tmp_path / "m.obj", units="cm")
     assert len(m.vertices) == 4 and m.info["vertices_welded"] == 1
     np.testing.assert_allclose(m.vertices.max(axis=0), [10, 10, 0])
     assert m.faces[0, 2] == m.faces[1, 1]                          # shared topology
@@ -307,7 +307,7 @@ def test16_load_ply_and_glb_uv_conventions(tmp_path):
     lines += [" ".join(map(str, [*p, *t])) for p, t in zip(v, uv)] + ["3 0 1 2"]
     (tmp_path / "m.ply").write_text("\n".join(lines) + "\n")
     write_png(tmp_path / "alb.png", np.zeros((2, 2, 3), np.uint8))
-    m = mp.load_scan(tmp_path / "m.ply", units="m")
+    m = scan_io.load_scan(tmp_path / "m.ply", units="m")
     np.testing.assert_allclose(m.vertices[1], [1000, 0, 0])
     np.testing.assert_allclose(np.sort(m.uv[m.uv_faces[0]][:, 1]), [0.25, 0.25, 1.0])  # PLY: not flipped
     assert m.texture_srgb.shape == (2, 2, 3)
@@ -326,26 +326,26 @@ def test16_load_ply_and_glb_uv_conventions(tmp_path):
     glb = struct.pack("<4sII", b"glTF", 2, 12 + 8 + len(js) + 8 + len(binv)) + struct.pack("<I4s", len(js), b"JSON") + js \
         + struct.pack("<I4s", len(binv), b"BIN\x00") + binv
     (tmp_path / "m.glb").write_bytes(glb)
-    g = mp.load_scan(tmp_path / "m.glb", texture=tmp_path / "alb.png")
+    g = scan_io.load_scan(tmp_path / "m.glb", texture=tmp_path / "alb.png")
     np.testing.assert_allclose(np.sort(g.uv[g.uv_faces[0]][:, 1]), [0.0, 0.75, 0.75])
-    g2 = mp.load_scan(tmp_path / "m.glb", texture=tmp_path / "alb.png", flip_v=False)
+    g2 = scan_io.load_scan(tmp_path / "m.glb", texture=tmp_path / "alb.png", flip_v=False)
     np.testing.assert_allclose(np.sort(g2.uv[g2.uv_faces[0]][:, 1]), [0.25, 0.25, 1.0])
     with pytest.raises(DermisError, match=r"texture file not found: .*nope\.png"):
-        mp.load_scan(tmp_path / "m.glb", texture=tmp_path / "nope.png")
+        scan_io.load_scan(tmp_path / "m.glb", texture=tmp_path / "nope.png")
 
 
 def test17_load_lps_scan():
     lps = DATA / "lps_head"
     if not lps.is_dir():
         pytest.skip(f"LPS scan not available at {lps}")
-    m = mp.load_scan(lps / "LeePerrySmith_cm.obj", units="cm")
+    m = scan_io.load_scan(lps / "LeePerrySmith_cm.obj", units="cm")
     m, rep = mp.validate(m, source="LeePerrySmith_cm.obj")
     assert len(m.faces) == 17684 and len(m.vertices) == 8844 and rep["boundary_edges"] == 0
     # README: 43.1 x 40.0 x 26.1 cm
     np.testing.assert_allclose(np.ptp(m.vertices, axis=0), [431, 400, 261], atol=1.0)
     assert m.texture_srgb.shape == (1024, 1024, 3)
     # the glb (centred, scaled 1/5.035, OBJ-convention UVs) gives the same UVs on the same faces
-    g = mp.load_scan(lps / "LeePerrySmith.glb", texture=lps / "Map-COL.jpg")
+    g = scan_io.load_scan(lps / "LeePerrySmith.glb", texture=lps / "Map-COL.jpg")
     assert "not flipped" in g.info["uv_convention"] and len(g.vertices) == 8844
     from scipy.spatial import cKDTree
 

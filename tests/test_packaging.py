@@ -8,8 +8,8 @@ REPO = Path(__file__).resolve().parents[1]
 
 def test01_package_data_covers_every_kernel_and_header():
     cfg = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
-    patterns = cfg["package-data"]["cl"]
-    assert "cl" in cfg["packages"]
+    patterns = cfg["package-data"]["dermis.cl"]
+    assert "dermis.cl" in cfg["packages"]
     files = [p.name for p in (REPO / "cl").iterdir() if p.suffix in (".cl", ".h")]
     assert files, "no kernels found"
     missing = [f for f in files if not any(fnmatch.fnmatch(f, pat) for pat in patterns)]
@@ -17,14 +17,14 @@ def test01_package_data_covers_every_kernel_and_header():
 
 
 def test02_kernels_are_found_through_the_installed_package():
-    from pipeline.cl import CL_DIR
-    import cl
+    from dermis.pipeline.cl import CL_DIR
+    from dermis import cl
     assert CL_DIR == Path(cl.__file__).parent
     assert (CL_DIR / "common.h").is_file()
 
 
 def test03_default_scene_ships_with_the_package():
     cfg = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
-    assert "scenes" in cfg["packages"] and "*.toml" in cfg["package-data"]["scenes"]
-    from pipeline.config import default_scene_path
+    assert "dermis.scenes" in cfg["packages"] and "*.toml" in cfg["package-data"]["dermis.scenes"]
+    from dermis.pipeline.config import default_scene_path
     assert default_scene_path().is_file()

@@ -4,10 +4,10 @@ from pathlib import Path
 
 import pytest
 
-from pipeline import api
-from pipeline.cli import main
-from pipeline.config import load_scene
-from pipeline.plan import build_graph
+from dermis.pipeline import api
+from dermis.pipeline.cli import main
+from dermis.pipeline.config import load_scene
+from dermis.pipeline.plan import build_graph
 
 QUICK = Path(__file__).resolve().parents[1] / "scenes" / "quick.toml"
 

@@ -10,8 +10,8 @@ import hashlib
 import numpy as np
 import pytest
 
-from pipeline.errors import ConfigError
-from stages import procedural_head as ph
+from dermis.pipeline.errors import ConfigError
+from dermis.stages import procedural_head as ph
 
 N_TRI = 20_000
 TEX = 256

@@ -4,9 +4,9 @@ import math
 import numpy as np
 import pytest
 
-from pipeline.errors import ConfigError
-from pipeline.layers import PRESETS, Layer, LayerStack, parse_layer_stack
-from stages import profiles as P
+from dermis.pipeline.errors import ConfigError
+from dermis.physics.layers import PRESETS, Layer, LayerStack, parse_layer_stack
+from dermis.stages import profiles as P
 
 SKIN1 = PRESETS["skin1"].layers[0]
 

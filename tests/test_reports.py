@@ -14,9 +14,9 @@ import subprocess
 import numpy as np
 import pytest
 
-from pipeline.artifacts import RenderedImage
-from pipeline.errors import DermisError
-from reports.diff import (REL_FLOOR_FRACTION, difference, difference_image, diverging_lut,
+from dermis.pipeline.artifacts import RenderedImage
+from dermis.pipeline.errors import DermisError
+from dermis.reports.diff import (REL_FLOOR_FRACTION, difference, difference_image, diverging_lut,
                           write_differences)
 
 # Metrics are computed in float64 from float32 images: 1e-6 covers float32 rounding of
@@ -161,7 +161,7 @@ def test_diverging_colour_map_is_symmetric():
         d[1, j] = -v    # darker by the same amount
     mask = np.ones((4, 5), bool)
     mask[3] = False
-    from reports.diff import DiffResult
+    from dermis.reports.diff import DiffResult
     img = difference_image(DiffResult(diff=d, relative=d, mask=mask), scale=1.0)
     assert img.dtype == np.uint8 and img.shape == (4, 5, 3)
     assert np.array_equal(img[0], img[1][:, ::-1])           # mirrored colours
@@ -236,7 +236,7 @@ def _pdf_pages(path) -> int:
 
 
 def test_write_report_page_count(tmp_path):
-    from reports.pdf_report import report_page_count, summary_text, write_report
+    from dermis.reports.pdf_report import report_page_count, summary_text, write_report
 
     images = _scene_images()
     _, metrics = write_differences(images, tmp_path / "diff")
@@ -255,7 +255,7 @@ def test_write_report_page_count(tmp_path):
 
 
 def test_write_report_without_geometry_comparison(tmp_path):
-    from reports.pdf_report import write_report
+    from dermis.reports.pdf_report import write_report
 
     images = _scene_images(lights=("point",), geoms=("low_bump",))
     _, metrics = write_differences(images, tmp_path / "diff")

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from pipeline.errors import DermisError
-from stages import samples as S
+from dermis.pipeline.errors import DermisError
+from dermis.stages import samples as S
 
 # Uniformity bound on the coefficient of variation (std / mean) of nearest-neighbour
 # distances.  Uniform random points on a plane have CV ~ 0.52 (Rayleigh distribution:
@@ -122,7 +122,7 @@ def test07_partition_of_unity_areas():
 
 def test05_spacing_from_mfp():
     """One point per pi l^2 / multiplier with l the smallest 1 / (sigma_a + sigma_s')."""
-    from pipeline.layers import PRESETS
+    from dermis.physics.layers import PRESETS
     skin1 = PRESETS["skin1"]
     l_min = 1.0 / (0.48 + 1.01)  # blue channel, Jensen 2001 skin1
     assert S.spacing_from_mfp(skin1, 1.0) == pytest.approx(math.sqrt(math.pi) * l_min)

@@ -71,7 +71,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from .errors import ConfigError, DermisError
+from dermis.pipeline.errors import ConfigError, DermisError
 
 __all__ = [
     "LightSamples", "EnvironmentMap", "sample_lights", "irradiance", "environment_map",
@@ -576,7 +576,7 @@ def _cached_map(source: str, mtime: float, scale: float, rotation_deg: float) ->
     if source == "procedural_sunset":
         rad = procedural_sunset()
     else:
-        from .imageio import read_image
+        from dermis.pipeline.imageio import read_image
         rad = read_image(source, channels=3, what="environment map")
     return EnvironmentMap(rad * np.float32(scale), rotation_deg=rotation_deg, name=source)
 

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import DermisError
+from dermis.pipeline.errors import DermisError
 
 __all__ = ["Visibility", "Hits", "OFFSET_FRACTION", "MISS"]
 

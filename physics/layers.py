@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .errors import ConfigError
+from dermis.pipeline.errors import ConfigError
 
 __all__ = ["Layer", "LayerStack", "parse_layer_stack", "load_layers_toml", "PRESETS"]
 

@@ -1,0 +1,122 @@
+"""The code a node runs, as a hash: a stage module's in-repository import closure and kernels.
+
+A node's cache key must change when any code it executes changes, and only then
+(docs/architecture.md, "Cache keys").  The closure is read from the source, not
+from what happens to be imported: every ``import`` / ``from ... import`` statement
+of the stage module, function-local ones included, that names a module of the
+``dermis`` package is followed, recursively.  Engine bookkeeping modules
+(:data:`NOT_RESULTS`: the executor, the store, the scene schema, the CLI) cannot
+change a stage's output and are neither hashed nor followed.  Every module in the
+closure may declare ``KERNELS`` (``.cl`` file names it builds); those files and
+the headers they ``#include`` are hashed too.
+
+Probe: tests/test_codehash.py appends a comment to files and checks that exactly
+the nodes executing them get new keys.
+"""
+from __future__ import annotations
+
+import ast
+import functools
+import hashlib
+import importlib.util
+from pathlib import Path
+
+__all__ = ["module_closure", "closure_hash", "NOT_RESULTS", "read_source"]
+
+ROOT_PACKAGE = "dermis"
+
+# Modules whose code decides WHICH nodes run and WHERE results go, never WHAT a node computes.
+NOT_RESULTS = frozenset({
+    "dermis.pipeline.graph", "dermis.pipeline.store", "dermis.pipeline.api",
+    "dermis.pipeline.cli", "dermis.pipeline.cli_profile", "dermis.pipeline.plan",
+    "dermis.pipeline.config", "dermis.pipeline.errors", "dermis.pipeline.codehash",
+    "dermis.pipeline.registry", "dermis.pipeline", ROOT_PACKAGE,
+})
+
+
+def read_source(path: Path) -> bytes:
+    """The bytes hashed for a source file (a seam for the key probe in the tests, which then
+    call :func:`clear` since closures and hashes are memoised per process)."""
+    return Path(path).read_bytes()
+
+
+@functools.lru_cache(maxsize=None)
+def _module_file(name: str) -> Path | None:
+    spec = importlib.util.find_spec(name)
+    if spec is None or spec.origin is None or not spec.origin.endswith(".py"):
+        return None
+    return Path(spec.origin)
+
+
+def _is_module(name: str) -> bool:
+    try:
+        return _module_file(name) is not None
+    except (ImportError, ValueError):
+        return False
+
+
+def _imported_names(name: str, source: bytes) -> set[str]:
+    """Dotted ``dermis.*`` module names imported anywhere in ``source`` (module ``name``)."""
+    tree = ast.parse(source)
+    package = name if _module_file(name).name == "__init__.py" else name.rpartition(".")[0]
+    found = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[:len(base) - node.level + 1]
+                mod = ".".join(base + ([node.module] if node.module else []))
+            else:
+                mod = node.module or ""
+            found.add(mod)
+            # "from dermis.stages import mesh_prep": the names may be submodules themselves
+            found.update(f"{mod}.{a.name}" for a in node.names if _is_module(f"{mod}.{a.name}"))
+    return {m for m in found if m == ROOT_PACKAGE or m.startswith(ROOT_PACKAGE + ".")}
+
+
+@functools.lru_cache(maxsize=None)
+def module_closure(name: str) -> tuple[str, ...]:
+    """Sorted in-repository modules that ``name`` runs (itself included, bookkeeping excluded)."""
+    seen: set[str] = set()
+    todo = [name]
+    while todo:
+        mod = todo.pop()
+        if mod in seen or (mod in NOT_RESULTS and mod != name) or not _is_module(mod):
+            continue
+        seen.add(mod)
+        todo.extend(_imported_names(mod, read_source(_module_file(mod))))
+    return tuple(sorted(seen))
+
+
+def clear() -> None:
+    """Forget memoised closures and hashes (after source files changed in this process)."""
+    module_closure.cache_clear()
+    closure_hash.cache_clear()
+
+
+def _kernels_of(name: str) -> tuple[str, ...]:
+    """The ``KERNELS`` a module declares, read statically (no import, no side effects)."""
+    tree = ast.parse(read_source(_module_file(name)))
+    for node in tree.body:
+        targets = node.targets if isinstance(node, ast.Assign) else (
+            [node.target] if isinstance(node, ast.AnnAssign) else [])
+        if any(isinstance(t, ast.Name) and t.id == "KERNELS" for t in targets):
+            return tuple(ast.literal_eval(node.value))
+    return ()
+
+
+@functools.lru_cache(maxsize=None)
+def closure_hash(name: str) -> str:
+    """sha256 over the source of every module in the closure and every kernel file they build."""
+    from .cl import kernel_closure
+
+    h = hashlib.sha256()
+    kernels: set[str] = set()
+    for mod in module_closure(name):
+        h.update(mod.encode() + b"\0" + read_source(_module_file(mod)) + b"\0")
+        kernels.update(_kernels_of(mod))
+    for path in kernel_closure(sorted(kernels)):
+        h.update(path.name.encode() + b"\0" + read_source(path) + b"\0")
+    return h.hexdigest()
