@@ -119,7 +119,7 @@ def worker(case: str, resolution: int, preview_dir: str | None) -> dict:
     rss_before = _rss_mb("VmRSS")
     reset = _reset_peak()
     t0 = time.perf_counter()
-    maps = bake.run(low, high, resolution=resolution)
+    maps = bake.bake_maps(low, high, resolution=resolution)
     wall = time.perf_counter() - t0
     peak = _rss_mb("VmHWM")
     if preview_dir:

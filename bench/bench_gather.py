@@ -96,7 +96,7 @@ def main():
     res = {"device": env.description, "preset": args.preset, "note":
            "2-core shared machine, other jobs running: times noisy (+-20 %)",
            "loadavg_start": list(__import__("os").getloadavg())}
-    prof = profiles.run(PRESETS[args.preset])
+    prof = profiles.build_profiles(PRESETS[args.preset])
     res["cutoff_mm"] = prof.cutoff_mm.tolist()
     v, f, mesh_name = load_mesh()
     area = samples.mesh_area(v, f)
@@ -104,7 +104,7 @@ def main():
     res["mesh_area_mm2"] = area
 
     def make_points(n, seed=1):
-        sp = samples.run(v, f, spacing_mm=float(np.sqrt(area / n)), seed=seed)
+        sp = samples.sample_points(v, f, spacing_mm=float(np.sqrt(area / n)), seed=seed)
         e, scene = irradiance(v, f, sp.positions.astype(np.float64), sp.normals.astype(np.float64))
         return sp, e, scene
 

@@ -112,12 +112,12 @@ def _run_old(env, prg, stack: LayerStack, photons: int) -> dict:
 
 def _time_case(env, stack: LayerStack, photons: int, repeats: int) -> dict:
     """Best of ``repeats`` runs of mc_slab.run (wall-clock kernel time and CPU time)."""
-    mc_slab.run(stack, photons=2000, r_max_mm=10.0, bins=100, env=env)   # build, warm up
+    mc_slab.simulate(stack, photons=2000, r_max_mm=10.0, bins=100, env=env)   # build, warm up
     runs = []
     for i in range(repeats):
         load = os.getloadavg()
         c0 = time.process_time()
-        r = mc_slab.run(stack, photons=photons, r_max_mm=10.0, bins=100, seed=i, env=env)
+        r = mc_slab.simulate(stack, photons=photons, r_max_mm=10.0, bins=100, seed=i, env=env)
         cpu = time.process_time() - c0
         runs.append({"photons_per_second": r.photons_per_second,
                      "per_cpu_second": 3 * r.photons / cpu,

@@ -42,13 +42,13 @@ def main():
     times = []
     for _ in range(a.repeat):
         t0 = time.perf_counter()
-        mesh = ph.run(triangles=a.triangles, texture_size=a.texture, seed=a.seed)
+        mesh = ph.make_head(triangles=a.triangles, texture_size=a.texture, seed=a.seed)
         times.append(time.perf_counter() - t0)
     t0 = time.perf_counter()
-    ph.run(triangles=a.triangles, texture_size=a.texture, seed=a.seed, detail=False)
+    ph.make_head(triangles=a.triangles, texture_size=a.texture, seed=a.seed, detail=False)
     t_smooth = time.perf_counter() - t0
     t0 = time.perf_counter()
-    ph.run(triangles=a.triangles, texture_size=64, seed=a.seed)
+    ph.make_head(triangles=a.triangles, texture_size=64, seed=a.seed)
     t_geometry = time.perf_counter() - t0
     peak = _peak_rss_mb()
     mesh_mb = sum(x.nbytes for x in (mesh.vertices, mesh.faces, mesh.uv, mesh.uv_faces,

@@ -32,13 +32,13 @@ def main() -> None:
     times = []
     for _ in range(3):
         t = time.perf_counter()
-        profiles.run(PRESETS["two_layer"])
+        profiles.build_profiles(PRESETS["two_layer"])
         times.append(time.perf_counter() - t)
     out["layer_file_two_layer_s"] = {"min": min(times), "median": float(np.median(times))}
     print(f"two_layer layer file: min {min(times):.2f} s, median {np.median(times):.2f} s")
 
     mcml = LayerStack((Layer(math.inf, 1.4, (0.01,) * 3, (10.0,) * 3),))
-    r = mc_slab.run(mcml, photons=20000, r_max_mm=10, bins=50)
+    r = mc_slab.simulate(mcml, photons=20000, r_max_mm=10, bins=50)
     out["mc_mcml_case"] = {"photons_per_second": r.photons_per_second,
                            "interactions_per_second": r.info["interactions_per_second"],
                            "Rd": r.Rd.tolist(), "Rd_err": r.Rd_err.tolist(),
@@ -50,10 +50,10 @@ def main() -> None:
     out["errors"] = {}
     for name in ("skin1", "skin2", "two_layer"):
         st = PRESETS[name]
-        prof = profiles.run(st)
+        prof = profiles.build_profiles(st)
         h = prof.r_mm[1]
         n = len(prof.r_mm) - 1
-        mc = mc_slab.run(st, photons=args.photons, r_max_mm=(2 * n + 1) * h / 2,
+        mc = mc_slab.simulate(st, photons=args.photons, r_max_mm=(2 * n + 1) * h / 2,
                          bins=2 * n + 1, seed=1)
         # rebin MC (width h/2 from 0) onto the layer-file rings [kh - h/2, kh + h/2)
         area_f = np.pi * np.diff(mc.r_edges**2)[:, None]

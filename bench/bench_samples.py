@@ -64,7 +64,7 @@ def plane_pou(mod, relax):
     y[:, :2] = np.random.default_rng(5).uniform(-20, 20, (2000, 2))
     out = []
     for seed in (4, 5, 6):
-        sp = mod.run(v, f, spacing_mm=1.0, seed=seed, relax_iterations=relax)
+        sp = getattr(mod, "sample_points", getattr(mod, "run", None))(v, f, spacing_mm=1.0, seed=seed, relax_iterations=relax)
         d = mod.density_spread(sp.positions.astype(float), sp.areas.astype(float), y,
                                sp.info["kernel_sigma_mm"])
         out.append({"max_abs_dev": d["max_abs_dev"], "std": d["std"], "nn_cv": sp.info["nn_cv"]})
@@ -73,7 +73,7 @@ def plane_pou(mod, relax):
 
 def head_run(mod, v, f, relax):
     t = time.perf_counter()
-    sp = mod.run(v, f, spacing_mm=SPACING_MM, seed=0, relax_iterations=relax)
+    sp = getattr(mod, "sample_points", getattr(mod, "run", None))(v, f, spacing_mm=SPACING_MM, seed=0, relax_iterations=relax)
     wall = time.perf_counter() - t
     i = sp.info
     row = {k: i.get(k) for k in STEP_KEYS}

@@ -67,7 +67,7 @@ def main():
     import OpenImageIO as oiio
     from dermis.stages import procedural_head
     t0 = time.perf_counter()
-    mesh = procedural_head.run(triangles=a.triangles, texture_size=a.texture,
+    mesh = procedural_head.make_head(triangles=a.triangles, texture_size=a.texture,
                                detail=not a.no_detail, seed=a.seed)
     print(f"built {mesh.n_triangles} triangles in {time.perf_counter() - t0:.2f} s")
     c = mesh.vertices[: mesh.info["components"][0]["vertices"][1]]

@@ -58,6 +58,14 @@ class Layer:
             "g": float(self.g),
         }
 
+    @classmethod
+    def from_dict(cls, d: dict) -> "Layer":
+        """Inverse of :meth:`to_dict` (exact: the dict holds Python floats)."""
+        t = d["thickness_mm"]
+        return cls(math.inf if t == "inf" else float(t), float(d["eta"]),
+                   tuple(float(v) for v in d["sigma_a"]),
+                   tuple(float(v) for v in d["sigma_s_prime"]), float(d["g"]))
+
 
 @dataclass(frozen=True)
 class LayerStack:
@@ -74,6 +82,12 @@ class LayerStack:
             "eta_above": float(self.eta_above),
             "eta_below": float(self.eta_below),
         }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "LayerStack":
+        """Inverse of :meth:`to_dict`."""
+        return cls(tuple(Layer.from_dict(x) for x in d["layers"]), float(d["eta_above"]),
+                   float(d["eta_below"]))
 
     def nonzero(self) -> "LayerStack":
         """The same stack without zero-thickness layers (they are the identity)."""

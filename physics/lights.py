@@ -72,10 +72,11 @@ from typing import Callable, Sequence
 import numpy as np
 
 from dermis.pipeline.errors import ConfigError, DermisError
+from dermis.physics.color import LUMINANCE
 
 __all__ = [
     "LightSamples", "EnvironmentMap", "sample_lights", "irradiance", "environment_map",
-    "procedural_sunset", "concentric_disc", "cosine_hemisphere", "LUMINANCE",
+    "procedural_sunset", "light_params", "concentric_disc", "cosine_hemisphere", "LUMINANCE",
     "SUNSET_SUN_ELEVATION_DEG", "ENV_STRATEGIES",
 ]
 
@@ -87,9 +88,6 @@ ENV_STRATEGIES = ("mis", "luminance")
 # sampling (1/2: 9.2 % vs 7.2 % on the sun-facing normal), and beats 1/8 and 1/4 on every
 # normal facing away from the sun (anti-sun: 18 % vs 34 % and 24 %).
 MIS_COSINE_FRACTION = 0.375
-
-# Rec. 709 / sRGB luminance weights (ITU-R BT.709), used for importance sampling.
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722], dtype=np.float64)
 
 # Procedural sunset (our embedded default map).  Sun elevation: thesis, physics.md s6
 # ("sun ~3 deg above the horizon"); the Venice map's sun is at 3.3 deg (its README).
@@ -600,3 +598,14 @@ def environment_map(light, *, rotation_deg: float = 0.0) -> EnvironmentMap:
         raise ConfigError(f"lights.{light.name}.scale = {scale}: must be finite and >= 0")
     rotation_deg = rotation_deg or float(getattr(light, "rotation_deg", 0.0))
     return _cached_map(source, mtime, scale, float(rotation_deg))
+
+
+def light_params(lights) -> dict:
+    """The lights as config slices, with the content hash of any environment map file."""
+    from dataclasses import asdict
+    from dermis.pipeline.store import file_digest
+    params = {"lights": [asdict(l) for l in lights]}
+    for light in lights:
+        if light.type == "environment" and light.map != "procedural_sunset":
+            params[f"map_sha256_{light.name}"] = file_digest(light.map)
+    return params

@@ -171,3 +171,15 @@ def _rays(origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
     rays[:, :3] = o
     rays[:, 3:] = d
     return rays
+
+
+def shared(mesh, memo: dict) -> "Visibility":
+    """One Embree scene per mesh object per run, shared by every node that traces that mesh.
+
+    ``memo`` is the run's scratch dict (``RunContext.memo``); the mesh is kept alive in it so
+    its ``id`` cannot be reused while the entry exists.
+    """
+    key = ("visibility", id(mesh))
+    if key not in memo:
+        memo[key] = (mesh, Visibility(mesh.vertices, mesh.faces))
+    return memo[key][1]

@@ -15,7 +15,8 @@ from pathlib import Path
 from .config import Scene, load_scene
 from .errors import DermisError
 from .graph import RunSummary, execute
-from .plan import STAGE_NAMES, build_graph
+from .plan import build_graph
+from .registry import STAGE_NAMES
 from .store import CACHE_ENV_VAR, Store
 
 __all__ = ["load_scene", "run", "status", "clean", "devices", "cache_dir_for", "RunContext"]

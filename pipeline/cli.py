@@ -10,6 +10,7 @@ import sys
 import traceback
 
 from .errors import DermisError
+from .registry import COMMANDS, command
 
 __all__ = ["main"]
 
@@ -100,7 +101,7 @@ def cmd_devices(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .plan import STAGE_NAMES
+    from .registry import STAGE_NAMES
 
     p = argparse.ArgumentParser(prog="dermis", description=(
         "Render faces with classic skin models side by side and measure them."))
@@ -140,12 +141,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--device", default=None)
     d.set_defaults(func=cmd_devices)
 
-    try:
-        from . import cli_profile
-    except ImportError:  # pragma: no cover - layer optics not installed yet
-        cli_profile = None
-    if cli_profile is not None:
-        cli_profile.add_parser(sub)
+    for name in COMMANDS:  # subcommands of the physics packages (e.g. ``profile``)
+        command(name).add_parser(sub)
     return p
 
 

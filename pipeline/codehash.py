@@ -28,7 +28,7 @@ ROOT_PACKAGE = "dermis"
 # Modules whose code decides WHICH nodes run and WHERE results go, never WHAT a node computes.
 NOT_RESULTS = frozenset({
     "dermis.pipeline.graph", "dermis.pipeline.store", "dermis.pipeline.api",
-    "dermis.pipeline.cli", "dermis.pipeline.cli_profile", "dermis.pipeline.plan",
+    "dermis.pipeline.cli", "dermis.pipeline.plan",
     "dermis.pipeline.config", "dermis.pipeline.errors", "dermis.pipeline.codehash",
     "dermis.pipeline.registry", "dermis.pipeline", ROOT_PACKAGE,
 })

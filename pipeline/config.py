@@ -21,10 +21,15 @@ from typing import Any, get_type_hints
 
 from .errors import ConfigError
 
-__all__ = ["Scene", "load_scene", "default_scene_path", "LENGTH_UNITS", "MODELS", "GEOMETRIES"]
+__all__ = ["Scene", "load_scene", "default_scene_path", "LENGTH_UNITS", "MODELS", "ASPERITY_BASES",
+           "GEOMETRIES"]
 
 LENGTH_UNITS = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
-MODELS = ("lafortune", "hk93", "bssrdf", "asperity")
+# The four models in the thesis's order (measured BRDF, asperity, Hanrahan-Krueger, BSSRDF):
+# scene vocabulary, plan order, contact sheets and report grids all use this one tuple.
+MODELS = ("lafortune", "asperity", "hk93", "bssrdf")
+# Models the asperity term can sit on (docs/physics.md §5); the BSSRDF is not one of them.
+ASPERITY_BASES = ("lambert", "lafortune", "hk93")
 GEOMETRIES = ("high", "low", "low_bump", "low_bump_blur")
 LIGHT_TYPES = ("point", "disc", "directional", "environment")
 
@@ -106,7 +111,7 @@ class RenderConfig:
     geometries: tuple = spec(("high", "low_bump", "low_bump_blur"), choices=GEOMETRIES)
     # Lambert default: in the thesis's timings asperity renders beat Lafortune for every light
     # (physics.md s7), so its base cannot have been a costlier model (an inference; see asperity.cl)
-    asperity_base: str = spec("lambert", choices=("lambert", "lafortune", "hk93", "bssrdf"))
+    asperity_base: str = spec("lambert", choices=ASPERITY_BASES)
 
 
 @dataclass(frozen=True)
@@ -168,6 +173,10 @@ class Scene:
         if self.mesh.source == "procedural":
             return None
         return _resolve(self.mesh.source, self.path)
+
+    def resolve(self, value: str) -> Path | None:
+        """A path value of this scene resolved against the scene file's folder (None if empty)."""
+        return _resolve(value, self.path) if value else None
 
 
 # --------------------------------------------------------------------------- validation

@@ -5,9 +5,11 @@ from pathlib import Path
 
 import numpy as np
 
+from dermis.physics.color import linear_to_srgb
+
 from .errors import DermisError
 
-__all__ = ["read_image", "write_exr", "write_png", "srgb_to_linear", "linear_to_srgb"]
+__all__ = ["read_image", "write_exr", "write_png"]
 
 
 def read_image(path: str | Path, *, channels: int | None = None, what: str = "image") -> np.ndarray:
@@ -39,18 +41,6 @@ def read_image(path: str | Path, *, channels: int | None = None, what: str = "im
     if not np.all(np.isfinite(img)):
         raise DermisError(f"{what} {path} contains NaN or Inf pixels")
     return img
-
-
-def srgb_to_linear(c: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 sRGB decoding of values in [0, 1]."""
-    c = np.asarray(c, dtype=np.float32)
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
-
-
-def linear_to_srgb(c: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 sRGB encoding; input clipped to [0, 1]."""
-    c = np.clip(np.asarray(c, dtype=np.float32), 0.0, 1.0)
-    return np.where(c <= 0.0031308, c * 12.92, 1.055 * np.power(c, 1 / 2.4) - 0.055).astype(np.float32)
 
 
 def _write(path: Path, img: np.ndarray, fmt: str) -> Path:

@@ -20,14 +20,12 @@ from pathlib import Path
 import numpy as np
 
 from dermis.pipeline.errors import DermisError
+from dermis.physics.color import LUMINANCE
 
 __all__ = ["DiffResult", "difference", "difference_image", "diverging_lut", "diverging_colormap",
            "write_differences", "image_labels", "REL_FLOOR_FRACTION", "SSIM_SIGMA_PX",
            "DIFF_SCALE_PERCENTILE"]
 
-# Rec. 709 / sRGB luminance weights, the same as pipeline.lights.LUMINANCE (kept local so
-# this module needs no OpenCL import chain).
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722], dtype=np.float64)
 
 # Relative error = (image - reference) / max(reference, floor), floor per channel =
 # REL_FLOOR_FRACTION x the mean reference value over the mask.  Without a floor, shadowed

@@ -11,10 +11,16 @@ import numpy as np
 
 from dermis.pipeline.artifacts import BakedMaps, Mesh
 from dermis.pipeline.errors import DermisError
-from dermis.pipeline.imageio import linear_to_srgb
+from dermis.pipeline.graph import Node, StageResult
+from dermis.physics.color import linear_to_srgb8
 from dermis.stages import bake
 
-__all__ = ["save_map_previews", "save_shaded_comparison", "lambert_render"]
+__all__ = ["save_map_previews", "save_shaded_comparison", "lambert_render", "NAME", "node", "run"]
+
+NAME = "mesh_previews"
+VERSION = 1
+KERNELS = ()
+PREVIEW_SIZE = 800
 
 # Preview light: directional, from the upper left and grazing (about 65 deg from the view
 # axis) so that bumps cast strong shading gradients; not a thesis light (physics.md s6 lists
@@ -104,7 +110,7 @@ def _shade(mask: np.ndarray, normals: np.ndarray, albedo: np.ndarray | float = 0
         radiance = radiance[:, None] * np.ones(3)
     img = np.zeros(mask.shape + (3,), np.float32)
     img[mask] = radiance
-    return np.rint(linear_to_srgb(img) * 255).astype(np.uint8)
+    return linear_to_srgb8(img)
 
 
 def lambert_render(mesh: Mesh, *, size: int = 800, maps: BakedMaps | None = None,
@@ -151,3 +157,25 @@ def save_shaded_comparison(high: Mesh, low: Mesh, maps: BakedMaps, out_path, *,
     gap = np.full((size, 4, 3), 255, np.uint8)
     row = np.concatenate([x for p in panels for x in (p, gap)][:-1], axis=1)
     return _write_png(Path(out_path), row)
+
+
+# --------------------------------------------------------------------------- stage
+def node(scene, with_low: bool) -> Node:
+    """PNG previews of the baked maps and of high vs low+bump shading (high only if no low)."""
+    deps = {"high": "mesh_high", **({"low": "mesh_low", "maps": "bake"} if with_low else {})}
+    return Node(NAME, NAME, __name__, {"size": PREVIEW_SIZE, "low": with_low}, deps,
+                label="PNG previews")
+
+
+def run(params: dict, inputs: dict, ctx) -> StageResult:
+    files = []
+    if params["low"]:
+        files += save_map_previews(inputs["maps"], ctx.out_dir)
+        out = ctx.out_dir / "shaded_high_vs_low.png"
+        save_shaded_comparison(inputs["high"], inputs["low"], inputs["maps"], out,
+                               size=params["size"])
+    else:
+        out = ctx.out_dir / "shaded_high.png"
+        save_shaded_comparison(inputs["high"], None, None, out, size=params["size"])
+    files.append(out)
+    return StageResult(files=[Path(f).name for f in files])

@@ -5,7 +5,7 @@ measured errors):
 
 1. title page: scene, device, date and a summary generated from the numbers;
 2. per geometry: images, rows models x columns lights, ONE exposure per light shared by all
-   models and geometries (:func:`stages.render.shared_exposure`), seconds under each;
+   models and geometries (:func:`dermis.reports.tonemap.shared_exposure`), seconds under each;
 3. per geometry with reference renders: difference images vs the reference (BSSRDF), one
    symmetric colour scale per light (the scales of :func:`reports.diff.write_differences`),
    relative RMSE and SSIM under each;
@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dermis.pipeline.config import MODELS
 from dermis.pipeline.errors import DermisError
 from dermis.reports.diff import (GEOMETRY_COMPARED, GEOMETRY_REFERENCE, difference, difference_image,
                           diverging_colormap, image_labels)
@@ -34,7 +35,7 @@ MIN_FONT_PT = 7
 
 # Thesis render times, 800x800, pbrt on a dual-core Xeon 2.4 GHz (2006), m:ss or h:mm:ss
 # (Arizpe 2006, transcribed in physics.md s7).  mesh -> light type -> model -> time.
-THESIS_MODELS = ("lafortune", "asperity", "hk93", "bssrdf")
+THESIS_MODELS = MODELS
 THESIS_LIGHTS = ("directional", "point", "area", "environment")
 THESIS_TIMES = {
     "1M": {
@@ -214,7 +215,7 @@ def _title_page(plt, images, metrics, *, scene_name, device, timings_extra):
 
 
 def _image_pages(plt, images):
-    from dermis.stages.render import shared_exposure, tonemap
+    from dermis.reports.tonemap import shared_exposure, tonemap
 
     idx = _index(images)
     lights = sorted({l for _, l, _ in idx})

@@ -21,18 +21,20 @@ a vectorised scanline fill (no per-texel Python loop) and measured fast enough
 """
 from __future__ import annotations
 
+from dataclasses import asdict
 import time
 from typing import Callable
 
 import numpy as np
 from scipy import ndimage
 
+from dermis.pipeline.graph import Node, StageResult
 from dermis.pipeline.artifacts import BakedMaps, Mesh
 from dermis.pipeline.errors import ConfigError, DermisError
-from dermis.pipeline.imageio import linear_to_srgb, srgb_to_linear
+from dermis.physics.color import linear_to_srgb, srgb_to_linear
 
 __all__ = [
-    "VERSION", "KERNELS", "run", "triangle_tangent_frames", "bump_shading_normals",
+    "VERSION", "KERNELS", "bake_maps", "NAME", "node", "run", "triangle_tangent_frames", "bump_shading_normals",
     "bump_shading_normals_at_hits", "srgb_to_linear", "linear_to_srgb",
     "DEFAULT_MAX_DISTANCE_EDGE_FRACTION",
 ]
@@ -302,7 +304,7 @@ def _squared_distance(idx: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
 # ----------------------------------------------------------------------------------------
 # The bake
 # ----------------------------------------------------------------------------------------
-def run(low: Mesh, high: Mesh, *, resolution: int = 4096, max_distance_mm: float | None = None,
+def bake_maps(low: Mesh, high: Mesh, *, resolution: int = 4096, max_distance_mm: float | None = None,
         blur_sigma_px: float = 8.0, dilate_px: int = 16, reference: str = "phong",
         progress: Callable[[float], None] | None = None) -> BakedMaps:
     """Bake albedo and bump maps of ``high`` into the UV space of ``low``.
@@ -783,3 +785,22 @@ def bump_shading_normals_at_hits(low: Mesh, maps: BakedMaps, tri_ids: np.ndarray
     return bump_shading_normals(n, dpdu[tri_ids], dpdv[tri_ids], uv,
                                 maps.bump_blur if blurred else maps.bump,
                                 bump_range_mm=maps.bump_range_mm)
+
+
+# ----------------------------------------------------------------------------------------
+# Stage ``bake``: albedo and bump maps in the low mesh's UV space (sharp + Gaussian-blurred)
+
+NAME = "bake"
+
+
+def node(scene) -> Node:
+    return Node(NAME, NAME, __name__, asdict(scene.bake), {"low": "mesh_low", "high": "mesh_high"},
+                label="bake albedo + bump")
+
+
+def run(params: dict, inputs: dict, ctx) -> StageResult:
+    maps = bake_maps(inputs["low"], inputs["high"], resolution=params["resolution"],
+                     max_distance_mm=params["max_distance"] or None,
+                     blur_sigma_px=params["blur_sigma_px"], dilate_px=params["dilate_px"],
+                     reference=params["reference"], progress=ctx.progress)
+    return StageResult(maps, info=maps.info)

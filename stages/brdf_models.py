@@ -26,12 +26,14 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from dermis.pipeline.config import ASPERITY_BASES
 from dermis.pipeline.errors import ConfigError
+from dermis.physics.fresnel import dipole_Rd
 
 __all__ = [
     "VERSION", "KERNELS", "MODELS", "LafortuneParams", "HK93Params", "HK93Layer",
     "AsperityParams", "hk93_params_from_layers", "evaluate", "lafortune_f_np", "hk93_f_np",
-    "asperity_f_np", "dipole_total_reflectance", "fresnel_diffuse_reflectance",
+    "asperity_f_np", 
     "hk93_single_scattering_albedo",
     "LAFORTUNE_NPARAMS", "HK93_NPARAMS", "ASPERITY_NPARAMS",
 ]
@@ -142,28 +144,6 @@ class LafortuneParams:
 # Hanrahan-Krueger 1993 (physics.md s2)
 # --------------------------------------------------------------------------------------
 
-def fresnel_diffuse_reflectance(eta: float) -> float:
-    """Fdr(eta), the polynomial fits quoted in physics.md s3 (same as cl/optics.h)."""
-    if eta >= 1.0:
-        return -1.440 / eta**2 + 0.710 / eta + 0.668 + 0.0636 * eta
-    return -0.4399 + 0.7099 / eta - 0.3319 / eta**2 + 0.0636 / eta**3
-
-
-def dipole_total_reflectance(sigma_a, sigma_s_prime, eta: float) -> np.ndarray:
-    """Total diffuse reflectance Rd of a semi-infinite medium (Jensen et al. 2001 dipole).
-
-    Rd = a'/2 (1 + exp(-4/3 A sqrt(3(1 - a')))) exp(-sqrt(3(1 - a'))), a' = s'/(s' + a),
-    A = (1 + Fdr)/(1 - Fdr).  Inputs in 1/mm, per channel; returns a float64 array.
-    """
-    sa = np.asarray(sigma_a, dtype=np.float64)
-    ssp = np.asarray(sigma_s_prime, dtype=np.float64)
-    alpha = ssp / (sa + ssp)
-    fdr = fresnel_diffuse_reflectance(float(eta))
-    big_a = (1.0 + fdr) / (1.0 - fdr)
-    root = np.sqrt(3.0 * (1.0 - alpha))
-    return 0.5 * alpha * (1.0 + np.exp(-4.0 / 3.0 * big_a * root)) * np.exp(-root)
-
-
 @dataclass(frozen=True)
 class HK93Layer:
     """One HK93 layer: thickness (mm, ``inf`` allowed for the last), eta >= 1, RGB sigma_a and
@@ -227,7 +207,7 @@ def _diffuse_reflectance(layers: Sequence[HK93Layer]) -> np.ndarray:
     [0, 1], so 0 <= Rd <= 1.
     """
     eta = layers[0].eta
-    rd = [dipole_total_reflectance(l.sigma_a, l.sigma_s_prime, eta) for l in layers]
+    rd = [dipole_Rd(l.sigma_a, l.sigma_s_prime, eta) for l in layers]
     if len(layers) == 1:
         return rd[0]
     top = layers[0]
@@ -398,7 +378,6 @@ def hk93_params_from_layers(layers, *, multiple_scattering=None) -> np.ndarray:
 # Asperity (physics.md s5)
 # --------------------------------------------------------------------------------------
 
-ASPERITY_BASES = ("lambert", "lafortune", "hk93")
 
 
 @dataclass(frozen=True)

@@ -70,9 +70,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dermis.pipeline.errors import DermisError
+from dermis.physics.fresnel import diffuse_fresnel_external, fresnel_transmittance
 
 __all__ = ["VERSION", "KERNELS", "Octree", "build_octree", "gather", "profile_table",
-           "exitance_to_radiance", "fresnel_transmittance", "diffuse_fresnel_external",
+           "exitance_to_radiance",
            "morton_order", "blurred_profile", "kernel_sigma", "DEFAULT_EPSILON",
            "DEFAULT_LEAF_SIZE", "DEFAULT_TILE", "TABLE_N"]
 
@@ -227,7 +228,7 @@ def build_octree(positions: np.ndarray, areas: np.ndarray, irradiance: np.ndarra
         Maximum points per leaf (Jensen-Buhler: 8).  Only points with identical Morton
         keys at full depth can exceed it.
     kernel_sigma_mm : float, optional
-        The points' reconstruction width (``SamplePoints.info["kernel_sigma_mm"]``), kept in
+        The points' reconstruction width (``SurfacePoints.info["kernel_sigma_mm"]``), kept in
         ``info`` for :func:`gather`; None: derived there from the mean area.
 
     Returns
@@ -819,26 +820,6 @@ def _local(local: int | None):
 
 
 # ----------------------------------------------------------------------------- radiance
-def fresnel_transmittance(cos_o: np.ndarray, eta: float) -> np.ndarray:
-    """Unpolarised Fresnel transmittance 1 - F of light crossing a smooth boundary of
-    relative index eta (inside / outside) at outside cosine cos_o (float64 host version of
-    cl/optics.h fresnel_dielectric)."""
-    c = np.clip(np.asarray(cos_o, np.float64), 0.0, 1.0)
-    ct = np.sqrt(np.maximum(eta * eta - 1.0 + c * c, 0.0)) / eta
-    with np.errstate(invalid="ignore", divide="ignore"):
-        rs = (c - eta * ct) / (c + eta * ct)
-        rp = (eta * c - ct) / (eta * c + ct)
-    f = 0.5 * (rs * rs + rp * rp)
-    return np.where(c > 0, 1.0 - np.nan_to_num(f, nan=1.0), 0.0)
-
-
-def diffuse_fresnel_external(eta: float, n: int = 4096) -> float:
-    """Cosine-weighted hemispherical mean of the Fresnel reflectance seen from outside:
-    int F(mu) 2 mu dmu (midpoint rule; 4096 steps is exact to < 1e-6)."""
-    mu = (np.arange(n) + 0.5) / n
-    return float(np.sum((1.0 - fresnel_transmittance(mu, eta)) * 2 * mu) / n)
-
-
 def exitance_to_radiance(M: np.ndarray, cos_o: np.ndarray, eta: float, *,
                          albedo: np.ndarray | None = None, albedo_mode: str = "replace",
                          rd: np.ndarray | None = None, mode: str = "fresnel") -> np.ndarray:

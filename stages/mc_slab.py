@@ -19,7 +19,7 @@ import numpy as np
 from dermis.pipeline.errors import DermisError
 from dermis.physics.layers import LayerStack
 
-__all__ = ["VERSION", "KERNELS", "McResult", "run"]
+__all__ = ["VERSION", "KERNELS", "McResult", "simulate"]
 
 VERSION = 2   # 2: SIMD kernel (16 photons per work-item), new random streams
 KERNELS = ("mc_slab.cl",)
@@ -85,7 +85,7 @@ def _layer_table(stack: LayerStack) -> np.ndarray:
     return tab
 
 
-def run(stack: LayerStack, *, photons: int, r_max_mm: float, bins: int, seed: int = 0,
+def simulate(stack: LayerStack, *, photons: int, r_max_mm: float, bins: int, seed: int = 0,
         batches: int = 16, env=None) -> McResult:
     """Trace ``photons`` photons per RGB channel through ``stack`` on OpenCL.
 

@@ -29,7 +29,7 @@ from scipy import ndimage
 from dermis.pipeline.artifacts import Mesh
 from dermis.pipeline.errors import ConfigError
 
-__all__ = ["VERSION", "KERNELS", "run"]
+__all__ = ["VERSION", "KERNELS", "make_head"]
 
 VERSION = 1
 KERNELS = ()
@@ -775,7 +775,7 @@ def _eye_level(triangles):
     return level
 
 
-def run(*, triangles: int = 1_000_000, detail: bool = True, texture_size: int = 2048,
+def make_head(*, triangles: int = 1_000_000, detail: bool = True, texture_size: int = 2048,
         seed: int = 0) -> Mesh:
     """Build the procedural head: closed skin, two eyeballs, UVs and an albedo texture.
 

@@ -46,12 +46,14 @@ import time
 import numpy as np
 import scipy.fft
 
+from dermis.pipeline.graph import Node, StageResult
 from dermis.pipeline.artifacts import LayerProfile
 from dermis.pipeline.errors import DermisError
+from dermis.physics.fresnel import diffusion_A, dipole_Rd, fresnel_diffuse_reflectance
 from dermis.physics.layers import Layer, LayerStack
 
-__all__ = ["VERSION", "KERNELS", "run", "multipole_profiles", "multipole_totals", "dipole_Rd",
-           "fresnel_diffuse_reflectance", "DEFAULT_POLES", "CUTOFF_FRACTION"]
+__all__ = ["VERSION", "KERNELS", "NAME", "node", "run", "build_profiles", "multipole_profiles", "multipole_totals",
+           "DEFAULT_POLES", "CUTOFF_FRACTION"]
 
 VERSION = 1
 KERNELS = ()
@@ -77,22 +79,6 @@ GRID_MAX_MFP = 300.0
 GRID_MAX_POINTS = 1024
 
 
-def fresnel_diffuse_reflectance(eta: float) -> float:
-    """Fdr(eta), diffuse Fresnel reflectance seen from inside, eta = n_inside / n_outside.
-
-    Egan & Hilgeman polynomial fits as quoted by Jensen et al. 2001 (eta >= 1) and
-    physics.md section 3 (eta < 1).
-    """
-    if eta >= 1.0:
-        return -1.440 / eta**2 + 0.710 / eta + 0.668 + 0.0636 * eta
-    return -0.4399 + 0.7099 / eta - 0.3319 / eta**2 + 0.0636 / eta**3
-
-
-def _A(eta: float) -> float:
-    f = fresnel_diffuse_reflectance(eta)
-    return (1.0 + f) / (1.0 - f)
-
-
 def _pole_setup(sigma_a: float, sigma_sp: float, d: float, eta_top: float, eta_bot: float,
                 poles: int):
     """Signed pole heights for R and T, source strength, sigma_tr and ballistic fraction."""
@@ -101,8 +87,8 @@ def _pole_setup(sigma_a: float, sigma_sp: float, d: float, eta_top: float, eta_b
     sigma_tr = math.sqrt(3.0 * sigma_a * st)
     l = 1.0 / st
     D = 1.0 / (3.0 * st)
-    zb_t = 2.0 * _A(eta_top) * D
-    zb_b = 2.0 * _A(eta_bot) * D
+    zb_t = 2.0 * diffusion_A(eta_top) * D
+    zb_b = 2.0 * diffusion_A(eta_bot) * D
     if math.isinf(d):
         z0, strength, tau = l, alpha, 0.0
         zr = np.array([z0])
@@ -212,19 +198,6 @@ def multipole_totals(layer: Layer, *, eta_above: float, eta_below: float,
     return Rd, Td, tau
 
 
-def dipole_Rd(sigma_a, sigma_s_prime, eta) -> np.ndarray:
-    """Jensen et al. 2001 total diffuse reflectance of a semi-infinite medium (eq. 5 form).
-
-    Rd = alpha'/2 (1 + exp(-4/3 A sqrt(3 (1 - alpha')))) exp(-sqrt(3 (1 - alpha'))).
-    Inputs are scalars or (3,) arrays in 1/mm; ``eta`` is the relative index.
-    """
-    sa = np.asarray(sigma_a, dtype=np.float64)
-    ssp = np.asarray(sigma_s_prime, dtype=np.float64)
-    alpha = ssp / (sa + ssp)
-    q = np.sqrt(3.0 * (1.0 - alpha))
-    return 0.5 * alpha * (1.0 + np.exp(-4.0 / 3.0 * _A(eta) * q)) * np.exp(-q)
-
-
 # ---------------------------------------------------------------------------------------
 
 
@@ -293,7 +266,7 @@ def _ring_grid(zp, zm, s, sig, lo, hi) -> np.ndarray:
     return dens
 
 
-def run(stack: LayerStack, *, poles: int | None = None,
+def build_profiles(stack: LayerStack, *, poles: int | None = None,
         grid: tuple[float, float] | None = None, force_fft: bool = False) -> LayerProfile:
     """Build the layer file of ``stack``: radial R(r), T(r) per channel and totals.
 
@@ -508,3 +481,20 @@ class _RadialAverager:
 def _quadrant_sum(g: np.ndarray) -> float:
     """Sum of the full even grid represented by quadrant ``g`` (axes counted once)."""
     return float(4.0 * g[1:, 1:].sum() + 2.0 * g[0, 1:].sum() + 2.0 * g[1:, 0].sum() + g[0, 0])
+
+
+# ---------------------------------------------------------------------------------------
+# Stage ``profiles``: the scene's layer stack -> radial profiles R(r), T(r) per channel
+
+NAME = "profiles"
+
+
+def node(scene) -> Node:
+    return Node(NAME, NAME, __name__, {"stack": scene.optics.to_dict()}, (),
+                label="layer profiles")
+
+
+def run(params: dict, inputs: dict, ctx) -> StageResult:
+    prof = build_profiles(LayerStack.from_dict(params["stack"]))
+    return StageResult(prof, info={"Rd": list(map(float, prof.Rd)),
+                                   "Tt": list(map(float, prof.Tt))})

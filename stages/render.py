@@ -36,32 +36,36 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any, Callable
 
 import numpy as np
 
+from dermis.pipeline.artifacts import RenderedImage
+from dermis.pipeline.config import ASPERITY_BASES as SCENE_ASPERITY_BASES
+from dermis.pipeline.config import MODELS as SCENE_MODELS
+from dermis.pipeline.config import CameraConfig, LightConfig
 from dermis.pipeline.errors import ConfigError, DermisError
-from dermis.pipeline.imageio import linear_to_srgb, srgb_to_linear
+from dermis.pipeline.graph import Node, StageResult
+from dermis.pipeline.imageio import write_exr
+from dermis.physics.color import srgb_to_linear
 from dermis.physics.lights import EnvironmentMap, environment_map, sample_lights
-from dermis.physics.visibility import Visibility
+from dermis.physics.visibility import Visibility, shared as shared_visibility
 
 __all__ = ["VERSION", "KERNELS", "MODELS", "LambertParams", "RenderResult", "render",
-           "camera_rays", "tonemap", "shared_exposure", "vertex_normals"]
+           "camera_rays", "pixel_surface", "vertex_normals", "NAME", "node", "run"]
 
 VERSION = 1
 KERNELS = ("surface.cl", "shade.cl")
 # Models this renderer shades ("bssrdf" images come from the BSSRDF stage).
-MODELS = ("lambert", "lafortune", "hk93", "asperity")
-ASPERITY_BASES = ("none", "lambert", "lafortune", "hk93")
+# lambert: a test material; "none" renders the asperity term alone.
+MODELS = ("lambert",) + tuple(m for m in SCENE_MODELS if m != "bssrdf")
+ASPERITY_BASES = ("none",) + SCENE_ASPERITY_BASES
 _BASE_CODE = {"none": -1, "lambert": 0, "lafortune": 1, "hk93": 2}
 
 # Light samples processed per batch: bounds memory (~60 bytes a sample on the host) while
 # keeping batches large enough that Embree and OpenCL call overheads stay negligible.
 CHUNK_SAMPLES = 1 << 20
-# Default exposure: the 99.5th percentile of the non-zero pixels' luminance maps to 1, so
-# specular highlights may clip (0.5 % of pixels) but the skin is not crushed.  Our choice.
-EXPOSURE_PERCENTILE = 99.5
 
 
 @dataclass(frozen=True)
@@ -516,47 +520,61 @@ def render(mesh, light, model: str, params, camera, *, maps=None, bump: str | No
     return RenderResult(linear=image.reshape(h, w, 3), mask=mask, timings=timings, info=info)
 
 
-# --------------------------------------------------------------------------- tone mapping
-def shared_exposure(images: Sequence[np.ndarray], *,
-                    percentile: float = EXPOSURE_PERCENTILE) -> float:
-    """One exposure for a whole comparison: 1 / the ``percentile`` of the luminance of every
-    non-zero pixel of every image (1.0 if all are black)."""
-    from dermis.physics.lights import LUMINANCE
+# --------------------------------------------------------------------------- stage
+# Stage ``render``: one image per BRDF model x lighting condition x geometry.
 
-    lum = [np.asarray(im, dtype=np.float32).reshape(-1, 3) @ LUMINANCE.astype(np.float32)
-           for im in images]
-    lum = np.concatenate(lum) if lum else np.zeros(0, np.float32)
-    lum = lum[np.isfinite(lum) & (lum > 0)]
-    if lum.size == 0:
-        return 1.0
-    top = float(np.percentile(lum, percentile))
-    return 1.0 / top if top > 0 else 1.0
+NAME = "render"
+# geometry -> (mesh node, bump map variant)
+GEOMETRY = {"high": ("mesh_high", None), "low": ("mesh_low", None),
+            "low_bump": ("mesh_low", "sharp"), "low_bump_blur": ("mesh_low", "blur")}
 
 
-def tonemap(images: Sequence[np.ndarray], *, exposure: float | None = None,
-            percentile: float = EXPOSURE_PERCENTILE) -> list[np.ndarray]:
-    """sRGB uint8 versions of linear images, all with ONE exposure so they can be compared.
+def geometry_inputs(geometry: str) -> dict:
+    """Upstream roles of an image of ``geometry``: its mesh, and the baked maps when bumped."""
+    mesh_node, bump = GEOMETRY[geometry]
+    return {"mesh": mesh_node, **({"maps": "bake"} if bump else {})}
 
-    Parameters
-    ----------
-    images : sequence of (H, W, 3) float arrays, linear RGB
-    exposure : float, optional
-        Multiplier applied before sRGB encoding; None computes it from all images together
-        (:func:`shared_exposure`).  Record it with the images (metadata) to redo the mapping.
-    percentile : float
-        Luminance percentile mapped to 1 when ``exposure`` is None.
 
-    Returns
-    -------
-    list of (H, W, 3) uint8 arrays: clip(exposure x image, 0, 1) sRGB-encoded (IEC 61966-2-1).
-    """
-    images = list(images)
-    if exposure is None:
-        exposure = shared_exposure(images, percentile=percentile)
-    if not (math.isfinite(exposure) and exposure > 0):
-        raise ConfigError(f"exposure = {exposure}: must be finite and > 0")
-    out = []
-    for im in images:
-        lin = np.nan_to_num(np.asarray(im, dtype=np.float32)) * np.float32(exposure)
-        out.append(np.round(linear_to_srgb(lin) * 255.0).astype(np.uint8))
-    return out
+def node(scene, model: str, label: str, lights: tuple, geometry: str) -> Node:
+    from dermis.physics.lights import light_params
+    base = scene.render.asperity_base if model == "asperity" else None
+    uses_optics = model == "hk93" or base == "hk93"
+    params = {"model": model, "label": label, "geometry": geometry, **light_params(lights),
+              "camera": asdict(scene.camera), "bump": GEOMETRY[geometry][1],
+              "seed": scene.mesh.seed, "asperity_base": base,
+              "optics": scene.optics.to_dict() if uses_optics else None}
+    return Node(f"render-{model}-{label}-{geometry}", NAME, __name__, params,
+                geometry_inputs(geometry), label=f"{model} / {label} / {geometry}")
+
+
+def model_params(model: str, asperity_base: str | None, optics: dict | None):
+    """The parameter objects of a BRDF model and of its asperity base, from the config slice
+    (HK93 shares the BSSRDF's layer stack)."""
+    from dermis.physics.layers import LayerStack
+    from dermis.stages.brdf_models import AsperityParams, HK93Params, LafortuneParams
+    hk = lambda: HK93Params(layers=LayerStack.from_dict(optics))  # noqa: E731
+    if model == "lafortune":
+        return LafortuneParams(), None
+    if model == "hk93":
+        return hk(), None
+    base_params = {"lafortune": LafortuneParams, "hk93": hk}.get(asperity_base, lambda: None)()
+    return AsperityParams(base=asperity_base), base_params
+
+
+def run(params: dict, inputs: dict, ctx) -> StageResult:
+    mesh, model = inputs["mesh"], params["model"]
+    p, base_params = model_params(model, params["asperity_base"], params["optics"])
+    lights = [LightConfig(**d) for d in params["lights"]]
+    result = render(mesh, lights, model, p, CameraConfig(**params["camera"]),
+                    maps=inputs.get("maps"), bump=params["bump"], seed=params["seed"],
+                    visibility=shared_visibility(mesh, ctx.memo),
+                    asperity_base=params["asperity_base"], base_params=base_params,
+                    cl_env=ctx.cl, progress=ctx.progress)
+    name = f"{model}-{params['label']}-{params['geometry']}"
+    write_exr(ctx.out_dir / f"{name}.exr", result.linear)
+    image = RenderedImage(result.linear, result.mask, dict(result.timings),
+                          {**result.info, "model": model, "light": params["label"],
+                           "geometry": params["geometry"]})
+    return StageResult(image, files=[f"{name}.exr"],
+                       info={"timings": result.timings,
+                             "kernel_seconds": result.timings.get("kernel_seconds", 0.0)})

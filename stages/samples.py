@@ -61,13 +61,14 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
 
 import numpy as np
 
+from dermis.pipeline.graph import Node, StageResult
+from dermis.pipeline.artifacts import SurfacePoints
 from dermis.pipeline.errors import DermisError
 
-__all__ = ["VERSION", "KERNELS", "SamplePoints", "run", "spacing_from_mfp", "mesh_area",
+__all__ = ["VERSION", "KERNELS", "NAME", "node", "run", "sample_points", "spacing_from_mfp", "mesh_area",
            "nearest_neighbour_spread", "density_spread", "pou_areas", "MAX_POINTS",
            "KERNEL_SIGMA_FACTOR", "DEFAULT_RELAX_ITERATIONS"]
 
@@ -105,22 +106,6 @@ POU_RADIUS = 4.0
 # Probes for the mean level of the partition of unity (its spread is ~0.3 %, so 200k
 # probes fix the mean to ~1e-5).
 POU_PROBES = 200_000
-
-
-@dataclass
-class SamplePoints:
-    """Surface sample points for irradiance caching (to move to pipeline/artifacts.py).
-
-    positions : (N, 3) float32, mm, on the mesh surface
-    normals : (N, 3) float32, unit, interpolated angle-weighted vertex normals
-    areas : (N,) float32, mm^2, each point's share of the surface; sums to the mesh area
-    info : dict (count, spacing, mesh area, sampler, relaxation, timings, uniformity)
-    """
-
-    positions: np.ndarray
-    normals: np.ndarray
-    areas: np.ndarray
-    info: dict = field(default_factory=dict)
 
 
 def mesh_area(vertices: np.ndarray, faces: np.ndarray) -> float:
@@ -391,10 +376,10 @@ def _probe_sums(p, normals, a, y, ny, sigma):
     return w.sum(1, dtype=np.float64) / (2 * np.pi * sigma * sigma)
 
 
-def run(vertices: np.ndarray, faces: np.ndarray, *, spacing_mm: float, seed: int = 0,
+def sample_points(vertices: np.ndarray, faces: np.ndarray, *, spacing_mm: float, seed: int = 0,
         relax_iterations: int = DEFAULT_RELAX_ITERATIONS,
         vertex_normals: np.ndarray | None = None, area_weights: str = "pou",
-        kernel_sigma_factor: float = KERNEL_SIGMA_FACTOR) -> SamplePoints:
+        kernel_sigma_factor: float = KERNEL_SIGMA_FACTOR) -> SurfacePoints:
     """Spread blue-noise points uniformly over a mesh, each covering the same area.
 
     Parameters
@@ -420,7 +405,7 @@ def run(vertices: np.ndarray, faces: np.ndarray, *, spacing_mm: float, seed: int
 
     Returns
     -------
-    SamplePoints
+    SurfacePoints
         positions and normals (N, 3) float32, areas (N,) float32 (they sum to the mesh area
         to within the sampler's edge crowding on open meshes: ``info["pou_area_ratio"]``);
         ``info["kernel_sigma_mm"]`` is the reconstruction width to pass to
@@ -516,5 +501,26 @@ def run(vertices: np.ndarray, faces: np.ndarray, *, spacing_mm: float, seed: int
     info["seconds"] = time.perf_counter() - t0
     if n > 1:
         info.update(nearest_neighbour_spread(pos))
-    return SamplePoints(positions=pos_c.astype(np.float32), normals=nrm.astype(np.float32),
+    return SurfacePoints(positions=pos_c.astype(np.float32), normals=nrm.astype(np.float32),
                         areas=areas, info=info)
+
+
+# ----------------------------------------------------------------------------------------
+# Stage ``samples``: uniform irradiance points on one mesh (cached per mesh, not per light)
+
+NAME = "samples"
+
+
+def node(scene, mesh_node: str) -> Node:
+    params = {"spacing_mm": spacing_from_mfp(scene.optics, scene.bssrdf.point_density),
+              "seed": scene.mesh.seed}
+    return Node(f"samples-{mesh_node}", NAME, __name__, params, {"mesh": mesh_node},
+                label="irradiance points")
+
+
+def run(params: dict, inputs: dict, ctx) -> StageResult:
+    mesh = inputs["mesh"]
+    pts = sample_points(mesh.vertices, mesh.faces, spacing_mm=params["spacing_mm"],
+                        seed=params["seed"], vertex_normals=mesh.normals)
+    return StageResult(pts, info={"points": int(len(pts.positions)),
+                                  "spacing_mm": params["spacing_mm"]})

@@ -66,13 +66,13 @@ def bumpy_high():
 @pytest.fixture(scope="module")
 def bumpy_maps(low, bumpy_high):
     """Heights from the flat low triangles (the thesis's literal rule)."""
-    return bake.run(low, bumpy_high, resolution=RES, blur_sigma_px=4.0, reference="flat")
+    return bake.bake_maps(low, bumpy_high, resolution=RES, blur_sigma_px=4.0, reference="flat")
 
 
 @pytest.fixture(scope="module")
 def bumpy_maps_phong(low, bumpy_high):
     """Heights from the low mesh's Phong surface (the default)."""
-    return bake.run(low, bumpy_high, resolution=RES, blur_sigma_px=4.0)
+    return bake.bake_maps(low, bumpy_high, resolution=RES, blur_sigma_px=4.0)
 
 
 # ---------------------------------------------------------------------------------------
@@ -83,13 +83,13 @@ def test01_bad_args_rejected(low, textured_high):
                          ({"max_distance_mm": 0.0}, "max_distance_mm"),
                          ({"dilate_px": -1}, "dilate_px")]:
         with pytest.raises(ConfigError, match=name):
-            bake.run(low, textured_high, **{"resolution": 32, **kwargs})
+            bake.bake_maps(low, textured_high, **{"resolution": 32, **kwargs})
     no_uv = dataclasses.replace(low, uv=None, uv_faces=None)
     with pytest.raises(ConfigError, match=r"low\.uv"):
-        bake.run(no_uv, textured_high, resolution=32)
+        bake.bake_maps(no_uv, textured_high, resolution=32)
     bad_faces = dataclasses.replace(low, faces=low.faces + 10_000)
     with pytest.raises(DermisError, match=r"low\.faces"):
-        bake.run(bad_faces, textured_high, resolution=32)
+        bake.bake_maps(bad_faces, textured_high, resolution=32)
 
 
 def test02_rasteriser_matches_independent_trifinder(low):
@@ -116,7 +116,7 @@ def test03_albedo_reproduces_source_texture(low, textured_high):
     # Measured 59.2 dB.  Bound 57 dB: shifting the source UVs by half a texel measured
     # 55.7 dB, skipping the sRGB decode 14.7 dB, so both fail it.
     PSNR_MIN_DB = 57.0
-    maps = bake.run(low, textured_high, resolution=RES)
+    maps = bake.bake_maps(low, textured_high, resolution=RES)
     rows, cols, p = _texel_surface_points(low, RES)
     expected = srgb8(smooth_colour(p / np.linalg.norm(p, axis=1, keepdims=True))).astype(float)
     got = maps.albedo_srgb[rows, cols].astype(float)
@@ -162,7 +162,7 @@ def test04b_phong_reference_keeps_only_the_bumps(low, bumpy_maps_phong):
     assert np.sqrt(np.mean(err ** 2)) <= RMS_ERR_REL
     assert maps.info["height_reference"] == "phong"
     with pytest.raises(ConfigError, match="bake.reference = 'bent': must be 'phong' or 'flat'"):
-        bake.run(low, low, resolution=16, reference="bent")
+        bake.bake_maps(low, low, resolution=16, reference="bent")
 
 
 def test05_blur_lowers_gradient_energy(bumpy_maps):
@@ -207,8 +207,8 @@ def test06_masked_blur_keeps_chart_borders_unbiased():
 def test07_dilation_fills_outside_and_keeps_covered(low, textured_high):
     DILATE = 5
     scaled = dataclasses.replace(low, uv=(0.1 + 0.8 * low.uv).astype(np.float32))
-    plain = bake.run(scaled, textured_high, resolution=128, dilate_px=0, blur_sigma_px=2.0)
-    dil = bake.run(scaled, textured_high, resolution=128, dilate_px=DILATE, blur_sigma_px=2.0)
+    plain = bake.bake_maps(scaled, textured_high, resolution=128, dilate_px=0, blur_sigma_px=2.0)
+    dil = bake.bake_maps(scaled, textured_high, resolution=128, dilate_px=DILATE, blur_sigma_px=2.0)
     cov = plain.coverage
     assert (cov == dil.coverage).all() and not cov.all()
     for a, b in [(plain.albedo_srgb, dil.albedo_srgb), (plain.bump, dil.bump),
@@ -238,14 +238,14 @@ def test08_far_high_mesh_gives_counted_misses(low, textured_high):
     # The high sphere moved 1000 mm along +x: rays from the low sphere's +x side hit it at
     # ~800 mm, far beyond max_distance, so every texel is a miss.
     far = dataclasses.replace(textured_high, vertices=textured_high.vertices + [1000.0, 0, 0])
-    maps = bake.run(low, far, resolution=64)
+    maps = bake.bake_maps(low, far, resolution=64)
     assert maps.info["hits"] == 0
     assert maps.info["misses"] == maps.info["covered_texels"] == int(maps.coverage.sum()) > 0
     assert maps.bump_range_mm == 0.0 and maps.bump_min_mm == 0.0
     for arr in (maps.bump, maps.bump_blur):
         assert np.isfinite(arr).all()
     # The same with a reach long enough does find it (so the threshold is what excluded it).
-    reach = bake.run(low, far, resolution=64, max_distance_mm=2000.0)
+    reach = bake.bake_maps(low, far, resolution=64, max_distance_mm=2000.0)
     assert reach.info["hits"] > 0
 
 
@@ -255,7 +255,7 @@ def test09_misses_inside_charts_are_neutral_and_filled(low, textured_high):
     keep = textured_high.vertices[textured_high.faces].mean(1)[:, 2] < 0.7 * R_MM
     cut = dataclasses.replace(textured_high, faces=textured_high.faces[keep],
                               uv_faces=textured_high.uv_faces[keep])
-    maps = bake.run(low, cut, resolution=RES)
+    maps = bake.bake_maps(low, cut, resolution=RES)
     assert maps.info["misses"] > 0 and maps.info["hits"] > 0
     rows, cols, p = _texel_surface_points(low, RES)
     cap = p[:, 2] / np.linalg.norm(p, axis=1) > 0.75

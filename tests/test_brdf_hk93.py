@@ -12,7 +12,8 @@ from brdf_testutil import hemisphere, mc_albedo, sample_pairs, with_cos
 from dermis.pipeline.cl import CL_DIR
 from dermis.pipeline.errors import ConfigError
 from dermis.physics.layers import PRESETS, Layer
-from dermis.stages.brdf_models import (HK93_NPARAMS, HK93Params, dipole_total_reflectance, evaluate,
+from dermis.physics.fresnel import dipole_Rd
+from dermis.stages.brdf_models import (HK93_NPARAMS, HK93Params, evaluate,
                                 hk93_f_np, hk93_params_from_layers,
                                 hk93_single_scattering_albedo)
 
@@ -179,8 +180,8 @@ def test02_layer_split_invariance(cl_env, rng):
 def test02_default_multiple_scattering():
     """rho_ms = diffusion Rd - max single-scattering albedo; the dipole Rd reproduces Jensen
     2001's Skin1/Skin2 values quoted in physics.md s3 (to their 2 digits)."""
-    rd1 = dipole_total_reflectance((0.032, 0.17, 0.48), (0.74, 0.88, 1.01), 1.3)
-    rd2 = dipole_total_reflectance((0.013, 0.070, 0.145), (1.09, 1.59, 1.79), 1.3)
+    rd1 = dipole_Rd((0.032, 0.17, 0.48), (0.74, 0.88, 1.01), 1.3)
+    rd2 = dipole_Rd((0.013, 0.070, 0.145), (1.09, 1.59, 1.79), 1.3)
     np.testing.assert_allclose(rd1, [0.44, 0.22, 0.13], atol=0.0075)
     np.testing.assert_allclose(rd2, [0.63, 0.44, 0.34], atol=0.0075)
     skin1 = PRESETS["skin1"].layers[0]
@@ -190,7 +191,7 @@ def test02_default_multiple_scattering():
     np.testing.assert_allclose(p.multiple_scattering, rd1 - ss, rtol=0.05)
     # the default (two-layer skin preset) lies between its epidermis and dermis Rd values
     d = HK93Params()
-    rd_e, rd_d = (dipole_total_reflectance(l.sigma_a, l.sigma_s_prime, 1.4) for l in d.layers)
+    rd_e, rd_d = (dipole_Rd(l.sigma_a, l.sigma_s_prime, 1.4) for l in d.layers)
     assert np.all(d.multiple_scattering > np.minimum(rd_e, rd_d) - 0.01)
     assert np.all(d.multiple_scattering < np.maximum(rd_e, rd_d))
 

@@ -14,6 +14,7 @@ import pytest
 from dermis.pipeline.artifacts import LayerProfile
 from dermis.pipeline.errors import DermisError
 from dermis.stages import gather as G
+from dermis.physics.fresnel import diffuse_fresnel_external
 from dermis.stages import samples as S
 
 # Jensen et al. 2001 measured skin1 (physics.md section 3), 1/mm, eta 1.3.
@@ -66,7 +67,7 @@ def plane_points(half, spacing, seed=3):
     """Blue-noise points on the square [-half, half]^2 at z = 0 (through stages/samples.py)."""
     v = np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0.0]])
     f = np.array([[0, 1, 2], [0, 2, 3]])
-    return S.run(v, f, spacing_mm=spacing, seed=seed)
+    return S.sample_points(v, f, spacing_mm=spacing, seed=seed)
 
 
 def rel_rmse(h, b):
@@ -212,7 +213,7 @@ def test04_flat_slab_energy(cl_env, skin1, rng):
 def preset_profiles():
     from dermis.stages import profiles
     from dermis.physics.layers import PRESETS
-    return {k: (PRESETS[k], profiles.run(PRESETS[k])) for k in ("skin1", "skin2", "two_layer")}
+    return {k: (PRESETS[k], profiles.build_profiles(PRESETS[k])) for k in ("skin1", "skin2", "two_layer")}
 
 
 @pytest.mark.parametrize("preset", ["skin1", "skin2", "two_layer"])
@@ -226,7 +227,7 @@ def test04b_flat_slab_sample_points(cl_env, preset_profiles, preset):
     reach = float(prof.cutoff_mm.max()) + G.BLUR_REACH * sigma
     half = reach + 2 * spacing + S.POU_RADIUS * sigma  # interior + the frozen rim band
     v = np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0.0]])
-    sp = S.run(v, np.array([[0, 1, 2], [0, 2, 3]]), spacing_mm=spacing, seed=8)
+    sp = S.sample_points(v, np.array([[0, 1, 2], [0, 2, 3]]), spacing_mm=spacing, seed=8)
     E = 1.7
     t = G.build_octree(sp.positions, sp.areas, np.full((len(sp.areas), 3), E),
                        kernel_sigma_mm=sp.info["kernel_sigma_mm"])
@@ -257,7 +258,7 @@ def test04c_sphere_uniform_irradiance(cl_env, preset_profiles):
     spacing = S.spacing_from_mfp(stack, 1.0)
     assert float(prof.cutoff_mm.max()) + G.BLUR_REACH * S.KERNEL_SIGMA_FACTOR * spacing < 2 * radius
     mesh = o3d.geometry.TriangleMesh.create_sphere(radius=radius, resolution=100)
-    sp = S.run(np.asarray(mesh.vertices), np.asarray(mesh.triangles), spacing_mm=spacing, seed=3)
+    sp = S.sample_points(np.asarray(mesh.vertices), np.asarray(mesh.triangles), spacing_mm=spacing, seed=3)
     t = G.build_octree(sp.positions, sp.areas, np.ones((len(sp.areas), 3)),
                        kernel_sigma_mm=sp.info["kernel_sigma_mm"])
     q = np.random.default_rng(4).normal(size=(600, 3))
@@ -414,7 +415,7 @@ def test10_radiance_integrates_back_to_exitance():
     # external diffuse Fresnel reflectance and the internal fit are tied by
     # 1 - Fdr_ext = eta^2 (1 - Fdr_int) (reciprocity); the fit is good to ~1 %
     eta = 1.3
-    np.testing.assert_allclose(1 - G.diffuse_fresnel_external(eta), eta**2 * (1 - _fdr(eta)),
+    np.testing.assert_allclose(1 - diffuse_fresnel_external(eta), eta**2 * (1 - _fdr(eta)),
                                rtol=0.015)
 
 
@@ -433,7 +434,7 @@ def test12_flat_slab_with_profiles_stage(cl_env, rng):
     """The flat-slab test with stages/profiles.py's own skin1 layer file."""
     from dermis.stages import profiles
     from dermis.physics.layers import PRESETS
-    prof = profiles.run(PRESETS["skin1"])
+    prof = profiles.build_profiles(PRESETS["skin1"])
     half = float(prof.cutoff_mm.max()) + 12.0
     p, a = hex_plane(half, 0.5)
     t = G.build_octree(p, a, np.ones((len(a), 3)))

@@ -21,14 +21,14 @@ def env():
 def test01_repeatable_and_conserving(env):
     st = LayerStack((Layer(0.5, 1.4, (0.5, 0.2, 1.0), (5.0, 2.0, 9.0), 0.8),
                      Layer(2.0, 1.33, (0.05, 0.1, 0.2), (2.0, 2.0, 2.0), 0.0)))
-    a = M.run(st, photons=30000, r_max_mm=5, bins=20, seed=7, env=env)
-    b = M.run(st, photons=30000, r_max_mm=5, bins=20, seed=7, env=env)
+    a = M.simulate(st, photons=30000, r_max_mm=5, bins=20, seed=7, env=env)
+    b = M.simulate(st, photons=30000, r_max_mm=5, bins=20, seed=7, env=env)
     np.testing.assert_array_equal(a.R, b.R)
     # R + T + absorbed = 1: roulette is unbiased, so the sum is 1 up to its noise; float32
     # per-item sums add ~1e-6.  5 sigma of the three errors combined, plus 1e-5.
     tol = 5 * np.sqrt(a.Rd_err**2 + a.Tt_err**2 + a.absorbed_err**2) + 1e-5
     assert np.all(np.abs(a.Rd + a.Tt + a.absorbed + a.lost - 1) < tol)
-    c = M.run(st, photons=30000, r_max_mm=5, bins=20, seed=8, env=env)
+    c = M.simulate(st, photons=30000, r_max_mm=5, bins=20, seed=8, env=env)
     assert not np.array_equal(a.R, c.R)
 
 
@@ -37,7 +37,7 @@ def test02_matched_semi_infinite_published(env):
     # 1 - H(1) sqrt(1 - a) = 0.41495 (Chandrasekhar 1960; H(1) = 1.85010 computed by
     # iterating the H equation on 200 Gauss points).  Tolerance 5 standard errors.
     st = LayerStack((Layer(math.inf, 1.0, (1.0,) * 3, (9.0,) * 3),))
-    r = M.run(st, photons=100000, r_max_mm=5, bins=10, env=env)
+    r = M.simulate(st, photons=100000, r_max_mm=5, bins=10, env=env)
     assert np.all(np.abs(r.Rd - 0.41495) < 5 * r.Rd_err + 1e-4)
 
 
@@ -45,7 +45,7 @@ def test02_mcml_slab_van_de_hulst(env):
     # Wang & Jacques 1995 (MCML) validation slab: n = 1, mu_a = 10/cm, mu_s = 90/cm,
     # g = 0.75, d = 0.02 cm.  van de Hulst: Rd = 0.09739, Tt = 0.66096.  5 sigma.
     st = LayerStack((Layer(0.2, 1.0, (1.0,) * 3, (9.0 * 0.25,) * 3, 0.75),))
-    r = M.run(st, photons=100000, r_max_mm=5, bins=10, env=env)
+    r = M.simulate(st, photons=100000, r_max_mm=5, bins=10, env=env)
     assert np.all(np.abs(r.Rd - 0.09739) < 5 * r.Rd_err + 2e-4)
     assert np.all(np.abs(r.Tt - 0.66096) < 5 * r.Tt_err + 2e-4)
 
@@ -57,8 +57,8 @@ def test03_multipole_agrees_beyond_two_mfp(env):
     # (the model error plus ~5 % MC noise per ring at 2e5 photons).  A wrong sign, pole or
     # normalisation moves these by far more.
     st = PRESETS["skin2"]
-    prof = P.run(st, grid=(0.1, 20.0))
-    mc = M.run(st, photons=200000, r_max_mm=20.0, bins=200, env=env)
+    prof = P.build_profiles(st, grid=(0.1, 20.0))
+    mc = M.simulate(st, photons=200000, r_max_mm=20.0, bins=200, env=env)
     assert np.all(np.abs(prof.Rd / mc.Rd - 1) < 0.05)
     for c, lay_mfp in enumerate(1 / (np.array(st.layers[0].sigma_a) +
                                      np.array(st.layers[0].sigma_s_prime))):
@@ -74,7 +74,7 @@ def test03_multipole_agrees_beyond_two_mfp(env):
     Layer(3.0, 1.4, (0.1,) * 3, (2.0,) * 3, -0.99),             # g -> -1
 ])
 def test04_extremes_finite(env, lay):
-    r = M.run(LayerStack((lay,)), photons=6000, r_max_mm=5, bins=10, env=env)
+    r = M.simulate(LayerStack((lay,)), photons=6000, r_max_mm=5, bins=10, env=env)
     for a in (r.R, r.T, r.Rd, r.Tt, r.absorbed):
         assert np.all(np.isfinite(a)) and np.all(a >= 0)
 
@@ -120,8 +120,8 @@ def test06_split_layer_is_identity(env):
     one = LayerStack((Layer(1.0, 1.4, (0.1, 0.3, 0.02), (2.0, 4.0, 1.0), 0.5),))
     two = LayerStack((Layer(0.3, 1.4, (0.1, 0.3, 0.02), (2.0, 4.0, 1.0), 0.5),
                       Layer(0.7, 1.4, (0.1, 0.3, 0.02), (2.0, 4.0, 1.0), 0.5)))
-    a = M.run(one, photons=40000, r_max_mm=5, bins=10, seed=3, env=env)
-    b = M.run(two, photons=40000, r_max_mm=5, bins=10, seed=4, env=env)
+    a = M.simulate(one, photons=40000, r_max_mm=5, bins=10, seed=3, env=env)
+    b = M.simulate(two, photons=40000, r_max_mm=5, bins=10, seed=4, env=env)
     assert np.all(np.abs(a.Rd - b.Rd) < 5 * np.hypot(a.Rd_err, b.Rd_err))
     assert np.all(np.abs(a.Tt - b.Tt) < 5 * np.hypot(a.Tt_err, b.Tt_err))
 
@@ -136,7 +136,7 @@ def test07_ballistic_two_layer_absorber(env):
     sa1, sa2 = np.array([1.0, 2.0, 0.5]), np.array([0.5, 0.2, 1.0])
     st = LayerStack((Layer(0.5, 1.4, tuple(sa1), (0.0,) * 3),
                      Layer(1.0, 1.4, tuple(sa2), (0.0,) * 3)))
-    r = M.run(st, photons=50000, r_max_mm=5, bins=10, env=env)
+    r = M.simulate(st, photons=50000, r_max_mm=5, bins=10, env=env)
     e = np.exp(-(0.5 * sa1 + 1.0 * sa2))
     R = (0.4 / 2.4) ** 2
     T = (1 - R) * e / (1 - R**2 * e**2)

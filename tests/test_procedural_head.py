@@ -27,12 +27,12 @@ DETAIL_RMS_RANGE_MM = (0.004, 0.08)
 
 @pytest.fixture(scope="module")
 def head():
-    return ph.run(triangles=N_TRI, texture_size=TEX, seed=0)
+    return ph.make_head(triangles=N_TRI, texture_size=TEX, seed=0)
 
 
 @pytest.fixture(scope="module")
 def smooth():
-    return ph.run(triangles=N_TRI, texture_size=TEX, detail=False, seed=0)
+    return ph.make_head(triangles=N_TRI, texture_size=TEX, detail=False, seed=0)
 
 
 def _skin(mesh):
@@ -81,13 +81,13 @@ def _signed_volume(v, f):
 ])
 def test01_bad_args_name_the_parameter(kwargs, name):
     with pytest.raises(ConfigError, match=rf"{name} = .*must be"):
-        ph.run(**kwargs)
+        ph.make_head(**kwargs)
 
 
 # ------------------------------------------------------------------------------ triangle budget
 @pytest.mark.parametrize("target", [2_000, 7_777, 54_321])
 def test02_triangle_count_within_tolerance(target):
-    mesh = ph.run(triangles=target, texture_size=64, detail=False)
+    mesh = ph.make_head(triangles=target, texture_size=64, detail=False)
     assert abs(mesh.n_triangles - target) <= TRIANGLE_TOL * target
     assert mesh.faces.dtype == np.int32 and mesh.uv_faces.dtype == np.int32
     assert mesh.vertices.dtype == np.float64 and mesh.uv.dtype == np.float32
@@ -96,14 +96,14 @@ def test02_triangle_count_within_tolerance(target):
 
 # ------------------------------------------------------------------------------- determinism
 def test03_same_arguments_give_identical_arrays(head):
-    again = ph.run(triangles=N_TRI, texture_size=TEX, seed=0)
+    again = ph.make_head(triangles=N_TRI, texture_size=TEX, seed=0)
     assert _digest(again) == _digest(head)
     assert again.info == head.info
 
 
 def test04_seed_changes_detail_and_texture_only(head, smooth):
-    other = ph.run(triangles=N_TRI, texture_size=TEX, seed=1)
-    other_smooth = ph.run(triangles=N_TRI, texture_size=TEX, detail=False, seed=1)
+    other = ph.make_head(triangles=N_TRI, texture_size=TEX, seed=1)
+    other_smooth = ph.make_head(triangles=N_TRI, texture_size=TEX, detail=False, seed=1)
     # the base shape does not depend on the seed
     np.testing.assert_array_equal(other_smooth.vertices, smooth.vertices)
     np.testing.assert_array_equal(other.faces, head.faces)

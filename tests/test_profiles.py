@@ -7,6 +7,7 @@ import pytest
 from dermis.pipeline.errors import ConfigError
 from dermis.physics.layers import PRESETS, Layer, LayerStack, parse_layer_stack
 from dermis.stages import profiles as P
+from dermis.physics.fresnel import dipole_Rd
 
 SKIN1 = PRESETS["skin1"].layers[0]
 
@@ -53,9 +54,9 @@ def test01_only_last_layer_infinite_and_eta_above():
                                              ("skin2", (0.63, 0.44, 0.34))])
 def test02_jensen_skin_Rd(name, published):
     lay = PRESETS[name].layers[0]
-    assert P.dipole_Rd(lay.sigma_a, lay.sigma_s_prime, 1.3) == pytest.approx(published, abs=0.01)
-    prof = P.run(PRESETS[name])
-    np.testing.assert_allclose(prof.Rd, P.dipole_Rd(lay.sigma_a, lay.sigma_s_prime, 1.3),
+    assert dipole_Rd(lay.sigma_a, lay.sigma_s_prime, 1.3) == pytest.approx(published, abs=0.01)
+    prof = P.build_profiles(PRESETS[name])
+    np.testing.assert_allclose(prof.Rd, dipole_Rd(lay.sigma_a, lay.sigma_s_prime, 1.3),
                                rtol=1e-12)
 
 
@@ -70,7 +71,7 @@ def test02_thick_slab_is_dipole():
 
 
 def test02_ring_table_integrates_to_Rd():
-    prof = P.run(PRESETS["skin2"])
+    prof = P.build_profiles(PRESETS["skin2"])
     h = prof.r_mm[1]
     edges = np.concatenate([[0.0], (np.arange(len(prof.r_mm)) + 0.5) * h])
     inside = (prof.R * (np.pi * np.diff(edges**2))[:, None]).sum(0)
@@ -98,8 +99,8 @@ def test03_grid_convergence():
     st = PRESETS["skin2"]
     errs = []
     for h in (0.2, 0.1):
-        a = P.run(st, grid=(h, 20.0))
-        b = P.run(st, grid=(h, 20.0), force_fft=True)
+        a = P.build_profiles(st, grid=(h, 20.0))
+        b = P.build_profiles(st, grid=(h, 20.0), force_fft=True)
         k = slice(int(round(0.4 / h)), int(round(5.0 / h)))
         errs.append(np.abs(b.R[k] / a.R[k] - 1).max())
     assert errs[1] < 0.5 * errs[0]
@@ -112,7 +113,7 @@ def test04_dc_equals_adding_on_totals():
     mid = Layer(0.5, 1.3, (0.05, 0.2, 0.4), (2.0, 3.0, 4.0))
     bot = Layer(2.0, 1.45, (0.02, 0.1, 0.3), (1.0, 1.5, 2.0))
     st = stack_of(top, mid, bot, above=1.0, below=1.0)
-    prof = P.run(st, grid=(0.05, 10.0))
+    prof = P.build_profiles(st, grid=(0.05, 10.0))
     etas = [1.0, 1.4, 1.3, 1.45, 1.0]
     RA = TA = RpA = TpA = None
     for k, lay in enumerate(st.layers):
@@ -131,16 +132,16 @@ def test04_dc_equals_adding_on_totals():
 
 @pytest.mark.parametrize("name", ["two_layer"])
 def test04_nonnegative_after_combination(name):
-    prof = P.run(PRESETS[name])
+    prof = P.build_profiles(PRESETS[name])
     assert np.all(prof.R >= 0) and np.all(prof.T >= 0)
     # clipping is only allowed at float64 round-off relative to the peak
     assert prof.info["min_clipped_rel"] > -1e-12
 
 
 def test04_zero_thickness_top_is_identity():
-    a = P.run(PRESETS["two_layer"], grid=(0.05, 8.0))
+    a = P.build_profiles(PRESETS["two_layer"], grid=(0.05, 8.0))
     zero = Layer(0.0, 1.7, (5.0, 5.0, 5.0), (1.0, 1.0, 1.0))
-    b = P.run(LayerStack((zero,) + PRESETS["two_layer"].layers), grid=(0.05, 8.0))
+    b = P.build_profiles(LayerStack((zero,) + PRESETS["two_layer"].layers), grid=(0.05, 8.0))
     np.testing.assert_array_equal(a.R, b.R)
     np.testing.assert_array_equal(a.Rd, b.Rd)
 
@@ -160,11 +161,11 @@ def test04_thin_slab_tends_to_identity():
     Layer(5.0, 1.4, (2e-4, 1.0, 3.0), (2.0, 1.0, 0.0), -0.99),  # albedo 0.9999, g ~ -1
 ])
 def test05_extremes_are_finite_and_nonnegative(lay):
-    prof = P.run(LayerStack((lay,)))
+    prof = P.build_profiles(LayerStack((lay,)))
     for a in (prof.R, prof.T, prof.Rd, prof.Tt, prof.cutoff_mm):
         assert np.all(np.isfinite(a)) and np.all(a >= 0)
     assert np.all(prof.Rd + prof.Tt <= 1 + 1e-9)
     assert prof.info["min_clipped_rel"] > -1e-9  # only round-off was clipped
     # coarse grid keeps the test fast; positivity must hold on any grid
-    two = P.run(LayerStack((Layer(0.2, 1.4, (0.3,) * 3, (4.0,) * 3), lay)), grid=(0.05, 8.0))
+    two = P.build_profiles(LayerStack((Layer(0.2, 1.4, (0.3,) * 3, (4.0,) * 3), lay)), grid=(0.05, 8.0))
     assert np.all(np.isfinite(two.R)) and np.all(two.R >= 0) and np.all(two.T >= 0)

@@ -15,9 +15,10 @@ import pytest
 from dermis.pipeline.artifacts import BakedMaps
 from dermis.pipeline.config import CameraConfig, LightConfig
 from dermis.pipeline.errors import ConfigError, DermisError
-from dermis.pipeline.imageio import srgb_to_linear
+from dermis.physics.color import srgb_to_linear
 from dermis.physics.visibility import Visibility
-from dermis.stages.render import LambertParams, camera_rays, render, shared_exposure, tonemap
+from dermis.reports.tonemap import shared_exposure, tonemap
+from dermis.stages.render import LambertParams, camera_rays, render
 
 sys.path.insert(0, str(Path(__file__).parent))
 from render_fixtures import icosphere, merge, plane  # noqa: E402

@@ -26,7 +26,7 @@ def sphere(radius=20.0, resolution=60):
 @pytest.fixture(scope="module")
 def sphere_points():
     v, f = sphere()
-    return v, f, S.run(v, f, spacing_mm=0.8, seed=1)
+    return v, f, S.sample_points(v, f, spacing_mm=0.8, seed=1)
 
 
 def test01_count_and_areas(sphere_points):
@@ -41,7 +41,7 @@ def test01_count_and_areas(sphere_points):
     # (std 0.2 % / sqrt(2e4) ~ 1e-5): measured 2e-4.  2e-3 leaves margin.
     np.testing.assert_allclose(sp.areas.astype(np.float64).sum(), area, rtol=2e-3)
     assert sp.info["pou_frozen_points"] == 0  # closed: no boundary band
-    u = S.run(v, f, spacing_mm=0.8, seed=1, area_weights="uniform")
+    u = S.sample_points(v, f, spacing_mm=0.8, seed=1, area_weights="uniform")
     # equal areas: float32 areas summed in float64 reproduce the mesh area to rounding
     np.testing.assert_allclose(u.areas.astype(np.float64).sum(), area, rtol=1e-6)
 
@@ -77,8 +77,8 @@ def test04_relaxation_reduces_density_noise():
     rng = np.random.default_rng(0)
     q = np.zeros((400, 3))
     q[:, :2] = rng.uniform(-12, 12, (400, 2))
-    a = S.run(v, f, spacing_mm=1.0, seed=2, relax_iterations=0, area_weights="uniform")
-    b = S.run(v, f, spacing_mm=1.0, seed=2, relax_iterations=5, area_weights="uniform")
+    a = S.sample_points(v, f, spacing_mm=1.0, seed=2, relax_iterations=0, area_weights="uniform")
+    b = S.sample_points(v, f, spacing_mm=1.0, seed=2, relax_iterations=5, area_weights="uniform")
     da = S.density_spread(a.positions.astype(float), a.areas.astype(float), q, 1.0)
     db = S.density_spread(b.positions.astype(float), b.areas.astype(float), q, 1.0)
     # measured: std 0.08 -> 0.06; require a real reduction, not noise
@@ -104,7 +104,7 @@ def test07_partition_of_unity_areas():
     half = 30.0
     v = np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0.0]])
     f = np.array([[0, 1, 2], [0, 2, 3]])
-    sp = S.run(v, f, spacing_mm=1.0, seed=4)
+    sp = S.sample_points(v, f, spacing_mm=1.0, seed=4)
     sigma = sp.info["kernel_sigma_mm"]
     assert sigma == pytest.approx(S.KERNEL_SIGMA_FACTOR * 1.0)
     rng = np.random.default_rng(5)
@@ -117,7 +117,7 @@ def test07_partition_of_unity_areas():
     u = S.density_spread(p, np.full(len(p), sp.areas.mean()), y, sigma)
     assert u["max_abs_dev"] > 5 * POU_MAX_DEV, u
     with pytest.raises(DermisError, match="area_weights = 'x'"):
-        S.run(v, f, spacing_mm=1.0, area_weights="x")
+        S.sample_points(v, f, spacing_mm=1.0, area_weights="x")
 
 
 def test05_spacing_from_mfp():
@@ -134,11 +134,11 @@ def test05_spacing_from_mfp():
 def test06_rejects_bad_input():
     v, f = sphere(resolution=10)
     with pytest.raises(DermisError, match="spacing_mm = -1"):
-        S.run(v, f, spacing_mm=-1)
+        S.sample_points(v, f, spacing_mm=-1)
     with pytest.raises(DermisError, match="at most"):
-        S.run(v, f, spacing_mm=1e-4)
+        S.sample_points(v, f, spacing_mm=1e-4)
     with pytest.raises(DermisError, match=r"\(F,3\) faces"):
-        S.run(v, np.zeros((0, 3), int), spacing_mm=1.0)
+        S.sample_points(v, np.zeros((0, 3), int), spacing_mm=1.0)
 
 
 def test08_stratified_samples_and_determinism():
@@ -164,8 +164,8 @@ def test08_stratified_samples_and_determinism():
     assert uv.min() > -1e-9 and (uv.sum(1) < 1 + 1e-9).all()
     assert np.allclose(np.einsum("nij,nj->ni", m, uv), d, atol=1e-9)
     vs, fs = sphere(resolution=20)
-    a = S.run(vs, fs, spacing_mm=1.5, seed=5)
-    b = S.run(vs, fs, spacing_mm=1.5, seed=5)
-    c = S.run(vs, fs, spacing_mm=1.5, seed=6)
+    a = S.sample_points(vs, fs, spacing_mm=1.5, seed=5)
+    b = S.sample_points(vs, fs, spacing_mm=1.5, seed=5)
+    c = S.sample_points(vs, fs, spacing_mm=1.5, seed=6)
     assert np.array_equal(a.positions, b.positions) and np.array_equal(a.areas, b.areas)
     assert not np.array_equal(a.positions, c.positions)

@@ -1,7 +1,7 @@
 """Side-by-side comparison images: one shared exposure, one PNG per render, contact sheets.
 
 Every image under one light is tone-mapped with the same exposure
-(:func:`stages.render.shared_exposure` over all models and geometries under that light),
+(:func:`dermis.reports.tonemap.shared_exposure` over all models and geometries under that light),
 so brightness differences between models are real differences, not tone-mapping
 artefacts.  Lights differ by orders of magnitude (a sunset sky vs one point light), so
 each light gets its own exposure; all exposures are saved in ``exposure.json``.
@@ -11,8 +11,13 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from dermis.pipeline.graph import Node, StageResult
 
-__all__ = ["write_pngs", "contact_sheet"]
+__all__ = ["write_pngs", "contact_sheet", "NAME", "node", "run"]
+
+NAME = "images"
+VERSION = 1
+KERNELS = ()
 
 
 def _label(image) -> tuple[str, str, str]:
@@ -33,7 +38,7 @@ def write_pngs(images: dict, out_dir: Path) -> list[Path]:
     list of written paths (PNGs and ``exposure.json``)
     """
     from dermis.pipeline.imageio import write_png
-    from dermis.stages.render import shared_exposure, tonemap
+    from dermis.reports.tonemap import shared_exposure, tonemap
 
     out_dir = Path(out_dir)
     ids = sorted(images)
@@ -81,3 +86,15 @@ def contact_sheet(images: dict, mapped: dict, path: Path, *, title: str = "") ->
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return Path(path)
+
+
+# --------------------------------------------------------------------------- stage
+def node(scene, render_ids: list[str]) -> Node:
+    """Tone-map every rendered image (one exposure per lighting condition), PNGs + sheets."""
+    return Node(NAME, NAME, __name__, {"renders": sorted(render_ids)}, tuple(render_ids),
+                label="tone-mapped PNGs")
+
+
+def run(params: dict, inputs: dict, ctx) -> StageResult:
+    files = write_pngs({nid: inputs[nid] for nid in params["renders"]}, ctx.out_dir)
+    return StageResult(files=[f.name for f in files])

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import DermisError
+from dermis.pipeline.errors import DermisError
 from dermis.physics.layers import PRESETS, load_layers_toml
 
 __all__ = ["add_parser", "run"]
@@ -54,7 +54,7 @@ def run(args) -> int:
 
     src = args.layers
     stack = PRESETS[src] if src in PRESETS and not Path(src).exists() else load_layers_toml(src)
-    prof = profiles.run(stack, poles=getattr(args, "poles", None))
+    prof = profiles.build_profiles(stack, poles=getattr(args, "poles", None))
     r = prof.r_mm
     cols = {"r_mm": r}
     for i, c in enumerate("rgb"):
@@ -64,12 +64,12 @@ def run(args) -> int:
     mc = None
     if args.mc:
         from dermis.stages import mc_slab
-        from . import cl as dcl
+        from dermis.pipeline import cl as dcl
         if args.mc < 1:
             raise DermisError(f"--mc = {args.mc}: must be a positive photon count")
         h = r[1] - r[0]
         n = len(r) - 1
-        mc = mc_slab.run(stack, photons=args.mc, r_max_mm=(2 * n + 1) * h / 2,
+        mc = mc_slab.simulate(stack, photons=args.mc, r_max_mm=(2 * n + 1) * h / 2,
                          bins=2 * n + 1, seed=args.seed,
                          env=dcl.get_env(getattr(args, "device", None)))
         e, et, ve, vt = _mc_on_rings(mc, n)

@@ -1,0 +1,23 @@
+"""Stage ``mesh_low``: quadric simplification to the thesis's 16,750 triangles and the thesis's
+nearest-vertex UV transfer with seam repair (:mod:`dermis.stages.mesh_prep`)."""
+from __future__ import annotations
+
+from dermis.pipeline.graph import Node, StageResult
+
+NAME = "mesh_low"
+VERSION = 1
+KERNELS = ()
+
+
+def node(scene) -> Node:
+    return Node(NAME, NAME, __name__, {"target_triangles": scene.mesh.low_triangles},
+                {"high": "mesh_high"}, label="simplify + UV transfer")
+
+
+def run(params: dict, inputs: dict, ctx) -> StageResult:
+    from dermis.stages import mesh_prep
+    high = inputs["high"]
+    low = mesh_prep.simplify(high, target_triangles=params["target_triangles"])
+    low.normals = mesh_prep.vertex_normals(low.vertices, low.faces)
+    low, report = mesh_prep.transfer_uv(high, low)
+    return StageResult(low, info={"uv_transfer": report, "triangles": low.n_triangles})

@@ -1,0 +1,176 @@
+"""Structure: import directions, one module per stage, and cache keys that cover the code run.
+
+The key probe appends a harmless comment to a source file (through the hashing seam
+``codehash.read_source``, so the repository is never touched) and checks that exactly the
+nodes that execute that file get new keys.  The expected sets are written out by hand from
+what each stage runs, so a closure that misses a file (or drags one in) fails here.
+"""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+import dermis
+from dermis.pipeline import codehash
+from dermis.pipeline.config import load_scene
+from dermis.pipeline.graph import key_parts, node_key, plan_order
+from dermis.pipeline.plan import build_graph
+from dermis.pipeline.registry import STAGE_NAMES, stage
+
+REPO = Path(__file__).resolve().parents[1]
+QUICK = REPO / "scenes" / "quick.toml"
+
+
+def _imports(path: Path) -> set[str]:
+    """Every module named by an import statement anywhere in ``path`` (relative ones resolved)."""
+    rel = path.relative_to(REPO).with_suffix("")
+    package = ["dermis", *rel.parts[:-1]]
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            out.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = package[:len(package) - node.level + 1] if node.level else []
+            mod = ".".join(base + ([node.module] if node.module else []))
+            out.add(mod)
+            out.update(f"{mod}.{a.name}" for a in node.names)
+    return out
+
+
+def test01_engine_imports_no_stage_or_report():
+    bad = {}
+    for path in sorted((REPO / "pipeline").glob("*.py")):
+        up = sorted(m for m in _imports(path)
+                    if m.startswith(("dermis.stages", "dermis.reports", "stages", "reports")))
+        if up:
+            bad[path.name] = up
+    assert not bad, f"engine modules import stages/reports: {bad}"
+
+
+def test02_physics_imports_no_stage_or_report():
+    for path in sorted((REPO / "physics").glob("*.py")):
+        up = [m for m in _imports(path) if m.startswith(("dermis.stages", "dermis.reports"))]
+        assert not up, f"{path.name} imports {up}"
+
+
+def test03_every_stage_is_one_module_owning_its_node():
+    assert STAGE_NAMES == tuple(name for name, _ in dermis.STAGES)
+    for name in STAGE_NAMES:
+        mod = stage(name)
+        assert mod.NAME == name, mod.__name__
+        assert isinstance(mod.VERSION, int) and isinstance(mod.KERNELS, tuple)
+        assert callable(mod.node) and callable(mod.run)
+    nodes, _ = build_graph(load_scene(QUICK))
+    for node in nodes.values():  # every node runs the module of its own stage
+        assert node.module == dict(dermis.STAGES)[node.stage], node.id
+        assert node.fn is None
+
+
+def test04_readme_stage_table_lists_exactly_the_stages():
+    rows = [line.split("|")[1].strip().strip("`") for line in
+            (REPO / "README.md").read_text().splitlines() if line.startswith("| `")]
+    assert [r for r in rows if not r.startswith("[")] == list(STAGE_NAMES)
+
+
+def test05_the_wheel_installs_one_top_level_name(tmp_path):
+    """Build the wheel and read what it would install: only ``dermis/`` and its metadata."""
+    import subprocess
+    import sys
+    import zipfile
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
+                    "-q", "-w", str(tmp_path), str(REPO)], check=True, capture_output=True)
+    wheel, = tmp_path.glob("dermis-*.whl")
+    names = zipfile.ZipFile(wheel).namelist()
+    tops = {n.split("/")[0] for n in names}
+    assert tops == {"dermis", next(t for t in tops if t.endswith(".dist-info"))}, tops
+    for must in ("dermis/__init__.py", "dermis/pipeline/api.py", "dermis/physics/fresnel.py",
+                 "dermis/stages/bssrdf.py", "dermis/reports/report.py", "dermis/cl/common.h",
+                 "dermis/scenes/default.toml", "dermis/scenes/layers/two_layer.toml"):
+        assert must in names, must
+    assert not [n for n in names if n.startswith(("dermis/tests/", "dermis/bench/"))]
+    entry = zipfile.ZipFile(wheel).read(next(n for n in names if n.endswith("entry_points.txt")))
+    assert b"dermis = dermis.pipeline.cli:main" in entry
+
+
+# ------------------------------------------------------------------------------ key probe
+def _keys(scene) -> dict[str, str]:
+    codehash.clear()
+    nodes, targets = build_graph(scene)
+    keys = {}
+    for nid in plan_order(nodes, list(nodes)):
+        keys[nid] = node_key(key_parts(nodes[nid], keys))
+    return keys
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return load_scene(QUICK)
+
+
+@pytest.fixture(scope="module")
+def base_keys(scene):
+    return _keys(scene)
+
+
+def _stage_of(nid: str) -> str:
+    for prefix, name in (("render-bssrdf-", "bssrdf"), ("render-", "render"),
+                         ("samples-", "samples"), ("irradiance-", "irradiance")):
+        if nid.startswith(prefix):
+            return name
+    return nid
+
+
+# file -> the stages whose nodes execute it (from what each stage runs, written out by hand)
+PROBE = {
+    "cl/surface.cl": {"render", "bssrdf"},             # pixel_surface: BRDF and BSSRDF images
+    "cl/optics.h": {"render", "bssrdf"},               # Fresnel in the BRDFs and surface lobes
+    "cl/bssrdf_gather.cl": {"bssrdf"},
+    "stages/render.py": {"render", "bssrdf"},          # pixel_surface + surface term
+    "stages/brdf_models.py": {"render", "bssrdf"},     # the BSSRDF's Lafortune surface lobes
+    "physics/visibility.py": {"render", "bssrdf", "irradiance"},
+    "physics/lights.py": {"render", "bssrdf", "irradiance"},
+    "pipeline/plan.py": set(),                         # decides which nodes exist, runs in none
+    "reports/diff.py": {"report"},
+    "reports/tonemap.py": {"images", "report"},        # tone mapping is not part of rendering
+    "stages/gather.py": {"bssrdf"},
+    "stages/mesh_prep.py": {"mesh_source", "mesh_high", "mesh_low"},
+}
+
+
+@pytest.mark.parametrize("relpath", sorted(PROBE))
+def test06_a_harmless_edit_changes_exactly_the_keys_of_nodes_that_run_it(relpath, scene,
+                                                                         base_keys, monkeypatch):
+    target = (REPO / relpath).resolve()
+    assert target.is_file()
+    original = codehash.read_source
+
+    def edited(path):
+        data = original(path)
+        comment = b"\n# probe\n" if target.suffix == ".py" else b"\n// probe\n"
+        return data + comment if Path(path).resolve() == target else data
+
+    monkeypatch.setattr(codehash, "read_source", edited)
+    changed = {nid for nid, k in _keys(scene).items() if base_keys[nid] != k}
+    monkeypatch.undo()
+    codehash.clear()
+    direct = {nid for nid in base_keys if _stage_of(nid) in PROBE[relpath]}
+    # a changed node changes its downstream nodes' keys too (their upstream keys changed)
+    nodes, _ = build_graph(scene)
+    expected, grew = set(direct), True
+    while grew:
+        more = {nid for nid, n in nodes.items() if set(n.dep_ids) & expected} - expected
+        expected |= more
+        grew = bool(more)
+    if PROBE[relpath]:
+        assert direct, f"no node of {PROBE[relpath]} in the quick scene"
+    assert changed == expected, (f"{relpath}: unexpected {sorted(changed - expected)[:5]}, "
+                                 f"missed {sorted(expected - changed)[:5]}")
+
+
+def test07_closure_follows_function_local_imports():
+    closure = codehash.module_closure("dermis.stages.mesh_source")
+    # procedural_head and scan_io are imported inside run(), not at module level
+    assert "dermis.stages.procedural_head" in closure and "dermis.stages.scan_io" in closure
+    assert "dermis.pipeline.graph" not in closure   # engine bookkeeping is not hashed
