@@ -4,7 +4,7 @@ Runs a scene into a fresh (or given) cache and writes JSON with every node's wal
 seconds, peak memory, the load average, and a model x lighting x geometry table of seconds per
 800x800 image. For the BSSRDF it reports the image time alone and with its (cached, shared)
 irradiance pass, to check the thesis's headline that with area and environment lights the
-cached-irradiance BSSRDF is the fastest model (physics.md s7).
+cached-irradiance BSSRDF is the fastest model (docs/physics.md §7).
 
     python3 bench/bench_pipeline.py [SCENE] [--cache DIR] [--out bench/results/pipeline.json]
 """

@@ -59,19 +59,22 @@ class MeshConfig:
     displacement: str = spec("", doc="grey displacement map for the high mesh (optional)")
     displacement_scale_mm: float = spec(0.0, lo=0.0, hi=100.0, doc="mm per unit map value")
     displacement_mid: float = spec(0.5, lo=0.0, hi=1.0, doc="map value of zero displacement")
-    high_triangles: int = spec(1_000_000, lo=1_000, hi=20_000_000)
+    high_triangles: int = spec(1_000_000, lo=1_000, hi=20_000_000,
+                               doc="triangles of the high mesh (thesis: ~1M-triangle scan)")
     low_triangles: int = spec(16_750, lo=100, hi=5_000_000, doc="thesis: 16,750 (QSlim)")
     procedural_detail: bool = spec(True, doc="pores and wrinkles on the procedural head")
-    procedural_texture_size: int = spec(2048, lo=64, hi=16384)
-    seed: int = spec(0, lo=0)
+    procedural_texture_size: int = spec(2048, lo=64, hi=16384,
+                                        doc="albedo texture size of the procedural head")
+    seed: int = spec(0, lo=0, doc="seed of every random choice (head, points, light samples)")
 
 
 @dataclass(frozen=True)
 class BakeConfig:
     resolution: int = spec(4096, lo=16, hi=16384, doc="thesis: 4096x4096")
-    blur_sigma_px: float = spec(8.0, lo=0.0, hi=1000.0)
+    blur_sigma_px: float = spec(8.0, lo=0.0, hi=1000.0,
+                                doc="Gaussian sigma of the blurred bump map (thesis 3.2; value ours)")
     max_distance: float = spec(0.0, lo=0.0, unit="length", doc="0 = automatic")
-    dilate_px: int = spec(16, lo=0, hi=4096)
+    dilate_px: int = spec(16, lo=0, hi=4096, doc="texels the maps are grown past chart borders")
     reference: str = spec("phong", choices=("phong", "flat"),
                           doc="surface bump heights are measured from: the low mesh's smooth "
                               "Phong surface, or the flat triangles (thesis; facets show)")
@@ -79,18 +82,19 @@ class BakeConfig:
 
 @dataclass(frozen=True)
 class CameraConfig:
-    position: tuple = spec((0.0, 0.0, 900.0), unit="length")
-    look_at: tuple = spec((0.0, 0.0, 0.0), unit="length")
-    up: tuple = spec((0.0, 1.0, 0.0))
-    fov_deg: float = spec(30.0, lo=0.0, hi=179.0, lo_open=True)
-    width: int = spec(800, lo=1, hi=16384)
-    height: int = spec(800, lo=1, hi=16384)
+    position: tuple = spec((0.0, 0.0, 900.0), unit="length", doc="eye point")
+    look_at: tuple = spec((0.0, 0.0, 0.0), unit="length", doc="point the camera looks at")
+    up: tuple = spec((0.0, 1.0, 0.0), doc="up direction (not parallel to the view)")
+    fov_deg: float = spec(30.0, lo=0.0, hi=179.0, lo_open=True,
+                          doc="full field of view across the shorter image side")
+    width: int = spec(800, lo=1, hi=16384, doc="pixels (thesis: 800)")
+    height: int = spec(800, lo=1, hi=16384, doc="pixels (thesis: 800)")
 
 
 @dataclass(frozen=True)
 class LightConfig:
     name: str = spec(doc="unique name, used in output file names")
-    type: str = spec(choices=LIGHT_TYPES)
+    type: str = spec(choices=LIGHT_TYPES, doc="kind of light")
     position: tuple = spec((0.0, 0.0, 0.0), unit="length", doc="point / disc centre")
     direction: tuple = spec((0.0, 0.0, 1.0), doc="directional: towards the light; disc: normal")
     intensity: tuple = spec((1.0, 1.0, 1.0), lo=0.0, doc="point/disc: W/sr-like units; "
@@ -104,14 +108,17 @@ class LightConfig:
 
 @dataclass(frozen=True)
 class RenderConfig:
-    models: tuple = spec(MODELS, choices=MODELS)
+    models: tuple = spec(MODELS, choices=MODELS, doc="models to render (bssrdf is the reference "
+                                                     "of the difference images)")
     lights: tuple = spec((), doc='lighting conditions to render: names of [[lights]], "a+b" '
                                 "lights several together (the thesis's two directional "
                                 "lights); empty = each light alone")
-    geometries: tuple = spec(("high", "low_bump", "low_bump_blur"), choices=GEOMETRIES)
+    geometries: tuple = spec(("high", "low_bump", "low_bump_blur"), choices=GEOMETRIES,
+                             doc="high mesh; low mesh plain, with the sharp or the blurred bump map")
     # Lambert default: in the thesis's timings asperity renders beat Lafortune for every light
-    # (physics.md s7), so its base cannot have been a costlier model (an inference; see asperity.cl)
-    asperity_base: str = spec("lambert", choices=ASPERITY_BASES)
+    # (docs/physics.md §7), so its base cannot have been a costlier model (an inference; see asperity.cl)
+    asperity_base: str = spec("lambert", choices=ASPERITY_BASES,
+                              doc="model under the asperity term")
 
 
 @dataclass(frozen=True)
@@ -127,8 +134,9 @@ class BssrdfConfig:
     # 0.2: 0.06%. A scene with sharper irradiance (bumpy sheet, 20x shadow step) needs 0.2.
     epsilon: float = spec(0.5, lo=0.0, lo_open=True, hi=10.0, doc="solid-angle criterion")
     # Jensen-Buhler used <= 8 points per leaf; 16 measured 8-10% faster at lower error
-    leaf_size: int = spec(16, lo=1, hi=256)
-    normalisation: str = spec("energy", choices=("energy", "thesis"))
+    leaf_size: int = spec(16, lo=1, hi=256, doc="points per octree leaf")
+    normalisation: str = spec("energy", choices=("energy", "thesis"),
+                              doc="profile normalisation in the gather (energy: exact Rd)")
     albedo_mode: str = spec("replace", choices=("replace", "modulate", "none"),
                             doc="replace: texture = total diffuse reflectance (profile shapes "
                                 "the blur); modulate: texture tints the profile; none: ignore")
@@ -140,7 +148,7 @@ class BssrdfConfig:
 @dataclass(frozen=True)
 class OutputConfig:
     cache_dir: str = spec("", doc="empty: $DERMIS_CACHE or ./.dermis-cache")
-    output_dir: str = spec("out")
+    output_dir: str = spec("out", doc="outputs go to output_dir/<scene name>/")
     previews: bool = spec(True, doc="PNG previews of meshes and baked maps")
 
 
@@ -292,6 +300,48 @@ def _build(cls, table, where: str, prefix: str, problems: _Problems, length_scal
         return cls(**values)
     except TypeError:
         return None
+
+
+def _fmt_default(f) -> str:
+    if f.default_factory is not MISSING or f.default is MISSING:
+        return ""
+    v = f.default
+    if isinstance(v, tuple) and all(isinstance(x, str) for x in v):
+        return "[" + ", ".join(v) + "]" if v else "[]"
+    if isinstance(v, float) and v.is_integer() and abs(v) >= 1e4:
+        return f"{int(v):,}"
+    if isinstance(v, int) and not isinstance(v, bool) and abs(v) >= 1e4:
+        return f"{v:,}"
+    return _fmt(v).replace("True", "true").replace("False", "false")
+
+
+def _fmt_rule(meta) -> str:
+    if meta.get("choices"):
+        return "one of " + ", ".join(str(c) for c in meta["choices"])
+    parts = []
+    if meta.get("lo") is not None:
+        parts.append((">" if meta.get("lo_open") else ">=") + f" {meta['lo']}")
+    if meta.get("hi") is not None:
+        parts.append(("<" if meta.get("hi_open") else "<=") + f" {meta['hi']}")
+    return ", ".join(parts)
+
+
+SCHEMA_TABLES = (("scene", SceneInfo), ("mesh", MeshConfig), ("bake", BakeConfig),
+                 ("camera", CameraConfig), ("[lights]", LightConfig), ("render", RenderConfig),
+                 ("bssrdf", BssrdfConfig), ("output", OutputConfig))
+
+
+def schema_markdown() -> str:
+    """The scene-format reference, generated from the schema's own field docs (README.md holds
+    this text between its ``scene-format`` markers; tests/test_config.py keeps them equal)."""
+    lines = ["| key | default | allowed | what |", "|---|---|---|---|"]
+    for table, cls in SCHEMA_TABLES:
+        for f in fields(cls):
+            unit = " (length)" if f.metadata.get("unit") == "length" else ""
+            doc = f.metadata.get("doc", "").replace("|", "/")
+            lines.append(f"| `[{table}] {f.name}` | {_fmt_default(f)} | {_fmt_rule(f.metadata)}"
+                         f"{unit} | {doc} |")
+    return "\n".join(lines)
 
 
 def _resolve(path: str, scene_path: str) -> Path:
