@@ -9,8 +9,6 @@ for b in bench_procedural_head bench_mesh_prep bench_bake bench_samples bench_pr
   echo "=== $b ($(cut -d' ' -f1 /proc/loadavg) load)"
   python3 "bench/$b.py" || echo "!!! $b failed"
 done
-echo "=== bench_pipeline (lps scene if the shared data exists, else the default scene)"
-if [ -f ../shared/data/lps_head/LeePerrySmith_cm.obj ]; then
-  python3 bench/bench_pipeline.py scenes/lps.toml --out bench/results/pipeline_lps.json
-fi
+echo "=== bench_pipeline (the default scene: packaged scan; then the procedural preset)"
 python3 bench/bench_pipeline.py --out bench/results/pipeline_default.json
+python3 bench/bench_pipeline.py scenes/procedural.toml --out bench/results/pipeline_procedural.json

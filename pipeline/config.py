@@ -182,6 +182,20 @@ class Scene:
             return None
         return _resolve(self.mesh.source, self.path)
 
+    def credits(self) -> tuple[str, ...]:
+        """Attribution lines of the asset files this scene uses (``ATTRIBUTION.txt`` beside them)."""
+        paths = [self.mesh_path(), self.resolve(self.mesh.texture), self.resolve(self.mesh.displacement)]
+        paths += [Path(l.map) for l in self.lights if l.type == "environment"
+                  and l.map != "procedural_sunset"]
+        out = []
+        for p in paths:
+            note = p.parent / "ATTRIBUTION.txt" if p is not None else None
+            if note is not None and note.is_file():
+                text = note.read_text().strip()
+                if text not in out:
+                    out.append(text)
+        return tuple(out)
+
     def resolve(self, value: str) -> Path | None:
         """A path value of this scene resolved against the scene file's folder (None if empty)."""
         return _resolve(value, self.path) if value else None
@@ -352,7 +366,7 @@ def _resolve(path: str, scene_path: str) -> Path:
 
 
 def default_scene_path() -> Path:
-    """The embedded default scene (procedural head), shipped inside the package."""
+    """The embedded default scene (the packaged Lee Perry-Smith scan), shipped in the package."""
     return Path(str(resources.files("dermis.scenes"))) / "default.toml"
 
 

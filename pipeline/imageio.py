@@ -25,8 +25,9 @@ def read_image(path: str | Path, *, channels: int | None = None, what: str = "im
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
         raise DermisError(f"{what} {path} cannot be read: {oiio.geterror()}")
-    try:
-        pixels = inp.read_image(0, 0, 0, -1, "float")
+    try:  # every channel of the first subimage (OIIO 3 reads one channel for chend = -1)
+        nchannels = inp.spec().nchannels
+        pixels = inp.read_image("float")
     finally:
         inp.close()
     if pixels is None or not isinstance(pixels, np.ndarray):
@@ -34,6 +35,8 @@ def read_image(path: str | Path, *, channels: int | None = None, what: str = "im
     img = np.asarray(pixels, dtype=np.float32)
     if img.ndim == 2:
         img = img[..., None]
+    if img.shape[2] != nchannels:
+        raise DermisError(f"{what} {path}: decoded {img.shape[2]} of its {nchannels} channels")
     if channels is not None:
         if img.shape[2] < channels:
             img = np.repeat(img[..., :1], channels, axis=2)

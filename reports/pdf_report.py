@@ -182,7 +182,7 @@ def _grid_axes(fig, nrows: int, ncols: int, *, top=0.91, bottom=0.02, left=0.02,
     return axes
 
 
-def _title_page(plt, images, metrics, *, scene_name, device, timings_extra):
+def _title_page(plt, images, metrics, *, scene_name, device, timings_extra, credits=()):
     idx = _index(images)
     fig = _new_page(plt, "")
     fig.text(0.5, 0.88, "dermis: skin rendering comparison", ha="center", fontsize=20)
@@ -211,6 +211,9 @@ def _title_page(plt, images, metrics, *, scene_name, device, timings_extra):
         "darker, one symmetric scale per light. Reproduces and extends A. Arizpe, A Critical "
         "Comparison of Human Face Rendering Techniques, MIT MEng thesis, 2006.")
     fig.text(0.08, 0.12, textwrap.fill(howto, 150), va="top", fontsize=7.5, color="0.3")
+    if credits:  # the scan's CC BY attribution goes wherever the scan appears
+        fig.text(0.08, 0.05, "\n".join(textwrap.fill(c, 150) for c in credits), va="top",
+                 fontsize=7.5, color="0.3")
     return fig
 
 
@@ -432,7 +435,7 @@ def _geometry_page(plt, metrics):
 
 
 def write_report(images: dict, metrics: dict, out_pdf, *, scene_name: str, device: str,
-                 timings_extra: dict | None = None) -> Path:
+                 timings_extra: dict | None = None, credits=()) -> Path:
     """Write the multi-page comparison PDF.
 
     Parameters
@@ -444,6 +447,7 @@ def write_report(images: dict, metrics: dict, out_pdf, *, scene_name: str, devic
     out_pdf : path of the PDF to write (parent created)
     scene_name : shown on the title page
     device : OpenCL device description, shown on the title and timing pages
+    credits : attribution lines of the scene's assets, printed on the title page
     timings_extra : dict (light, mesh) -> seconds, optional
         The BSSRDF's irradiance pass per lighting condition and mesh ("mesh_high"/"mesh_low",
         or "high"/"low"); added to the BSSRDF's time in the table, summary and scatter plot.
@@ -464,7 +468,8 @@ def write_report(images: dict, metrics: dict, out_pdf, *, scene_name: str, devic
     out_pdf.parent.mkdir(parents=True, exist_ok=True)
     with plt.rc_context({"font.size": FONT_PT, "pdf.fonttype": 42}), PdfPages(out_pdf) as pdf:
         builders = [lambda: [_title_page(plt, images, metrics, scene_name=scene_name,
-                                         device=device, timings_extra=timings_extra)],
+                                         device=device, timings_extra=timings_extra,
+                                         credits=credits)],
                     lambda: _image_pages(plt, images),
                     lambda: _diff_pages(plt, images, metrics),
                     lambda: [_timing_page(plt, images, metrics, device=device,

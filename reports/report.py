@@ -14,7 +14,7 @@ REFERENCE_MODEL = "bssrdf"
 
 def node(scene, render_ids: list[str], irradiance_ids: list[str]) -> Node:
     params = {"renders": sorted(render_ids), "irradiance": sorted(irradiance_ids),
-              "scene_name": scene.scene.name}
+              "scene_name": scene.scene.name, "credits": list(scene.credits())}
     return Node(NAME, NAME, __name__, params, tuple(render_ids) + tuple(irradiance_ids),
                 label="differences + PDF")
 
@@ -29,6 +29,6 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
         extra[(label, mesh_node)] = float(inputs[nid].info.get("seconds", 0.0))
     pdf = pdf_report.write_report(images, metrics, ctx.out_dir / "report.pdf",
                                   scene_name=params["scene_name"], device=ctx.cl.description,
-                                  timings_extra=extra)
+                                  timings_extra=extra, credits=params["credits"])
     names = [Path(f).name for f in files] + [pdf.name]
     return StageResult(files=names, info={"pages": pdf_report.report_page_count(images, metrics)})

@@ -22,8 +22,26 @@ def rng():
     return np.random.default_rng(20061)
 
 
+ASSETS = REPO / "scenes" / "assets"
+
+
 @pytest.fixture(scope="session")
-def shared_data() -> Path:
-    if not SHARED_DATA.is_dir():
-        pytest.skip(f"shared assets not found at {SHARED_DATA} (they live beside the repo)")
-    return SHARED_DATA
+def assets() -> Path:
+    """The assets that ship with the package (scan + sunset): present on every clone."""
+    return ASSETS
+
+
+@pytest.fixture(scope="session")
+def wheel(tmp_path_factory) -> Path:
+    """A wheel built from a clean copy of the repository (no stale build/ folder can leak in)."""
+    import shutil
+    import subprocess
+    import sys
+    tmp = tmp_path_factory.mktemp("wheel")
+    src = tmp / "src"
+    shutil.copytree(REPO, src, ignore=shutil.ignore_patterns(
+        ".git", "build", "dist", "out", ".dermis-cache", "*.egg-info", "__pycache__"))
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
+                    "-q", "-w", str(tmp), str(src)], check=True, capture_output=True)
+    found, = tmp.glob("dermis-*.whl")
+    return found

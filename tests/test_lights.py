@@ -250,10 +250,8 @@ def test11_bad_lights_are_rejected_with_the_key():
         environment_map(LightConfig(name="e", type="environment", map="/no/such/file.hdr"))
 
 
-def test12_shared_env_file_reads(shared_data):
-    path = shared_data / "env_sunset" / "venice_sunset_1k.hdr"
-    if not path.is_file():
-        pytest.skip(f"{path} not found")
+def test12_packaged_env_file_reads(assets):
+    path = assets / "env_sunset" / "venice_sunset_1k.hdr"
     env = environment_map(LightConfig(name="e", type="environment", map=str(path)))
     assert env.radiance.shape == (512, 1024, 3)
     # the README puts the sun at row 246, column 614: 3.3 deg up, in front of the face (+z)
@@ -340,3 +338,35 @@ def test16_env_strategy_is_validated_and_needs_normals():
     up = np.tile([0.0, 1.0, 0.0], (5, 1))
     c = sample_lights(light, np.zeros((5, 3)), up, env=env, seed=1)
     assert c.count == 16 and np.all(c.directions[:, 10:, 1] > 0)
+
+
+@pytest.mark.parametrize("ext", [".hdr", ".exr"])
+def test18_colour_environment_maps_keep_their_channels(tmp_path, ext):
+    """A synthetic map with distinct per-channel values reads back with those values."""
+    import OpenImageIO as oiio
+    from dermis.pipeline.imageio import read_image
+    img = np.zeros((8, 16, 3), np.float32)
+    img[..., 0], img[..., 1], img[..., 2] = 0.25, 2.0, 8.0
+    img[2, 3] = (5.0, 0.5, 0.125)
+    path = tmp_path / f"map{ext}"
+    out = oiio.ImageOutput.create(str(path))
+    out.open(str(path), oiio.ImageSpec(16, 8, 3, oiio.FLOAT))
+    out.write_image(img)
+    out.close()
+    back = read_image(path, channels=3)
+    rtol = 1e-2 if ext == ".hdr" else 1e-6      # RGBE keeps an 8-bit mantissa per channel
+    np.testing.assert_allclose(back, img, rtol=rtol)
+    env = environment_map(LightConfig(name="e", type="environment", map=str(path)))
+    assert env.radiance[..., 2].mean() > 3 * env.radiance[..., 1].mean() > 3 * env.radiance[..., 0].mean()
+
+
+def test19_sunset_means_match_openimageio_statistics(assets):
+    """The packaged sunset read by dermis has OpenImageIO's own per-channel means: a blue sky
+    with a warm sun (about 0.405, 0.416, 0.573), not a grey copy of one channel."""
+    import OpenImageIO as oiio
+    from dermis.pipeline.imageio import read_image
+    path = assets / "env_sunset" / "venice_sunset_1k.hdr"
+    stats = oiio.ImageBufAlgo.computePixelStats(oiio.ImageBuf(str(path)))
+    means = read_image(path, channels=3).reshape(-1, 3).astype(np.float64).mean(axis=0)
+    np.testing.assert_allclose(means, stats.avg, rtol=1e-4)   # float32 sums over 0.5M pixels
+    assert means[2] > 1.3 * means[0]

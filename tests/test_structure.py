@@ -74,18 +74,9 @@ def test04_readme_stage_table_lists_exactly_the_stages():
     assert [r for r in rows if not r.startswith("[")] == list(STAGE_NAMES)
 
 
-def test05_the_wheel_installs_one_top_level_name(tmp_path):
-    """Build the wheel and read what it would install: only ``dermis/`` and its metadata."""
-    import shutil
-    import subprocess
-    import sys
+def test05_the_wheel_installs_one_top_level_name(wheel):
+    """Read what the built wheel would install: only ``dermis/`` and its metadata."""
     import zipfile
-    src = tmp_path / "src"   # a clean copy: no stale build/ folder can leak into the wheel
-    shutil.copytree(REPO, src, ignore=shutil.ignore_patterns(
-        ".git", "build", "dist", "out", ".dermis-cache", "*.egg-info", "__pycache__"))
-    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
-                    "-q", "-w", str(tmp_path), str(src)], check=True, capture_output=True)
-    wheel, = tmp_path.glob("dermis-*.whl")
     names = zipfile.ZipFile(wheel).namelist()
     tops = {n.split("/")[0] for n in names}
     assert tops == {"dermis", next(t for t in tops if t.endswith(".dist-info"))}, tops
