@@ -70,7 +70,7 @@ def _targets(nodes, targets, until):
 
 
 def run(scene: Scene, *, cache=None, until: str | None = None, force=(), device: str | None = None,
-        progress=None, export: bool = True) -> RunSummary:
+        progress=None, export: bool = True, notice=None) -> RunSummary:
     """Build everything the scene asks for that is not cached; return the per-stage summary.
 
     Parameters
@@ -86,6 +86,8 @@ def run(scene: Scene, *, cache=None, until: str | None = None, force=(), device:
     device : str, optional
         OpenCL device spec (see :mod:`pipeline.cl`).
     progress : callable(node, fraction), optional
+    notice : callable(str), optional
+        One-line notices, e.g. a corrupted cache entry being rebuilt (default: stderr).
     export : bool
         Copy file outputs (previews, images) into ``output_dir/<scene name>/``.
     """
@@ -98,11 +100,19 @@ def run(scene: Scene, *, cache=None, until: str | None = None, force=(), device:
     ctx = RunContext(device=device)
     if device is not None:
         ctx.cl  # an explicit device is checked before any stage runs
+    if notice is None:
+        notice = _stderr_notice
     with store.locked():
-        summary = execute(nodes, targets, store, ctx, force=tuple(force), progress=progress)
+        summary = execute(nodes, targets, store, ctx, force=tuple(force), progress=progress,
+                          notice=notice)
         if export:
             _export(scene, store, summary)
     return summary
+
+
+def _stderr_notice(text: str) -> None:
+    import sys
+    print(f"dermis: {text}", file=sys.stderr)
 
 
 def _export(scene: Scene, store: Store, summary: RunSummary) -> Path:

@@ -131,8 +131,11 @@ def _diff_params(old, new, prefix="") -> list[str]:
 
 def staleness(store: Store, node: Node, parts: dict, key: str, stale_deps: set[str]) -> list[str]:
     """Named reasons why ``node`` must run (empty list: it is cached), doit-style."""
-    if store.has(node.id, key):
+    problem = store.verify(node.id, key)
+    if problem is None:
         return []
+    if problem != "not built":
+        return [f"corrupted {problem}"]
     old = store.read_index(node.id)
     if old is None:
         return ["never_built"]
@@ -194,12 +197,14 @@ def _load(store: Store, node_id: str, key: str):
 
 
 def execute(nodes: dict[str, Node], targets: list[str], store: Store, ctx, *,
-            force: tuple[str, ...] = (), dry_run: bool = False, progress=None) -> RunSummary:
+            force: tuple[str, ...] = (), dry_run: bool = False, progress=None,
+            notice=None) -> RunSummary:
     """Run ``targets`` and their upstream nodes, skipping whatever is cached.
 
     ``force`` lists stage names (or node ids) to recompute even when cached.
     ``dry_run`` computes keys and staleness only (``dermis status``).
-    ``progress(node, fraction)`` is called as nodes advance.
+    ``progress(node, fraction)`` is called as nodes advance; ``notice(text)`` gets one-line
+    notices (a corrupted cache entry being rebuilt).
     """
     order = plan_order(nodes, targets)
     keys: dict[str, str] = {}
@@ -219,6 +224,8 @@ def execute(nodes: dict[str, Node], targets: list[str], store: Store, ctx, *,
         reports.append(rep)
         if not reasons:
             continue
+        if reasons[0].startswith("corrupted") and notice:
+            notice(f"{nid}: cache entry {reasons[0]}; rebuilding it")
         stale.add(nid)
         if dry_run:
             rep.status = "stale"
@@ -239,6 +246,10 @@ def execute(nodes: dict[str, Node], targets: list[str], store: Store, ctx, *,
                 raise StageFailure(nid, exc, traceback.format_exc()) from exc
             seconds = time.perf_counter() - t0
             if result.artifact is not None:
+                bad = artifacts.nonfinite_fields(result.artifact)
+                if bad:  # a stage's arrays are finite by contract: never cache NaN or Inf
+                    raise StageFailure(nid, ValueError(f"non-finite values in {', '.join(bad)}"),
+                                       "")
                 artifacts.save(result.artifact, tmp)
             info = dict(result.info)
             kernel_s = float(info.pop("kernel_seconds", 0.0) or 0.0)

@@ -1,23 +1,31 @@
-"""Artifact store: one directory per (node, key), atomic writes, a lock per cache.
+"""Artifact store: one directory per (node, key), atomic writes, concurrent writers, checksums.
 
 Layout of a cache directory::
 
-    .lock                        held (flock) by the running dermis process
-    <node>/<key>/                one finished artifact: data files + meta.json (written last)
+    .lock                        shared (flock) by every running dermis process, exclusive
+                                 for ``dermis clean``
+    <node>/<key>/                one finished artifact: data files + meta.json (written last,
+                                 with the sha256 of every data file)
     index/<node>.json            the key parts of the node's newest artifact (for `status`)
-    .tmp/<uuid>/                 work in progress; renamed into place when complete
+    .tmp/<host>-<pid>-<uuid>/    work in progress; renamed into place when complete
 
-An artifact directory is created by renaming a complete temporary directory, so
-a run killed mid-stage leaves only ``.tmp`` debris, which is never trusted and is
-removed by the next run.  ``meta.json`` is the validity marker.
+Concurrency (several processes or machines sharing one cache): an artifact directory appears
+only by renaming a complete temporary directory, so distinct keys never block each other and
+a key written twice is harmless (the second writer finds a valid entry and drops its own
+copy).  A run killed mid-stage leaves only ``.tmp`` debris, never trusted; debris of dead
+processes on this host is removed by the next run.  Integrity: an entry counts only if its
+``meta.json`` is there and every data file matches its recorded checksum
+(:meth:`Store.verify`); anything else is reported corrupted and rebuilt, never used.
 """
 from __future__ import annotations
 
+import errno
 import fcntl
 import hashlib
 import json
 import os
 import shutil
+import socket
 import uuid
 from contextlib import contextmanager
 from pathlib import Path
@@ -72,24 +80,69 @@ class Store:
         self._atomic_write_text(self.root / "index" / f"{node}.json",
                                 json.dumps(entry, indent=1, sort_keys=True))
 
+    def verify(self, node: str, key: str) -> str | None:
+        """None if the entry is complete and intact, else why not (missing file, bad checksum)."""
+        d = self.artifact_dir(node, key)
+        try:
+            meta = json.loads((d / META).read_text())
+        except FileNotFoundError:
+            return "not built"
+        except (OSError, ValueError) as exc:
+            return f"{META} unreadable ({exc})"
+        sums = meta.get("checksums")
+        if not isinstance(sums, dict):
+            return f"{META} records no checksums"
+        for name, digest in sums.items():
+            f = d / name
+            if not f.is_file():
+                return f"{name} is missing"
+            if file_digest(f) != digest:
+                return f"{name} does not match its checksum"
+        return None
+
     # -- writing
     @contextmanager
     def writing(self, node: str, key: str):
-        """Yield a temporary directory; on success it becomes the artifact directory."""
-        tmp = self.root / ".tmp" / uuid.uuid4().hex
+        """Yield a temporary directory; on success it becomes the artifact directory.
+
+        The caller writes the data files and ``meta.json``; the store adds the checksums of
+        the data files to ``meta.json`` and renames the directory into place.  If another
+        writer got there first with a valid entry, this copy is dropped.
+        """
+        tmp = self.root / ".tmp" / f"{_host()}-{os.getpid()}-{uuid.uuid4().hex}"
         tmp.mkdir(parents=True)
         try:
             yield tmp
             if not (tmp / META).is_file():
                 raise RuntimeError(f"stage wrote no {META} for {node}")
+            meta = json.loads((tmp / META).read_text())
+            meta["checksums"] = {p.name: file_digest(p) for p in sorted(tmp.iterdir())
+                                 if p.is_file() and p.name != META}
+            (tmp / META).write_text(json.dumps(meta, indent=1, sort_keys=True, default=str))
             final = self.artifact_dir(node, key)
             final.parent.mkdir(parents=True, exist_ok=True)
-            if final.exists():  # same key computed again (forced): replace it
-                shutil.rmtree(final)
-            os.replace(tmp, final)
+            for _ in range(3):
+                try:
+                    os.rename(tmp, final)
+                    break
+                except OSError as exc:
+                    if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST):
+                        raise
+                    if self.verify(node, key) is None:   # someone else wrote it: keep theirs
+                        break
+                    self._discard(final)                  # forced rerun or a corrupted entry
         finally:
             if tmp.exists():
                 shutil.rmtree(tmp, ignore_errors=True)
+
+    def _discard(self, path: Path) -> None:
+        """Move an entry aside atomically, then delete it (readers never see half of it)."""
+        trash = self.root / ".tmp" / f"{_host()}-{os.getpid()}-{uuid.uuid4().hex}-old"
+        try:
+            os.rename(path, trash)
+        except FileNotFoundError:
+            return
+        shutil.rmtree(trash, ignore_errors=True)
 
     @staticmethod
     def _atomic_write_text(path: Path, text: str) -> None:
@@ -100,36 +153,51 @@ class Store:
 
     # -- housekeeping
     @contextmanager
-    def locked(self):
-        """Hold the cache's lock; a second process gets :class:`CacheLockedError` at once."""
-        self.root.mkdir(parents=True, exist_ok=True)
-        lock_path = self.root / ".lock"
-        fh = open(lock_path, "a+")
+    def locked(self, exclusive: bool = False):
+        """Hold the cache: shared by runs (any number at once, also across machines through
+        the cache's file system), exclusive for ``clean``.  A conflicting holder gives
+        :class:`CacheLockedError` at once."""
+        try:
+            self.root.mkdir(parents=True, exist_ok=True)
+            fh = open(self.root / ".lock", "a+")
+        except OSError as exc:
+            raise CacheLockedError(f"cache {self.root} cannot be used: {exc.strerror}; choose "
+                                   "another with --cache DIR or $DERMIS_CACHE") from None
         try:
             try:
-                fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                fcntl.flock(fh, (fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH) | fcntl.LOCK_NB)
             except OSError:
-                fh.seek(0)
-                holder = fh.read().strip() or "unknown"
+                what = "cleaned" if exclusive else "used"
                 raise CacheLockedError(
-                    f"cache {self.root} is in use by another dermis process (pid {holder}); "
-                    f"wait for it to finish or choose another cache with --cache DIR") from None
-            fh.seek(0)
-            fh.truncate()
-            fh.write(str(os.getpid()))
-            fh.flush()
-            shutil.rmtree(self.root / ".tmp", ignore_errors=True)  # debris of killed runs
+                    f"cache {self.root} cannot be {what} now: another dermis process holds it "
+                    f"({'a run' if exclusive else 'a clean'}); wait for it to finish or choose "
+                    "another cache with --cache DIR") from None
+            self._remove_debris()
             yield self
         finally:
             fcntl.flock(fh, fcntl.LOCK_UN)
             fh.close()
+
+    def _remove_debris(self) -> None:
+        """Remove temporary folders of processes on this host that no longer exist."""
+        tmp_root = self.root / ".tmp"
+        if not tmp_root.is_dir():
+            return
+        for d in tmp_root.iterdir():
+            host, _, rest = d.name.partition("-")
+            pid = rest.partition("-")[0]
+            if host == _host() and pid.isdigit() and _alive(int(pid)):
+                continue
+            if host != _host() and pid.isdigit():
+                continue  # another machine's work in progress
+            shutil.rmtree(d, ignore_errors=True)
 
     def clean(self, node_prefix: str | None = None) -> int:
         """Remove all artifacts (or those of one stage: node ``stage`` or ``stage-*``); count removed."""
         if not self.root.is_dir():
             return 0
         removed = 0
-        with self.locked():
+        with self.locked(exclusive=True):
             for d in sorted(self.root.iterdir()):
                 if d.name.startswith(".") or not d.is_dir():
                     continue
@@ -143,3 +211,17 @@ class Store:
                 idx = self.root / "index" / f"{d.name}.json"
                 idx.unlink(missing_ok=True)
         return removed
+
+
+def _host() -> str:
+    return socket.gethostname().replace("-", "_") or "host"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True

@@ -126,13 +126,15 @@ def test07_force_reruns_that_stage_only(tmp_path):
     assert s.ran() == ["double"]
 
 
-def test08_lock_refuses_a_second_run(tmp_path):
+def test08_runs_share_the_cache_and_clean_waits_for_them(tmp_path):
     store = Store(tmp_path)
     with store.locked():
-        with pytest.raises(CacheLockedError, match="in use by another dermis process"):
-            with Store(tmp_path).locked():
+        with Store(tmp_path).locked():                  # a second run (or Dask worker) may share
+            pass
+        with pytest.raises(CacheLockedError, match="another dermis process holds it"):
+            with Store(tmp_path).locked(exclusive=True):  # clean is refused while a run holds it
                 pass
-    with Store(tmp_path).locked():                      # released afterwards
+    with Store(tmp_path).locked(exclusive=True):        # released afterwards
         pass
 
 
@@ -145,8 +147,69 @@ def test09_metadata_records_timing_and_key(tmp_path):
     assert meta["parts"]["params"] == {"b": 2.0}
 
 
-def test10_debris_of_killed_runs_is_removed_on_lock(tmp_path):
+def test10_debris_of_dead_processes_is_removed_live_work_is_kept(tmp_path):
+    import os
+    from dermis.pipeline.store import _host
     store = Store(tmp_path)
-    (tmp_path / ".tmp" / "deadbeef").mkdir(parents=True)
+    dead = tmp_path / ".tmp" / "deadbeef"                              # an old run's leftovers
+    live = tmp_path / ".tmp" / f"{_host()}-{os.getpid()}-cafe"         # this process: in use
+    other = tmp_path / ".tmp" / "otherhost-123-beef"                   # another machine's
+    for d in (dead, live, other):
+        d.mkdir(parents=True)
     with store.locked():
-        assert not (tmp_path / ".tmp").exists()
+        assert not dead.exists() and live.exists() and other.exists()
+
+
+def _entry(tmp_path, nid):
+    return next((tmp_path / nid).iterdir())
+
+
+@pytest.mark.parametrize("damage", ["delete", "truncate", "flip"])
+def test11_a_damaged_entry_is_reported_and_rebuilt_never_used(tmp_path, damage):
+    store = Store(tmp_path)
+    run(store)
+    data = _entry(tmp_path, "double") / "data.npz"
+    if damage == "delete":
+        data.unlink()
+    elif damage == "truncate":
+        data.write_bytes(data.read_bytes()[:40])
+    else:
+        raw = bytearray(data.read_bytes())
+        raw[len(raw) // 2] ^= 0xFF
+        data.write_bytes(bytes(raw))
+    status = {r.id: r for r in run(store, dry_run=True).nodes}
+    assert status["double"].status == "stale" and status["double"].reasons[0].startswith("corrupted")
+    assert status["source"].status == "cached"
+    notices = []
+    CALLS.clear()
+    nodes = toy_graph()
+    s = execute(nodes, ["add_b"], store, Ctx(), notice=notices.append)
+    assert s.ran() == ["double"] and CALLS == ["double"]   # same key: add_b's entry stays valid
+    assert len(notices) == 1 and "double" in notices[0] and "rebuilding" in notices[0]
+    assert store.verify("double", s.nodes[1].key) is None
+
+
+def test12_one_key_written_twice_leaves_one_valid_entry(tmp_path):
+    """Two writers of the same key (e.g. two processes): the second finds a valid entry and
+    drops its own copy; the entry is intact and the temporary folders are gone."""
+    store = Store(tmp_path)
+    for value in ("first", "second"):
+        with store.writing("n", "k") as tmp:
+            (tmp / "x.txt").write_text(value)
+            (tmp / "meta.json").write_text("{}")
+    assert store.verify("n", "k") is None
+    assert (tmp_path / "n" / "k" / "x.txt").read_text() == "first"
+    assert not list((tmp_path / ".tmp").iterdir())
+
+
+def test13_non_finite_artifacts_are_refused(tmp_path):
+    from dermis.pipeline.graph import StageFailure
+    store = Store(tmp_path)
+
+    def nan_stage(inputs, ctx):
+        return StageResult(_profile(float("nan")))
+
+    nodes = {"s": Node("s", "s", __name__, {}, (), nan_stage)}
+    with pytest.raises(StageFailure, match="non-finite"):
+        execute(nodes, ["s"], store, Ctx())
+    assert not (tmp_path / "s").exists()
