@@ -60,6 +60,9 @@ class Node:
     deps: dict | tuple = ()
     fn: Callable[..., StageResult] | None = None
     label: str = ""                  # short human description
+    # params that only say WHERE an input file is ("file", "lights[].map"): left out of the
+    # key, whose file content enters through a digest param instead (same scene, any spelling)
+    locations: tuple = ()
 
     def __post_init__(self):
         if not isinstance(self.deps, dict):
@@ -86,11 +89,28 @@ def _canonical(obj) -> str:
     return json.dumps(obj, sort_keys=True, separators=(",", ":"), default=str)
 
 
+def _without(params, paths) -> Any:
+    """``params`` with the dotted ``paths`` removed (``a[].b``: key b of every item of list a)."""
+    out = json.loads(_canonical(params))
+    for path in paths:
+        head, _, rest = path.partition(".")
+        if head.endswith("[]"):
+            for item in out.get(head[:-2], []):
+                if isinstance(item, dict):
+                    item.pop(rest, None)
+        elif rest:
+            if isinstance(out.get(head), dict):
+                out[head] = _without(out[head], [rest])
+        else:
+            out.pop(head, None)
+    return out
+
+
 def key_parts(node: Node, upstream_keys: dict[str, str]) -> dict:
     return {
         "stage": node.stage,
         "code": node.code_hash(),
-        "params": json.loads(_canonical(node.params)),
+        "params": _without(node.params, node.locations),
         "deps": {d: upstream_keys[d] for d in node.dep_ids},
     }
 

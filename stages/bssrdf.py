@@ -35,7 +35,7 @@ def node(scene, label: str, lights: tuple, geometry: str) -> Node:
               "bump": bump, "bssrdf": asdict(scene.bssrdf), **light_params(lights),
               "seed": scene.mesh.seed, "eta": scene.optics.layers[0].eta / scene.optics.eta_above}
     return Node(f"render-bssrdf-{label}-{geometry}", NAME, __name__, params, deps,
-                label=f"bssrdf / {label} / {geometry}")
+                label=f"bssrdf / {label} / {geometry}", locations=("lights[].map",))
 
 
 def _octree(inputs: dict, b: dict, memo: dict):

@@ -23,7 +23,8 @@ def node(scene, mesh_node: str, label: str, lights: tuple) -> Node:
     params = {**light_params(lights), "samples": scene.bssrdf.irradiance_samples,
               "seed": scene.mesh.seed}
     return Node(f"irradiance-{mesh_node}-{label}", NAME, __name__, params,
-                {"points": f"samples-{mesh_node}", "mesh": mesh_node}, label=f"irradiance {label}")
+                {"points": f"samples-{mesh_node}", "mesh": mesh_node}, label=f"irradiance {label}",
+                locations=("lights[].map",))
 
 
 def run(params: dict, inputs: dict, ctx) -> StageResult:

@@ -25,7 +25,8 @@ def node(scene) -> Node:
     params = {"source": "scan", "file": str(path), "file_sha256": file_digest(path),
               "units": m.units, "texture": str(texture) if texture else "",
               "texture_sha256": file_digest(texture) if texture else ""}
-    return Node(NAME, NAME, __name__, params, (), label="load scan")
+    return Node(NAME, NAME, __name__, params, (), label="load scan",
+                locations=("file", "texture"))
 
 
 def run(params: dict, inputs: dict, ctx) -> StageResult:

@@ -169,3 +169,19 @@ def test07_closure_follows_function_local_imports():
     # procedural_head and scan_io are imported inside run(), not at module level
     assert "dermis.stages.procedural_head" in closure and "dermis.stages.scan_io" in closure
     assert "dermis.pipeline.graph" not in closure   # engine bookkeeping is not hashed
+
+
+def test08_keys_follow_file_content_not_path_spelling(tmp_path):
+    """The same scene reached by another spelling of its path, or a copy of its assets in
+    another folder, gets the same keys: input files enter keys by content."""
+    import shutil
+    a = _keys(load_scene(REPO / "scenes" / "default.toml"))
+    b = _keys(load_scene(REPO / "scenes" / ".." / "scenes" / "default.toml"))
+    assert a == b
+    shutil.copytree(REPO / "scenes", tmp_path / "scenes")
+    c = _keys(load_scene(tmp_path / "scenes" / "default.toml"))
+    assert c == a
+    (tmp_path / "scenes" / "assets" / "lps_head" / "Map-COL.jpg").write_bytes(
+        (REPO / "scenes" / "assets" / "lps_head" / "Map-COL.jpg").read_bytes()[:-1] + b"\0")
+    d = _keys(load_scene(tmp_path / "scenes" / "default.toml"))
+    assert d["mesh_source"] != a["mesh_source"]          # content changed: key changed
