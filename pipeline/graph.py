@@ -210,6 +210,10 @@ class RunSummary:
 
 
 def _load(store: Store, node_id: str, key: str):
+    problem = store.verify(node_id, key)
+    if problem is not None:  # changed since planning: refuse rather than use it
+        raise DermisError(f"cache entry {store.artifact_dir(node_id, key)} is corrupted "
+                          f"({problem}); run again to rebuild it")
     d = store.artifact_dir(node_id, key)
     if (d / "fields.json").is_file():
         return artifacts.load(d)

@@ -53,6 +53,7 @@ class Store:
     def __init__(self, root: str | os.PathLike):
         self.root = Path(root).resolve()
 
+
     # -- paths
     def artifact_dir(self, node: str, key: str) -> Path:
         return self.root / node / key
@@ -80,9 +81,16 @@ class Store:
         self._atomic_write_text(self.root / "index" / f"{node}.json",
                                 json.dumps(entry, indent=1, sort_keys=True))
 
-    def verify(self, node: str, key: str) -> str | None:
-        """None if the entry is complete and intact, else why not (missing file, bad checksum)."""
+    def verify(self, node: str, key: str, *, deep: bool = True) -> str | None:
+        """None if the entry is complete and intact, else why not (missing file, bad checksum).
+
+        ``deep=False`` checks only that every recorded file is there with its recorded size
+        (cheap, for planning); entries are verified deeply before their data is used.
+        """
         d = self.artifact_dir(node, key)
+        stamp = _stamp(d)
+        if deep and stamp is not None and _VERIFIED.get(d) == stamp:
+            return None
         try:
             meta = json.loads((d / META).read_text())
         except FileNotFoundError:
@@ -92,12 +100,17 @@ class Store:
         sums = meta.get("checksums")
         if not isinstance(sums, dict):
             return f"{META} records no checksums"
+        sizes = meta.get("sizes", {})
         for name, digest in sums.items():
             f = d / name
             if not f.is_file():
                 return f"{name} is missing"
-            if file_digest(f) != digest:
+            if name in sizes and f.stat().st_size != sizes[name]:
+                return f"{name} has {f.stat().st_size} bytes, not {sizes[name]}"
+            if deep and file_digest(f) != digest:
                 return f"{name} does not match its checksum"
+        if deep and stamp is not None:
+            _VERIFIED[d] = stamp
         return None
 
     # -- writing
@@ -116,8 +129,9 @@ class Store:
             if not (tmp / META).is_file():
                 raise RuntimeError(f"stage wrote no {META} for {node}")
             meta = json.loads((tmp / META).read_text())
-            meta["checksums"] = {p.name: file_digest(p) for p in sorted(tmp.iterdir())
-                                 if p.is_file() and p.name != META}
+            data = [p for p in sorted(tmp.iterdir()) if p.is_file() and p.name != META]
+            meta["checksums"] = {p.name: file_digest(p) for p in data}
+            meta["sizes"] = {p.name: p.stat().st_size for p in data}
             (tmp / META).write_text(json.dumps(meta, indent=1, sort_keys=True, default=str))
             final = self.artifact_dir(node, key)
             final.parent.mkdir(parents=True, exist_ok=True)
@@ -211,6 +225,19 @@ class Store:
                 idx = self.root / "index" / f"{d.name}.json"
                 idx.unlink(missing_ok=True)
         return removed
+
+
+# Entries deep-verified by this process, with the (size, mtime) of every file then: a file
+# rewritten since is hashed again.
+_VERIFIED: dict[Path, tuple] = {}
+
+
+def _stamp(d: Path) -> tuple | None:
+    try:
+        return tuple((p.name, st.st_size, st.st_mtime_ns) for p in sorted(d.iterdir())
+                     for st in [p.stat()])
+    except OSError:
+        return None
 
 
 def _host() -> str:
