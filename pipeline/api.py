@@ -16,7 +16,7 @@ from .config import Scene, load_scene
 from .errors import DermisError
 from .graph import RunSummary, execute
 from .plan import build_graph
-from .registry import STAGE_NAMES
+from .registry import STAGE_NAMES, stage
 from .store import CACHE_ENV_VAR, Store
 
 __all__ = ["load_scene", "run", "status", "clean", "devices", "cache_dir_for", "RunContext"]
@@ -38,6 +38,12 @@ class RunContext:
             from .cl import get_env
             self._env = get_env(self.device)
         return self._env
+
+    @property
+    def build_seconds(self) -> float:
+        """Seconds this process has spent building OpenCL programs so far."""
+        from .cl import build_seconds
+        return build_seconds()
 
     @property
     def device_description(self) -> str:
@@ -121,11 +127,13 @@ def _export(scene: Scene, store: Store, summary: RunSummary) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     for rep in summary.nodes:
         meta = store.meta(rep.id, rep.key)
+        folder = (getattr(stage(rep.stage), "OUTPUT_FOLDER", rep.stage)
+                  if rep.stage in STAGE_NAMES else rep.stage)
         for name in meta.get("files", []):
             src = Path(rep.path) / name
             if src.is_file():
-                (out / rep.stage).mkdir(exist_ok=True)
-                shutil.copy2(src, out / rep.stage / name)
+                (out / folder).mkdir(exist_ok=True)
+                shutil.copy2(src, out / folder / name)
     (out / "run.json").write_text(json.dumps({
         "scene": scene.path, "cache": str(store.root),
         "nodes": [{"id": r.id, "status": r.status, "seconds": r.seconds,

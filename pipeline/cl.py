@@ -17,6 +17,7 @@ import hashlib
 import os
 import re
 import threading
+import time
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -203,6 +204,7 @@ class ClEnv:
             if not path.is_file():
                 raise KernelBuildError(f"OpenCL source {path} does not exist")
             src = f'#line 1 "{path}"\n' + path.read_text()
+            t0 = time.perf_counter()
             try:
                 prg = cl.Program(self.context, src).build(options=opts)
             except cl.RuntimeError as exc:
@@ -212,6 +214,7 @@ class ClEnv:
                     f"OpenCL build of {where} failed on {self.description}\n"
                     f"options: {' '.join(opts)}\ncompiler log:\n{log.strip()}") from None
             self._programs[key] = prg
+            _BUILD_SECONDS[0] += time.perf_counter() - t0
             return prg
 
     def kernel(self, name: str, kernel_name: str, defines: dict | None = None):
@@ -229,6 +232,14 @@ def _first_error_location(log: str, path: Path) -> str:
 
 
 _ENVS: dict[str, ClEnv] = {}
+
+
+_BUILD_SECONDS = [0.0]   # this process's time in OpenCL program builds (each is done once)
+
+
+def build_seconds() -> float:
+    """Seconds this process has spent building OpenCL programs so far."""
+    return _BUILD_SECONDS[0]
 
 
 def get_env(spec: str | None = None) -> ClEnv:

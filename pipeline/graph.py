@@ -259,6 +259,7 @@ def execute(nodes: dict[str, Node], targets: list[str], store: Store, ctx, *,
         if progress:
             progress(node, 0.0)
         t0 = time.perf_counter()
+        build0 = ctx.build_seconds
         with store.writing(nid, key) as tmp:
             ctx.out_dir = tmp
             ctx.progress = (lambda f, _n=node: progress(_n, f)) if progress else None
@@ -279,8 +280,10 @@ def execute(nodes: dict[str, Node], targets: list[str], store: Store, ctx, *,
             kernel_s = float(info.pop("kernel_seconds", 0.0) or 0.0)
             if result.artifact is not None and isinstance(getattr(result.artifact, "info", None), dict):
                 kernel_s = kernel_s or float(result.artifact.info.get("kernel_seconds", 0.0) or 0.0)
+            build_s = ctx.build_seconds - build0   # OpenCL program builds: once per process
             meta = {"node": nid, "stage": node.stage, "key": key, "parts": parts,
                     "seconds": seconds, "kernel_seconds": kernel_s, "info": info,
+                    "build_seconds": build_s,
                     "files": [str(f) for f in result.files], "device": ctx.device_description,
                     "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
             (tmp / META).write_text(json.dumps(meta, indent=1, sort_keys=True, default=str))

@@ -55,6 +55,7 @@ def _write(path: Path, img: np.ndarray, fmt: str) -> Path:
     if img.ndim == 2:
         img = img[..., None]
     spec = oiio.ImageSpec(img.shape[1], img.shape[0], img.shape[2], fmt)
+    spec.attribute("DateTime", "")   # no time stamp: the same pixels give the same bytes
     out = oiio.ImageOutput.create(str(path))
     if out is None or not out.open(str(path), spec):
         raise DermisError(f"cannot write {path}: {oiio.geterror()}")

@@ -25,6 +25,7 @@ from dermis.physics.lights import light_params
 NAME = "bssrdf"
 VERSION = 1
 KERNELS = ()
+OUTPUT_FOLDER = "render"   # exported beside the BRDF images: render/bssrdf-<light>-<geometry>.exr
 
 
 def node(scene, label: str, lights: tuple, geometry: str) -> Node:
