@@ -17,6 +17,7 @@ class Ctx:
     out_dir = None
     progress = None
     device_description = "host"
+    build_seconds = 0.0
 
 
 def _profile(value):
