@@ -89,11 +89,14 @@ def main():
         args.points, args.queries, args.brute_queries = 30_000, 50_000, 500
 
     from dermis.pipeline.cl import get_env
+    from dermis.pipeline.config import BssrdfConfig
     from dermis.physics.layers import PRESETS
     from dermis.stages import gather as G, profiles, samples
 
+    shipped = BssrdfConfig()  # the scene defaults: the epsilon and leaf size the pipeline runs
     env = get_env()
-    res = {"device": env.description, "preset": args.preset, "note":
+    res = {"device": env.description, "preset": args.preset,
+           "shipped": {"epsilon": shipped.epsilon, "leaf_size": shipped.leaf_size}, "note":
            "2-core shared machine, other jobs running: times noisy (+-20 %)",
            "loadavg_start": list(__import__("os").getloadavg())}
     prof = profiles.build_profiles(PRESETS[args.preset])
@@ -120,13 +123,13 @@ def main():
     sub = rng.choice(len(q), min(args.brute_queries, len(q)), replace=False)
 
     t = time.perf_counter()
-    tree = G.build_octree(sp.positions, sp.areas, e, leaf_size=G.DEFAULT_LEAF_SIZE,
+    tree = G.build_octree(sp.positions, sp.areas, e, leaf_size=shipped.leaf_size,
                           kernel_sigma_mm=sp.info.get("kernel_sigma_mm"))
     res["octree_build_seconds"] = time.perf_counter() - t
     res["octree"] = tree.info
     print(f"{mesh_name}: {len(sp.positions)} points, {len(q)} queries, tree {tree.info}", flush=True)
 
-    b, sb = G.gather(tree, prof, q[sub], env=env, brute_force=True)
+    b, sb = G.gather(tree, prof, q[sub], epsilon=None, env=env, brute_force=True)
     brute_full = sb["kernel_seconds"] * len(q) / len(sub)
     res["brute"] = {"subset_queries": len(sub), "subset_kernel_s": sb["kernel_seconds"],
                     "estimated_full_kernel_s": brute_full}
@@ -140,7 +143,8 @@ def main():
              "tile16_exact": {"expand_mm": 1e30}, "query": {"tile": 1}}
     for kw in walks.values():  # build/warm the kernels
         for second in (True, False):
-            G.gather(tree, prof, q[:1000], env=env, epsilon=0.1, second_order=second, **kw)
+            G.gather(tree, prof, q[:1000], env=env, epsilon=0.1,
+                     tuning=G.GatherTuning(second_order=second, **kw))
     rows = []
     for walk, kw in walks.items():
         for second in (True, False):
@@ -148,7 +152,8 @@ def main():
                 if (not second and (eps > 0.4 or walk != "query")) or \
                         (walk in ("tile16_exact", "tile16_nosub") and eps not in (0.6, 0.5, 0.4)):
                     continue
-                h, st = G.gather(tree, prof, q, env=env, epsilon=eps, second_order=second, **kw)
+                h, st = G.gather(tree, prof, q, env=env, epsilon=eps,
+                                 tuning=G.GatherTuning(second_order=second, **kw))
                 err = rel_rmse(h[sub], b)
                 row = {"walk": walk, "epsilon": eps, "second_order": second,
                        "kernel_s": st["kernel_seconds"], "rel_rmse": err,
@@ -160,21 +165,23 @@ def main():
     res["epsilon_sweep"] = rows
     res["loadavg_after_sweep"] = list(__import__("os").getloadavg())
 
-    # query order (at the default epsilon): Morton vs scanline vs random
+    # query order (at the shipped epsilon): Morton vs scanline vs random (the tile walk always
+    # sorts, so sort_queries=False only changes the launch order of the per-query walk)
     order_rows = []
     perm = rng.permutation(len(q))
     for name, qq, srt in (("morton", q, True), ("scanline", q, False), ("random", q[perm], False)):
-        _, st = G.gather(tree, prof, qq, env=env, epsilon=G.DEFAULT_EPSILON, sort_queries=srt)
+        _, st = G.gather(tree, prof, qq, env=env, epsilon=shipped.epsilon,
+                         tuning=G.GatherTuning(sort_queries=srt))
         order_rows.append({"order": name, "kernel_s": st["kernel_seconds"]})
         print(f"order {name}: {st['kernel_seconds']:.2f} s", flush=True)
     res["query_order"] = order_rows
 
-    # leaf size (at the default epsilon)
+    # leaf size (at the shipped epsilon and at 0.6)
     leaf_rows = []
     for ls in (4, 8, 16, 32):
         tr = G.build_octree(sp.positions, sp.areas, e, leaf_size=ls,
                             kernel_sigma_mm=sp.info.get("kernel_sigma_mm"))
-        for eps in (G.DEFAULT_EPSILON, 0.6):
+        for eps in (shipped.epsilon, 0.6):
             h, st = G.gather(tr, prof, q, env=env, epsilon=eps)
             leaf_rows.append({"leaf_size": ls, "epsilon": eps, "kernel_s": st["kernel_seconds"],
                               "rel_rmse": rel_rmse(h[sub], b), "nodes": tr.info["nodes"]})
@@ -182,15 +189,15 @@ def main():
                   f"{100 * leaf_rows[-1]['rel_rmse']:.3f} %", flush=True)
     res["leaf_size"] = leaf_rows
 
-    # growth with the number of points (fixed query subset of 64k, default epsilon)
+    # growth with the number of points (fixed query subset of 64k, shipped epsilon)
     growth = []
     qg = q[rng.choice(len(q), min(64_000, len(q)), replace=False)]
     for n in sorted({args.points // 16, args.points // 4, args.points}):
         spn, en, _ = make_points(n, seed=2) if n != args.points else (sp, e, None)
         tr = G.build_octree(spn.positions, spn.areas, en,
                             kernel_sigma_mm=spn.info.get("kernel_sigma_mm"))
-        _, st = G.gather(tr, prof, qg, env=env, epsilon=G.DEFAULT_EPSILON)
-        _, sbn = G.gather(tr, prof, qg[:500], env=env, brute_force=True)
+        _, st = G.gather(tr, prof, qg, env=env, epsilon=shipped.epsilon)
+        _, sbn = G.gather(tr, prof, qg[:500], epsilon=None, env=env, brute_force=True)
         growth.append({"points": len(spn.positions), "tree_kernel_s": st["kernel_seconds"],
                        "brute_kernel_s_est": sbn["kernel_seconds"] * len(qg) / 500,
                        "queries": len(qg)})

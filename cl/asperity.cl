@@ -1,4 +1,4 @@
-/* asperity.cl - Koenderink-Pont asperity scattering term (physics.md s5).
+/* asperity.cl - Koenderink-Pont asperity scattering term (docs/physics.md §5).
  *
  * Source: J. J. Koenderink, S. C. Pont, "The secret of velvety skin", Machine Vision and
  * Applications 14:260-268, 2003 (doi:10.1007/s00138-002-0089-7): a thin layer (thickness

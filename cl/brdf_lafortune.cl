@@ -1,10 +1,10 @@
-/* brdf_lafortune.cl - measured-skin Lafortune BRDF with an albedo texture (physics.md s1).
+/* brdf_lafortune.cl - measured-skin Lafortune BRDF with an albedo texture (docs/physics.md §1).
  *
  * Model: generalised cosine lobes, Lafortune, Foo, Torrance & Greenberg, "Non-linear
  * approximation of reflectance functions", SIGGRAPH 1997, eq. 4, isotropic (Cx = Cy):
  *     f(wo, wi) = albedo / pi + sum_k max(0, Cxy_k (wo.x wi.x + wo.y wi.y) + Cz_k wo.z wi.z)^n_k
  * per RGB channel.  Coefficients: the three-lobe skin fit shipped in pbrt-v1
- * materials/skin.cpp (table in physics.md s1, defaults in stages/brdf_models.py
+ * materials/skin.cpp (table in docs/physics.md §1, defaults in stages/brdf_models.py
  * LafortuneParams).  Variant: per-lobe rho_s folded into C (as pbrt-v1), and the constant
  * rho_d replaced by a linear-RGB albedo per shading point, as the thesis did (Arizpe 2006).
  * Energy: the directional albedo is  albedo + L(theta_o), where the fitted lobes alone give

@@ -1,7 +1,7 @@
 /* bssrdf_gather.cl - hierarchical (Jensen-Buhler 2002) and brute-force gather of radiant
  * exitance from cached irradiance sample points through a radial diffusion profile.
  *
- * Model: M_o(x) = sum_p R(|x - p|) E_p A_p  (physics.md section 4; Jensen & Buhler 2002,
+ * Model: M_o(x) = sum_p R(|x - p|) E_p A_p  (docs/physics.md §4; Jensen & Buhler 2002,
  * "A rapid hierarchical rendering technique for translucent materials", eq. 3-4).  R(r) is
  * the layer file's radial profile R(r) in 1/mm^2 (stages/profiles.py), resampled on the
  * host into a uniform table that is zero beyond the per-channel cut-off radius.  The host
@@ -168,130 +168,25 @@ __kernel void gather_tree(__global const float4 *query,     /* (Q) x, y, z, unus
     visits[q] = count;
 }
 
-/* Tile walk (the default; stages/gather.py ``tile``): one work-item gathers for TILE queries
- * that are neighbours on the Morton curve, walking the tree once for all of them.  The tile
- * is bounded by a sphere (centre c, radius rt, host-computed), and every test uses the
- * lower bound d_c - rt of the distance from any of its queries to the node: a node is
- * skipped only when it is beyond the cut-off for every query, clustered only when every
+/* Tile walk (the default; stages/gather.py GatherTuning.tile): one work-item gathers for
+ * TILE queries that are neighbours on the Morton curve, walking the tree once for all of
+ * them.  The tile is bounded by a sphere (centre c, radius rt, host-computed), and every test
+ * uses the lower bound d_c - rt of the distance from any of its queries to the node: a node
+ * is skipped only when it is beyond the cut-off for every query, clustered only when every
  * query may cluster it (so each query sees the same or finer clusters than its own walk
  * would give it: the error at a given epsilon can only fall), otherwise opened.  At each
- * cluster or leaf point the TILE queries are evaluated in a fixed-length loop over private
- * arrays, which LLVM vectorises (PoCL cannot vectorise the data-dependent walk across
- * work-items).  Node record for this walk: n0.w = reach = cut-off + radius, n1.w = open =
- * max(sqrt(A / epsilon), radius) (distances, not squares, because of the - rt).
- * ptab[3k..3k+2] = (R rgb, -), (R'' - R'/r rgb, -), (R'/r rgb, -) at r = k h.
- * Output: out[g * TILE + l] = M rgb of lane l; visits[g] = nodes + points walked. */
+ * cluster or leaf point the TILE queries are evaluated as float<TILE> vectors (TILE 4, 8 or
+ * 16; PoCL cannot vectorise the data-dependent walk across work-items).  Node record for
+ * this walk: n0.w = reach = cut-off + radius, n1.w = open = max(sqrt(A / epsilon), radius)
+ * (distances, not squares, because of the - rt).
+ * Queries and results are planar per tile: query[(g * 3 + axis) * TILE + l],
+ * out[(g * 3 + channel) * TILE + l]; visits[g] = nodes + points walked.  Table rows are
+ * fetched lane by lane through a private index array (the only scalar part); everything else
+ * is vector arithmetic.
+ * ptab row k: 12 floats (R rgb, R''-R'/r rgb, R'/r rgb, 0 0 0); table row k: R rgb, 0. */
 #ifndef TILE
 #define TILE 16
 #endif
-__kernel void gather_tile(__global const float4 *query,     /* (G TILE) x, y, z, - */
-                          __global const float4 *sphere,    /* (G) tile centre xyz, radius */
-                          __global const float4 *node,
-                          __global const int *node_start,
-                          const int n_nodes,
-                          __global const float4 *pts_pa,
-                          __global const float4 *pts_e,
-                          __global const float4 *table,
-                          __global const float4 *ptab,
-                          const float inv_h,
-                          const float4 rd,
-                          const int n_tiles,
-                          __global float4 *out,
-                          __global int *visits)
-{
-    int g = get_global_id(0);
-    if (g >= n_tiles) return;
-    float qx[TILE], qy[TILE], qz[TILE], mr[TILE], mg[TILE], mb[TILE];
-#if THESIS_NORM
-    float wr[TILE], wg[TILE], wb[TILE];
-#endif
-    for (int l = 0; l < TILE; ++l) {
-        float4 p = query[g * TILE + l];
-        qx[l] = p.x; qy[l] = p.y; qz[l] = p.z;
-        mr[l] = 0.0f; mg[l] = 0.0f; mb[l] = 0.0f;
-#if THESIS_NORM
-        wr[l] = 0.0f; wg[l] = 0.0f; wb[l] = 0.0f;
-#endif
-    }
-    const float tmax = (float)(TABLE_N - 2);
-    float4 ts = sphere[g];
-    int count = 0;
-    int i = 0;
-    while (i < n_nodes) {
-        float4 n0 = node[4 * i];
-        float4 n3 = node[4 * i + 3];
-        int skip = as_int(n3.w);
-        float3 dc = n0.xyz - ts.xyz;
-        float dlow = sqrt(dot(dc, dc)) - ts.w;
-        count++;
-        if (dlow > n0.w) { i = skip; continue; }                  /* beyond cut-off for all */
-        float4 n1 = node[4 * i + 1];
-        if (dlow > n1.w) {                                         /* cluster for all */
-            float4 c0 = node[4 * i + 2];
-            float ht = 0.5f * (c0.x + c0.w + n3.y);  /* 1/2 tr C */
-            for (int l = 0; l < TILE; ++l) {
-                float dx = n0.x - qx[l], dy = n0.y - qy[l], dz = n0.z - qz[l];
-                float d2 = dx * dx + dy * dy + dz * dz;
-                float t = fmin(sqrt(d2) * inv_h, tmax);
-                int k = (int)t;
-                float f = t - (float)k;
-#if SECOND_ORDER
-                float4 r0 = ptab[3 * k], a0 = ptab[3 * k + 1], b0 = ptab[3 * k + 2];
-                float4 r1 = ptab[3 * k + 3], a1 = ptab[3 * k + 4], b1 = ptab[3 * k + 5];
-                float cx = c0.x * dx + c0.y * dy + c0.z * dz;
-                float cy = c0.y * dx + c0.w * dy + n3.x * dz;
-                float cz = c0.z * dx + n3.x * dy + n3.y * dz;
-                float quad = 0.5f * (dx * cx + dy * cy + dz * cz) / d2;
-                float4 r = mix(r0, r1, f) + mix(a0, a1, f) * quad + mix(b0, b1, f) * ht;
-                r = fmax(r, 0.0f);
-#else
-                float4 r = mix(table[k], table[k + 1], f);
-#endif
-                mr[l] += r.x * n1.x; mg[l] += r.y * n1.y; mb[l] += r.z * n1.z;
-#if THESIS_NORM
-                wr[l] += r.x * n3.z; wg[l] += r.y * n3.z; wb[l] += r.z * n3.z;
-#endif
-            }
-            i = skip;
-            continue;
-        }
-        if (skip == i + 1) {                                       /* leaf: its points */
-            int end = node_start[i + 1];
-            int j = node_start[i];
-            count += end - j;
-            for (; j < end; ++j) {
-                float4 p = pts_pa[j];
-                float4 e = pts_e[j];
-                for (int l = 0; l < TILE; ++l) {
-                    float dx = p.x - qx[l], dy = p.y - qy[l], dz = p.z - qz[l];
-                    float t = fmin(sqrt(dx * dx + dy * dy + dz * dz) * inv_h, tmax);
-                    int k = (int)t;
-                    float f = t - (float)k;
-                    float4 r = mix(table[k], table[k + 1], f);
-                    mr[l] += r.x * e.x; mg[l] += r.y * e.y; mb[l] += r.z * e.z;
-#if THESIS_NORM
-                    wr[l] += r.x * p.w; wg[l] += r.y * p.w; wb[l] += r.z * p.w;
-#endif
-                }
-            }
-        }
-        i++;
-    }
-    for (int l = 0; l < TILE; ++l) {
-#if THESIS_NORM
-        out[g * TILE + l] = finish((float3)(mr[l], mg[l], mb[l]), (float3)(wr[l], wg[l], wb[l]), rd);
-#else
-        out[g * TILE + l] = (float4)(mr[l], mg[l], mb[l], 0.0f);
-#endif
-    }
-    visits[g] = count;
-}
-
-/* Explicit-vector variant of gather_tile: the TILE lanes are float<TILE> vectors (TILE 4, 8
- * or 16); queries and results planar per tile: query[(g * 3 + axis) * TILE + l],
- * out[(g * 3 + channel) * TILE + l].  Table rows are fetched lane by lane through a private
- * index array (the only scalar part); everything else is vector arithmetic.
- * ptab row k: 12 floats (R rgb, R''-R'/r rgb, R'/r rgb, 0 0 0); table row k: R rgb, 0. */
 #if TILE == 4 || TILE == 8 || TILE == 16   /* OpenCL vector widths */
 #define CATX(a, b) a##b
 #define CAT(a, b) CATX(a, b)
@@ -348,7 +243,7 @@ inline void xlookup(__global const float4 *xtab, float t, float4 *r, float4 *r1,
  * every sub-tile is expanded about each sub-tile's centre: 4 contiguous xtab lookups instead
  * of 16 gathered table rows.  Same formula and error bound per sub-tile as the tile
  * expansion, with the sub-tile's radius (median ~1/3 of the tile's on the bench head).
- * Measured on bench/bench_gather.py's head: see stages/gather.py (subtiles). */
+ * Measured on bench/bench_gather.py's head: see stages/gather.py (GatherTuning.subtiles). */
 #if TILE == 16
 #define SUBTILE 1
 #define S16(v) (float16)(v, v, v, v)

@@ -2,18 +2,19 @@
 
 Three models, one ``.cl`` file each (their header comments give equations and variants):
 
-* ``lafortune`` - measured-skin Lafortune BRDF with an albedo texture (physics.md s1),
+* ``lafortune`` - measured-skin Lafortune BRDF with an albedo texture (docs/physics.md §1),
   ``cl/brdf_lafortune.cl``;
 * ``hk93`` - Hanrahan-Krueger two-layer single scattering + constant multiple scattering
-  (physics.md s2), ``cl/brdf_hk93.cl``;
+  (docs/physics.md §2), ``cl/brdf_hk93.cl``;
 * ``asperity`` - Koenderink-Pont asperity scattering term, added on top of a base model
-  (physics.md s5), ``cl/asperity.cl``.
+  (docs/physics.md §5), ``cl/asperity.cl``.
 
 Each parameter dataclass validates itself on construction (:class:`ConfigError` naming the
 field, the value and the rule) and ``pack()``s into the float32 block its kernel reads.
-:func:`evaluate` runs a model's ``<model>_eval`` kernel on arrays of direction pairs; the
-float64 NumPy references ``*_f_np`` are written from the formulas (angles, not the kernel's
-vector algebra) and serve the tests.
+:func:`evaluate` runs a model's ``<model>_eval`` kernel on arrays of direction pairs.  The
+float64 NumPy single-scattering term of HK93 (written from the formulas, in angles, not the
+kernel's vector algebra) stays here because :class:`HK93Params` derives rho_ms from it; the
+tests' float64 references of the three BRDFs are in ``tests/brdf_reference.py``.
 
 Conventions: local shading frame with z along the shading normal, ``wo`` and ``wi`` unit
 vectors pointing away from the surface, f excludes the cosine, RGB linear, mm and 1/mm.
@@ -32,9 +33,7 @@ from dermis.physics.fresnel import dipole_Rd
 
 __all__ = [
     "VERSION", "KERNELS", "MODELS", "LafortuneParams", "HK93Params", "HK93Layer",
-    "AsperityParams", "hk93_params_from_layers", "evaluate", "lafortune_f_np", "hk93_f_np",
-    "asperity_f_np", 
-    "hk93_single_scattering_albedo",
+    "AsperityParams", "hk93_params_from_layers", "evaluate", "hk93_single_scattering_albedo",
     "LAFORTUNE_NPARAMS", "HK93_NPARAMS", "ASPERITY_NPARAMS",
 ]
 
@@ -84,11 +83,11 @@ def _check(ok, name: str, value, unit: str, rule: str) -> None:
 
 
 # --------------------------------------------------------------------------------------
-# Lafortune (physics.md s1)
+# Lafortune (docs/physics.md §1)
 # --------------------------------------------------------------------------------------
 
 # pbrt-v1 materials/skin.cpp three-lobe fit of measured skin (Lafortune et al. 1997 model),
-# table in physics.md s1. Rows: lobe 0 (grazing, non-zero past ~46 deg), lobe 1 (broad),
+# table in docs/physics.md §1. Rows: lobe 0 (grazing, non-zero past ~46 deg), lobe 1 (broad),
 # lobe 2 (sharp specular); columns R, G, B.
 _SKIN_RHO_D = (0.428425, 0.301341, 0.331054)
 _SKIN_CXY = ((-1.131747, -1.016939, -0.966018),
@@ -141,7 +140,7 @@ class LafortuneParams:
 
 
 # --------------------------------------------------------------------------------------
-# Hanrahan-Krueger 1993 (physics.md s2)
+# Hanrahan-Krueger 1993 (docs/physics.md §2)
 # --------------------------------------------------------------------------------------
 
 @dataclass(frozen=True)
@@ -261,7 +260,7 @@ def _default_multiple_scattering(layers: Sequence[HK93Layer], ss_max) -> np.ndar
 
 
 def _default_hk93_layers() -> tuple:
-    # Same skin as the multipole model (physics.md s2: "derive both layers from the same
+    # Same skin as the multipole model (docs/physics.md §2: "derive both layers from the same
     # epidermis/dermis optical parameters"): pipeline.layers PRESETS["two_layer"], an
     # epidermis of 0.25 mm over a semi-infinite dermis, eta 1.4, g 0.8.
     from dermis.physics.layers import PRESETS
@@ -375,9 +374,8 @@ def hk93_params_from_layers(layers, *, multiple_scattering=None) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------
-# Asperity (physics.md s5)
+# Asperity (docs/physics.md §5)
 # --------------------------------------------------------------------------------------
-
 
 
 @dataclass(frozen=True)
@@ -404,7 +402,7 @@ class AsperityParams:
         Optional cap f <= f_max (1/sr); default inf (none: the cosine clamp already bounds f).
     base : str
         Base model the renderer adds the term to; default "lambert" (albedo texture / pi):
-        the thesis's timings (physics.md s7) put its asperity renders below the Lafortune
+        the thesis's timings (docs/physics.md §7) put its asperity renders below the Lafortune
         ones in every light (e.g. 19:45 vs 28:56 for the area light), so its base cannot
         have been Lafortune or HK93 plus an extra term; a Lambertian albedo base is the
         cheaper candidate.  "lafortune" and "hk93" are accepted.
@@ -535,9 +533,9 @@ def evaluate(model: str, wo, wi, params=None, *, albedo=None, env=None) -> np.nd
     return out
 
 
-
 # --------------------------------------------------------------------------------------
-# float64 NumPy references (written from the formulas, in angles; used by the tests)
+# float64 NumPy single scattering of HK93 (written from the formulas, in angles): the
+# pipeline's rho_ms (HK93Params) and the tests' reference (tests/brdf_reference.py)
 # --------------------------------------------------------------------------------------
 
 def _angles(w):
@@ -547,24 +545,6 @@ def _angles(w):
     sin_t = np.hypot(w[:, 0], w[:, 1])
     phi = np.arctan2(w[:, 1], w[:, 0])
     return cos_t, sin_t, phi
-
-
-def lafortune_f_np(wo, wi, params: LafortuneParams | None = None, albedo=None) -> np.ndarray:
-    """Float64 Lafortune BRDF (N, 3): rho/pi + sum_k max(0, Cxy sin sin cos(dphi) + Cz cos cos)^n."""
-    params = params or LafortuneParams()
-    co, so, po = _angles(wo)
-    ci, si, pi_ = _angles(wi)
-    n = co.shape[0]
-    rho = np.broadcast_to(np.asarray(params.rho_d if albedo is None else albedo, np.float64),
-                          (n, 3))
-    horizontal = (so * si * np.cos(po - pi_))[:, None]
-    vertical = (co * ci)[:, None]
-    f = rho / np.pi
-    for k in range(3):
-        base = params.cxy[k] * horizontal + params.cz[k] * vertical
-        f = f + np.where(base > 0, np.abs(base) ** params.n[k], 0.0)
-    front = (co > 0) & (ci > 0)
-    return np.where(front[:, None], f, 0.0)
 
 
 def _fresnel_angles(theta_i, theta_t, eta_rel):
@@ -578,22 +558,9 @@ def _fresnel_angles(theta_i, theta_t, eta_rel):
     return np.where(small, normal, 0.5 * (rs * rs + rp * rp))
 
 
-def hk93_f_np(wo, wi, params: HK93Params | None = None) -> np.ndarray:
-    """Float64 HK93 BRDF (N, 3): single scattering per layer + rho_ms/pi (physics.md s2).
-
-    Walks the stack top-down: the beam refracts by Snell (sin theta_k = sin theta_0 / eta_k),
-    loses the Fresnel transmittance of each interface in both directions and exp(-tau/cos)
-    of each layer above, and each layer adds W HG / (eta^2 (cos_i + cos_o))
-    (1 - exp(-tau (1/cos_i + 1/cos_o))).  Scattering angles from 3-D refracted vectors.
-    """
-    params = params or HK93Params()
-    f = _hk93_single_np(wo, wi, params.layers) + params.multiple_scattering / np.pi
-    front = (np.asarray(wo)[:, 2] > 0) & (np.asarray(wi)[:, 2] > 0)
-    return np.where(front[:, None], f, 0.0)
-
-
 def _hk93_single_np(wo, wi, layers) -> np.ndarray:
-    """Single-scattering part of hk93_f_np (no horizon test, no constant term)."""
+    """HK93 single scattering (N, 3) float64, summed over the layers (docs/physics.md §2):
+    no horizon test, no constant term (tests/brdf_reference.py hk93_f_np adds those)."""
     co, so, po = _angles(wo)
     ci, si, pi_ = _angles(wi)
     # grazing floor HK93_COS_MIN (part of the model, cl/brdf_hk93.cl)
@@ -630,15 +597,3 @@ def _hk93_single_np(wo, wi, layers) -> np.ndarray:
             through = through * np.exp(-sigma_t * lay.thickness_mm * path)
         eta_prev, tho_prev, thi_prev = lay.eta, tho, thi
     return f
-
-
-def asperity_f_np(wo, wi, params: AsperityParams | None = None) -> np.ndarray:
-    """Float64 asperity term (N, 3): albedo Delta / (4 pi lambda max(cos_i, tau) max(cos_o, tau))."""
-    params = params or AsperityParams()
-    co = np.asarray(wo, np.float64)[:, 2]
-    ci = np.asarray(wi, np.float64)[:, 2]
-    tau = params.delta_mm / params.lambda_mm
-    f = params.albedo * (params.delta_mm / (4 * np.pi * params.lambda_mm
-                                            * np.maximum(co, tau) * np.maximum(ci, tau)))[:, None]
-    f = np.minimum(f, params.f_max)
-    return np.where(((co > 0) & (ci > 0))[:, None], f, 0.0)

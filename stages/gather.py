@@ -1,7 +1,7 @@
 """Radiant exitance by hierarchical gather of cached irradiance (Jensen-Buhler 2002 pass 2).
 
-physics.md section 4.  The host builds an octree over the irradiance sample points
-(``stages/samples.py``, irradiance from ``pipeline/lights.py``) and flattens it into arrays;
+docs/physics.md §4.  The host builds an octree over the irradiance sample points
+(``stages/samples.py``, irradiance from ``physics/lights.py``) and flattens it into arrays;
 the device (``cl/bssrdf_gather.cl``) walks it for every query point (pixel surface point)
 and sums M_o(x) = sum R(|x - p|) E A with the layer file's radial profile R
 (``stages/profiles.py``).  :func:`exitance_to_radiance` turns M_o into outgoing radiance.
@@ -39,81 +39,129 @@ Choices made here (and why):
   the second-order Taylor term over the node's positional covariance C (same weights as
   its mean position): sum w R(|x - p|) ~ W [R(d) + 1/2 ((R'' - R'/d) u^T C u + R'/d tr C)],
   u = (p - x) / d.  Six more floats per node; measured 6-13x lower error at equal epsilon
-  (bench/bench_gather.py), which lets epsilon grow and the walk shrink.  ``second_order=
-  False`` gives the plain method.
+  (bench/bench_gather.py), which lets epsilon grow and the walk shrink.
+  ``GatherTuning(second_order=False)`` gives the plain method.
 * **Query order.**  Queries are sorted along a Morton curve before the launch (neighbouring
   work-items walk nearly the same nodes, which keeps the tree in cache) and unsorted after.
-* **Tile walk** (``tile``, default 16).  PoCL cannot vectorise a data-dependent tree walk
-  across work-items, so one work-item takes 16 Morton-adjacent queries, walks the tree once
-  with the tile's bounding sphere (a node is clustered only if every query may cluster it,
-  so no query gets coarser clusters than its own walk would give it) and evaluates the 16
-  queries in float16 vector lanes.  Sources farther than max(3 mm, 6 x tile radius) are
-  evaluated by a cubic Taylor expansion of R in the distance about the tile centre (one
-  scalar table lookup per source instead of 16 gathered ones).  Measured on
-  bench/bench_gather.py's head: ~2x less kernel time at equal error than the per-query walk.
-* **Sub-tile expansion** (``subtiles``, tile 16).  Sources too near for the tile's expansion
-  but far from each of its 4 sub-tiles (4 Morton-adjacent queries, own bounding sphere,
-  median radius ~1/3 of the tile's) are expanded about the sub-tile centres (4 contiguous
-  table rows instead of 16 gathered ones; lanes interleaved so the 4 coefficients spread as
-  one float4 repeated).  The expansion is quartic (d4R/dr4 / 24 in the table's spare
-  slots; measured 0.350 % vs 0.367 % rel RMSE against cubic at eps 0.5, same time).
-  Measured on the bench head (eps 0.6, leaf 16, old expansion radii): 0.196 s vs 0.216 s
-  at equal error; the cheaper expansion then allowed smaller radii (``DEFAULT_EXPAND_MM``).
-* **Default epsilon** ``DEFAULT_EPSILON``: see its comment (bench/bench_gather.py).
+* **Tile walk** (``GatherTuning.tile``, default 16).  PoCL cannot vectorise a data-dependent
+  tree walk across work-items, so one work-item takes 16 Morton-adjacent queries, walks the
+  tree once with the tile's bounding sphere (a node is clustered only if every query may
+  cluster it, so no query gets coarser clusters than its own walk would give it) and
+  evaluates the 16 queries in float16 vector lanes.  Sources farther than max(expand_mm,
+  expand_rt x tile radius) (``GatherTuning``: 1.5 mm, 3) are evaluated by a Taylor expansion
+  of R in the distance about the tile centre (one scalar table lookup per source instead of
+  16 gathered ones).  Measured on bench/bench_gather.py's head: ~2x less kernel time at
+  equal error than the per-query walk.
+* **Sub-tile expansion** (``GatherTuning.subtiles``, tile 16).  Sources too near for the
+  tile's expansion but far from each of its 4 sub-tiles (4 Morton-adjacent queries, own
+  bounding sphere, median radius ~1/3 of the tile's) are expanded about the sub-tile
+  centres (4 contiguous table rows instead of 16 gathered ones; lanes interleaved so the 4
+  coefficients spread as one float4 repeated).  The expansion is quartic (d4R/dr4 / 24 in
+  the table's spare slots; measured 0.350 % vs 0.367 % rel RMSE against cubic at eps 0.5,
+  same time).  Measured on the bench head (eps 0.6, leaf 16, old expansion radii): 0.196 s
+  vs 0.216 s at equal error; the cheaper expansion then allowed smaller radii
+  (``GatherTuning.expand_mm``).
+* **Defaults.**  One per knob.  Epsilon and the leaf size are scene settings: their only
+  defaults are the scene schema's (``[bssrdf]`` in ``pipeline/config.py``, chosen from
+  bench/results/gather.json); :func:`gather` requires epsilon and :func:`build_octree` reads
+  the schema's leaf size.  The research knobs (walk, tile, expansion radii, work-group size)
+  are :class:`GatherTuning` fields, defaulting to what the pipeline runs.
 """
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
+from dermis.pipeline.config import BssrdfConfig
 from dermis.pipeline.errors import DermisError
 from dermis.physics.fresnel import diffuse_fresnel_external, fresnel_transmittance
 
-__all__ = ["VERSION", "KERNELS", "Octree", "build_octree", "gather", "profile_table",
-           "exitance_to_radiance",
-           "morton_order", "blurred_profile", "kernel_sigma", "DEFAULT_EPSILON",
-           "DEFAULT_LEAF_SIZE", "DEFAULT_TILE", "TABLE_N"]
+__all__ = ["VERSION", "KERNELS", "Octree", "build_octree", "gather", "GatherTuning",
+           "profile_table", "exitance_to_radiance", "morton_order", "blurred_profile",
+           "kernel_sigma", "TILE_SIZES", "TABLE_N"]
 
 VERSION = 4
 KERNELS = ("bssrdf_gather.cl",)
 
-# Jensen & Buhler 2002 and pbrt-v2 use leaves of at most 8 points; 16 measured faster with
-# the tile walk (bench/bench_gather.py head, eps 0.5: 0.179 s vs 0.195 s kernel, rel RMSE
-# 0.376 % vs 0.391 %; one tile visit then sums 16 points in vector lanes).
-DEFAULT_LEAF_SIZE = 16
-# Solid-angle criterion, chosen from measurements with second-order clusters.
-# bench/bench_gather.py (LPS head x10 mm, 250k points, 640k camera queries, skin2, cut-off
-# 24 mm, smooth lighting + hard shadow): relative RMSE vs brute force 0.11 % at 0.25, 0.35 %
-# at 0.4.  tests/test_gather.py's bumpy sheet with a x20 shadow step is harsher: 0.09 % at
-# 0.2, 0.7 % at 0.25, 1.5 % at 0.4.  0.2 keeps both well under the issue's 0.5 %.
-# Anchors: pbrt-v2 0.05, Mitsuba 0.2 (zeroth-order clusters).
-DEFAULT_EPSILON = 0.2
+
+def _scene_default(name: str):
+    """The scene schema's default of ``[bssrdf] <name>`` (pipeline/config.py BssrdfConfig):
+    the library keeps no second copy of a scene setting's number."""
+    return next(f.default for f in fields(BssrdfConfig) if f.name == name)
+
+
 # Profile table entries: 1024 over a 30 mm cut-off is a 0.03 mm step, far below the point
 # spacing (>= 0.1 mm) and the profile's own grid (mfp/4), so interpolation adds nothing visible.
 TABLE_N = 1024
 MORTON_BITS = 21
-# Queries per work-item in the tile walk (gather_tile_v); 1 = one query per work-item
-# (gather_tree).  bench/bench_gather.py: 16 beat 8 and 4 at equal error (wider vectors, one
-# walk per 16 queries; its conservative opening test costs ~40 % more visits per query).
-DEFAULT_TILE = 16
-# Far-field Taylor expansion about the tile centre (cl/bssrdf_gather.cl gather_tile_v) for
-# sources farther than max(DEFAULT_EXPAND_MM, DEFAULT_EXPAND_RT x tile radius) from every
-# query of the tile, and (tile 16) about the 4 sub-tile centres with the sub-tile radius
-# (its factor ``expand_sub_rt``, default the same).
-# The radius factor keeps tiles that straddle a gap of the Morton curve exact (a polynomial
-# diverges beyond its radius: without it the error was 1-3 %).  Measured (bench, LPS head,
-# 640k queries, leaf 16, quartic expansion; 2-core PoCL): eps 0.5 at (1.5 mm, 3.0) 0.179 s,
-# rel RMSE 0.376 %; (3 mm, 4.0) 0.193 s, 0.350 %; (3 mm, 6.0) 0.228 s, 0.318 %; (1.0 mm, 2.5)
-# 0.179 s, 0.390 %; every source exact 0.373 s, 0.281 %.  At the default epsilon 0.2:
-# 0.277 s, 0.059 % (before sub-tiles, cubic, (3 mm, 6.0): 0.386 s, 0.045 %).
-# The older cubic tile-only expansion with (3 mm, 6): eps 0.4, 0.234 % vs 0.214 % exact.
-DEFAULT_EXPAND_MM = 1.5
-DEFAULT_EXPAND_RT = 3.0
-# Work-group size for the PoCL CPU walk (measured: 64 vs None vs 256 made < 5 % difference).
-LOCAL_SIZE = 64
+# Queries per work-item: 1 (one query per work-item, gather_tree) or an OpenCL vector width
+# (the tile walk, gather_tile_v).
+TILE_SIZES = (1, 4, 8, 16)
+
+
+@dataclass(frozen=True)
+class GatherTuning:
+    """Research knobs of :func:`gather` (not scene settings).  The defaults are what the
+    pipeline runs, measured with bench/bench_gather.py (LPS head x10 mm, 250k points, 640k
+    camera queries, skin2, cut-off 24 mm; 2-core PoCL; bench/results/gather.json).
+
+    tile : int
+        Queries per work-item, one of ``TILE_SIZES``: Morton-adjacent queries share one walk
+        with a conservative opening test, evaluated in float<tile> vector lanes (module
+        docstring); 1 gives the per-query walk.  16 beat 8 and 4 at equal error (wider
+        vectors, one walk per 16 queries; its conservative opening test costs ~40 % more
+        visits per query).
+    expand_mm, expand_rt : float
+        Sources farther than max(expand_mm, expand_rt x tile radius) from every query of a
+        tile are evaluated by a Taylor expansion about the tile centre (and, tile 16, about
+        the 4 sub-tile centres with the sub-tile radius); expand_mm = inf evaluates every
+        source exactly.  The radius factor keeps tiles that straddle a gap of the Morton
+        curve exact (a polynomial diverges beyond its radius: without it the error was
+        1-3 %).  Measured (leaf 16, quartic expansion), eps 0.5: (1.5 mm, 3.0) 0.179 s, rel
+        RMSE 0.376 %; (3 mm, 4.0) 0.193 s, 0.350 %; (3 mm, 6.0) 0.228 s, 0.318 %; (1.0 mm,
+        2.5) 0.179 s, 0.390 %; every source exact 0.373 s, 0.281 %.  At eps 0.2: 0.277 s,
+        0.059 % (before sub-tiles, cubic, (3 mm, 6.0): 0.386 s, 0.045 %).  The older cubic
+        tile-only expansion with (3 mm, 6): eps 0.4, 0.234 % vs 0.214 % exact.
+    subtiles : bool
+        (tile 16) Also expand nearer sources about the centres of the tile's 4 sub-tiles of
+        4 queries (module docstring); False: those are evaluated exactly.
+    expand_sub_rt : float or None
+        The radius factor for the sub-tiles (None: ``expand_rt``).
+    second_order : bool
+        Add the second-order (covariance) term to every cluster (module docstring); False
+        gives the plain Jensen-Buhler point-cluster approximation.
+    sort_queries : bool
+        Launch the queries in Morton order (results are returned in the input order).  The
+        tile walk always sorts.
+    local_size : int or None
+        OpenCL work-group size of the per-query and brute-force walks (None: the runtime's
+        choice; the tile walk uses min(local_size or 8, 8)).  Measured on PoCL: 64 vs None vs
+        256 made < 5 % difference.
+    kernel_sigma_mm : float or None
+        Width of the Gaussian that reconstructs irradiance between the points (module
+        docstring); None: :func:`kernel_sigma` of the octree; 0 gathers the raw profile.
+    cutoff_mm : float or None
+        Override the profile's per-channel cut-off with one radius for all channels.
+    """
+
+    tile: int = 16
+    expand_mm: float = 1.5
+    expand_rt: float = 3.0
+    subtiles: bool = True
+    expand_sub_rt: float | None = None
+    second_order: bool = True
+    sort_queries: bool = True
+    local_size: int | None = 64
+    kernel_sigma_mm: float | None = None
+    cutoff_mm: float | None = None
+
+    def __post_init__(self):
+        if isinstance(self.tile, bool) or self.tile not in TILE_SIZES:
+            raise DermisError(f"gather: tile = {self.tile!r}: must be one of {TILE_SIZES} (1: "
+                              "one query per work-item; 4, 8, 16: OpenCL vector widths)")
 
 
 @dataclass
@@ -214,7 +262,7 @@ def _check_points(positions, areas, irradiance):
 
 
 def build_octree(positions: np.ndarray, areas: np.ndarray, irradiance: np.ndarray, *,
-                 leaf_size: int = DEFAULT_LEAF_SIZE,
+                 leaf_size: int = _scene_default("leaf_size"),
                  kernel_sigma_mm: float | None = None) -> Octree:
     """Build the flattened octree over irradiance sample points.
 
@@ -225,8 +273,11 @@ def build_octree(positions: np.ndarray, areas: np.ndarray, irradiance: np.ndarra
     irradiance : (N, 3) or (N,) float ndarray, irradiance E per point (any radiometric unit;
         the exitance comes out in the same unit)
     leaf_size : int
-        Maximum points per leaf (Jensen-Buhler: 8).  Only points with identical Morton
-        keys at full depth can exceed it.
+        Maximum points per leaf; default the scene schema's ``[bssrdf] leaf_size`` (16:
+        bench/results/gather.json, LPS head, eps 0.5: 0.179 s vs 0.195 s kernel and rel RMSE
+        0.376 % vs 0.391 % against 8, the Jensen-Buhler and pbrt-v2 value; one tile visit
+        then sums 16 points in vector lanes).  Only points with identical Morton keys at
+        full depth can exceed it.
     kernel_sigma_mm : float, optional
         The points' reconstruction width (``SurfacePoints.info["kernel_sigma_mm"]``), kept in
         ``info`` for :func:`gather`; None: derived there from the mean area.
@@ -252,7 +303,37 @@ def build_octree(positions: np.ndarray, areas: np.ndarray, irradiance: np.ndarra
     keys = _morton_keys(p, lo, size)
     order = np.argsort(keys, kind="stable")
     keys, p, a, e = keys[order], p[order], a[order], e[order]
+    start, end, depth = _node_ranges(keys, leaf_size)
+    k = len(start)
+    skip = np.searchsorted(start, end, side="left").astype(np.int64)
+    # nodes with the same start and a deeper level come first in `start` order only after
+    # the shallower one; searchsorted(side=left) finds the shallowest node starting at `end`
+    is_leaf = skip == np.arange(1, k + 1)
+    area, ea_sum, position, cov = _node_moments(p, a, e, start, end)
+    bmin, bmax, radius = _node_bounds(p, position, start, end, depth)
+    # float32 rounding of positions/radius must never exclude a point from its sphere
+    radius = radius * (1 + 1e-5) + 1e-6 * max(size, 1e-30)
 
+    info = {"points": n, "nodes": k, "leaves": int(is_leaf.sum()), "max_depth": int(depth.max()),
+            "max_leaf_points": int((end - start)[is_leaf].max()), "leaf_size": leaf_size,
+            "kernel_sigma_mm": None if kernel_sigma_mm is None else float(kernel_sigma_mm),
+            "seconds": time.perf_counter() - t0}
+    return Octree(
+        position=position.astype(np.float32), area=area, ea_sum=ea_sum,
+        bbox_min=bmin.astype(np.float32), bbox_max=bmax.astype(np.float32),
+        radius=radius.astype(np.float32), covariance=cov,
+        skip=np.append(skip, k + 1).astype(np.int32), start=np.append(start, n).astype(np.int32),
+        depth=depth, is_leaf=is_leaf, order=order, positions=p.astype(np.float32),
+        irradiance=e.astype(np.float32), areas=a.astype(np.float32), leaf_size=leaf_size,
+        info=info)
+
+
+def _node_ranges(keys: np.ndarray, leaf_size: int):
+    """Octree nodes over Morton-sorted keys as point ranges [start, end) with their depth, in
+    depth-first pre-order (sorted by (start, depth)).  Level by level: the children of a range
+    holding more than ``leaf_size`` points are its runs of equal Morton prefix one level down;
+    chains of single children with the same points collapse to their shallowest node."""
+    n = len(keys)
     starts_all, ends_all, depth_all = [], [], []
     active_starts = np.array([0], np.int64)
     active_ends = np.array([n], np.int64)
@@ -286,15 +367,15 @@ def build_octree(positions: np.ndarray, areas: np.ndarray, irradiance: np.ndarra
     # points: keep only the shallowest node of such a chain (the walk would visit each)
     keep = np.ones(len(start), bool)
     keep[1:] = (start[1:] != start[:-1]) | (end[1:] != end[:-1])
-    start, end, depth = start[keep], end[keep], depth[keep]
-    k = len(start)
-    skip = np.searchsorted(start, end, side="left").astype(np.int64)
-    # nodes with the same start and a deeper level come first in `start` order only after
-    # the shallower one; searchsorted(side=left) finds the shallowest node starting at `end`
-    is_leaf = skip == np.arange(1, k + 1)
+    return start[keep], end[keep], depth[keep]
 
-    # per-node sums from prefix sums over the sorted points (coordinates centred first so
-    # the float64 second moments do not cancel)
+
+def _node_moments(p, a, e, start, end):
+    """Per-node area, sum of E A, position and positional covariance (float64), from prefix
+    sums over the sorted points: irradiance-weighted (weights E A summed over channels), area-
+    weighted where a node is dark, the plain mean where it has no area either."""
+    n = len(p)
+    # coordinates centred first so the float64 second moments do not cancel
     centre = p.mean(axis=0)
     pc = p - centre
     ca = np.concatenate([[0.0], np.cumsum(a)])
@@ -304,8 +385,6 @@ def build_octree(positions: np.ndarray, areas: np.ndarray, irradiance: np.ndarra
     w = (e * a[:, None]).sum(axis=1)
     wsum = np.concatenate([[0.0], np.cumsum(w)])
     rel = (wsum[end] - wsum[start]) > 1e-12 * max(float(wsum[-1]), 1e-300)
-    # irradiance-weighted mean position and covariance; area-weighted where a node is dark
-    # (and the plain mean where it has no area either)
     mean_w, cov_w = _weighted_moments(pc, w, start, end)
     mean_a, cov_a = _weighted_moments(pc, a, start, end)
     mean_1, cov_1 = _weighted_moments(pc, np.ones(n), start, end)
@@ -313,9 +392,13 @@ def build_octree(positions: np.ndarray, areas: np.ndarray, irradiance: np.ndarra
     position = np.where(rel[:, None], mean_w, np.where(has_a[:, None], mean_a, mean_1))
     cov = np.where(rel[:, None], cov_w, np.where(has_a[:, None], cov_a, cov_1))
     cov[:, [0, 3, 5]] = np.maximum(cov[:, [0, 3, 5]], 0.0)
-    position = position + centre
+    return area, ea_sum, position + centre, cov
 
-    # bounding boxes and sphere radii, level by level (ranges at one depth are disjoint)
+
+def _node_bounds(p, position, start, end, depth):
+    """Per-node bounding box and bounding-sphere radius about ``position`` (float64), level by
+    level (the ranges at one depth are disjoint)."""
+    k = len(start)
     bmin = np.empty((k, 3))
     bmax = np.empty((k, 3))
     radius = np.empty(k)
@@ -331,21 +414,7 @@ def build_octree(positions: np.ndarray, areas: np.ndarray, irradiance: np.ndarra
         pts = _ranges(s, t)
         d = np.linalg.norm(p[pts] - position[sel][owner], axis=1)
         radius[sel] = np.maximum.reduceat(np.append(d, 0.0), np.cumsum(np.r_[0, t - s])[:-1])
-    # float32 rounding of positions/radius must never exclude a point from its sphere
-    radius = radius * (1 + 1e-5) + 1e-6 * max(size, 1e-30)
-
-    info = {"points": n, "nodes": k, "leaves": int(is_leaf.sum()), "max_depth": int(depth.max()),
-            "max_leaf_points": int((end - start)[is_leaf].max()), "leaf_size": leaf_size,
-            "kernel_sigma_mm": None if kernel_sigma_mm is None else float(kernel_sigma_mm),
-            "seconds": time.perf_counter() - t0}
-    return Octree(
-        position=position.astype(np.float32), area=area, ea_sum=ea_sum,
-        bbox_min=bmin.astype(np.float32), bbox_max=bmax.astype(np.float32),
-        radius=radius.astype(np.float32), covariance=cov,
-        skip=np.append(skip, k + 1).astype(np.int32), start=np.append(start, n).astype(np.int32),
-        depth=depth, is_leaf=is_leaf, order=order, positions=p.astype(np.float32),
-        irradiance=e.astype(np.float32), areas=a.astype(np.float32), leaf_size=leaf_size,
-        info=info)
+    return bmin, bmax, radius
 
 
 def _weighted_moments(p, w, start, end):
@@ -499,15 +568,9 @@ def profile_table(profile, *, normalisation: str = "energy", cutoff_mm: float | 
 
 
 # ----------------------------------------------------------------------------- gather
-def gather(octree: Octree, profile, query_positions: np.ndarray, *,
-           epsilon: float = DEFAULT_EPSILON, normalisation: str = "energy", env=None,
-           brute_force: bool = False, cutoff_mm: float | None = None,
-           sort_queries: bool = True, local_size: int | None = LOCAL_SIZE,
-           second_order: bool = True, kernel_sigma_mm: float | None = None,
-           tile: int = DEFAULT_TILE, vector: bool = True,
-           expand_mm: float = DEFAULT_EXPAND_MM, expand_rt: float = DEFAULT_EXPAND_RT,
-           subtiles: bool = True, expand_sub_rt: float | None = None,
-           progress=None) -> tuple[np.ndarray, dict]:
+def gather(octree: Octree, profile, query_positions: np.ndarray, *, epsilon: float | None,
+           normalisation: str = "energy", env=None, brute_force: bool = False, progress=None,
+           tuning: GatherTuning = GatherTuning()) -> tuple[np.ndarray, dict]:
     """Radiant exitance M_o at query points from the octree's irradiance points.
 
     Parameters
@@ -519,8 +582,10 @@ def gather(octree: Octree, profile, query_positions: np.ndarray, *,
     query_positions : (Q, 3) float ndarray, mm
         Surface points to shade (one per pixel).
     epsilon : float
-        Solid-angle criterion A / d^2 < epsilon (physics.md section 4); default
-        ``DEFAULT_EPSILON``.
+        Solid-angle criterion A / d^2 < epsilon (docs/physics.md §4).  No default here: the
+        scene's ``[bssrdf] epsilon`` (pipeline/config.py) is the shipped value (anchors with
+        zeroth-order clusters: pbrt-v2 0.05, Mitsuba 0.2).  Ignored (may be None) with
+        ``brute_force``.
     normalisation : {"energy", "thesis"}
         "energy": M = sum R E A with the table normalised to integrate to Rd (flat slab gives
         M = Rd E).  "thesis": M = Rd * sum R E A / sum R A (the thesis's normalisation by
@@ -529,36 +594,11 @@ def gather(octree: Octree, profile, query_positions: np.ndarray, *,
         OpenCL environment (default ``pipeline.cl.get_env()``).
     brute_force : bool
         Sum every point with no clustering (the reference; O(Q N)).
-    cutoff_mm : float, optional
-        Override the profile's per-channel cut-off with one radius for all channels.
-    sort_queries : bool
-        Launch the queries in Morton order (results are returned in the input order).  The
-        tile walk (``tile`` > 1) always sorts.
-    local_size : int or None
-        OpenCL work-group size (None: the runtime's choice).
-    second_order : bool
-        Add the second-order (covariance) term to every cluster (see module docstring);
-        False gives the plain Jensen-Buhler point-cluster approximation.
-    kernel_sigma_mm : float, optional
-        Width of the Gaussian that reconstructs irradiance between the points (module
-        docstring); default :func:`kernel_sigma` of the octree; 0 gathers the raw profile.
-    tile : int
-        Queries per work-item (``DEFAULT_TILE``): Morton-adjacent queries share one walk with a
-        conservative opening test (module docstring); 1 gives the per-query walk.
-    vector : bool
-        Use the explicit-vector tile kernel (tile 4, 8 or 16) with the far-field expansion;
-        False (or another tile size) gives the scalar tile kernel, every source exact.
-    subtiles : bool
-        (tile 16, vector) Also expand nearer sources about the centres of the tile's 4
-        sub-tiles of 4 queries (module docstring); False: those are evaluated exactly.
-    expand_sub_rt : float, optional
-        The radius factor for the sub-tiles (default ``expand_rt``).
-    expand_mm, expand_rt : float
-        Sources farther than max(expand_mm, expand_rt x tile radius) from all of a tile's
-        queries are evaluated by a Taylor expansion about the tile centre (``DEFAULT_EXPAND_MM``,
-        ``DEFAULT_EXPAND_RT``); expand_mm = inf evaluates every source exactly.
     progress : callable(float), optional
         Called with the fraction done (the launch is split into chunks when given).
+    tuning : GatherTuning
+        Research knobs (walk, expansion radii, work-group size, ...); the defaults are what
+        the pipeline runs.
 
     Returns
     -------
@@ -573,176 +613,247 @@ def gather(octree: Octree, profile, query_positions: np.ndarray, *,
     DermisError
         Bad shapes, NaN/infinite inputs, epsilon <= 0, unknown normalisation.
     """
-    import pyopencl as cl
-    from dermis.pipeline.cl import event_seconds, get_env, to_device
+    from dermis.pipeline.cl import event_seconds, get_env
 
     t0 = time.perf_counter()
-    if normalisation not in ("energy", "thesis"):
-        raise DermisError(f"gather: normalisation = {normalisation!r}: must be 'energy' or 'thesis'")
-    if not brute_force and not (epsilon > 0 and math.isfinite(epsilon)):
-        raise DermisError(f"gather: epsilon = {epsilon}: must be a finite number > 0")
-    qp = np.asarray(query_positions, np.float64)
-    if qp.ndim != 2 or qp.shape[1] != 3:
-        raise DermisError(f"gather: query_positions must be (Q, 3); got {qp.shape}")
-    if not np.isfinite(qp).all():
-        raise DermisError("gather: query_positions contains NaN or infinity")
+    qp = _check_queries(query_positions, epsilon=epsilon, normalisation=normalisation,
+                        brute_force=brute_force)
     nq = len(qp)
     if nq == 0:
         return np.zeros((0, 3), np.float32), {"kernel_seconds": 0.0, "wall_seconds": 0.0}
-    env = env or get_env()
-    sigma = kernel_sigma(octree) if kernel_sigma_mm is None else float(kernel_sigma_mm)
-    tab, h, cmax, deriv, taytab = profile_table(profile, normalisation=normalisation,
-                                                cutoff_mm=cutoff_mm, sigma_mm=sigma, taylor=True)
-    rd = np.zeros(4, np.float32)
-    rd[:3] = np.asarray(profile.Rd, np.float32)
-    rd_vec = cl.cltypes.make_float4(*rd)
-
-    # the tile walk always forms its tiles along the Morton curve (unsorted tiles span the
-    # scene: measured 40x slower for random order); sort_queries applies to tile=1
-    tiled = not brute_force and tile > 1
-    perm = morton_order(qp) if (sort_queries or tiled) else np.arange(nq)
+    run = _prepare(octree, profile, env or get_env(), normalisation=normalisation,
+                   tuning=tuning, progress=progress)
+    perm = _query_order(qp, brute_force=brute_force, tuning=tuning)
     q4 = np.zeros((nq, 4), np.float32)
     q4[:, :3] = qp[perm]
-    pts_pa = np.zeros((len(octree.positions), 4), np.float32)
-    pts_pa[:, :3] = octree.positions
-    pts_pa[:, 3] = octree.areas
-    pts_e = np.zeros_like(pts_pa)
-    pts_e[:, :3] = octree.irradiance * octree.areas[:, None]
-
-    defines = {"TABLE_N": len(tab), "THESIS_NORM": int(normalisation == "thesis"),
-               "SECOND_ORDER": int(bool(second_order))}
-    mf = cl.mem_flags
-    d_q = to_device(env, q4)
-    d_pa, d_pe, d_tab = to_device(env, pts_pa), to_device(env, pts_e), to_device(env, tab)
-    out = np.empty((nq, 4), np.float32)
-    d_out = cl.Buffer(env.context, mf.WRITE_ONLY, out.nbytes)
-    visits = np.zeros(nq, np.int32)
-    events = []
-    chunks = 16 if progress is not None else 1
-    bounds = _chunk_bounds(nq, chunks)
     if brute_force:
-        knl = env.kernel("bssrdf_gather.cl", "gather_brute", defines)
-        for c in range(chunks):
-            a, b = bounds[c], bounds[c + 1]
-            if b <= a:
-                continue
-            sub_q = d_q.get_sub_region(a * 16, (b - a) * 16) if a or b < nq else d_q
-            sub_o = d_out.get_sub_region(a * 16, (b - a) * 16) if a or b < nq else d_out
-            events.append(knl(env.queue, _global(b - a, local_size), _local(local_size),
-                              sub_q, d_pa, d_pe, np.int32(len(pts_pa)), d_tab,
-                              np.float32(1.0 / h), rd_vec, np.int32(b - a), sub_o))
-            if progress is not None:
-                events[-1].wait()
-                progress(b / nq)
-    elif tile > 1:
-        k = octree.n_nodes
-        ntiles = -(-nq // tile)
-        qt = np.zeros((ntiles * tile, 4), np.float32)
-        qt[:nq] = q4
-        qt[nq:] = q4[-1]  # padding lanes repeat the last query (their results are dropped)
-        sph = _tile_spheres(qt[:, :3].astype(np.float64).reshape(ntiles, tile, 3))
-        vec = tile in (4, 8, 16) and vector
-        # sub-tile spheres: 4 per tile, each over 4 consecutive (Morton) queries; for the
-        # kernel the lanes are then interleaved, lane l in sub-tile l % 4 (cl: SUBTILE)
-        use_sub = vec and tile == 16 and bool(subtiles)
-        sub_rt = expand_rt if expand_sub_rt is None else expand_sub_rt
-        ssph = (_tile_spheres(qt[:, :3].astype(np.float64).reshape(ntiles * 4, tile // 4, 3))
-                if vec else sph)
-        if vec:  # planar per tile: (G, 3, T); with sub-tiles lane l is sub-tile l % 4
-            q3 = qt[:, :3].reshape(ntiles, tile, 3)
-            if use_sub:
-                q3 = q3.reshape(ntiles, 4, 4, 3).transpose(0, 2, 1, 3).reshape(ntiles, tile, 3)
-            qt = np.ascontiguousarray(q3.transpose(0, 2, 1))
-        d_qt, d_sph, d_ssph = to_device(env, qt), to_device(env, sph), to_device(env, ssph)
-        d_node = to_device(env, _node_records(octree, epsilon, cmax, distances=True))
-        d_start = to_device(env, octree.start.astype(np.int32))
-        d_ptab = to_device(env, _packed_table(tab, deriv, planar=vec))
-        if vec:
-            d_xtab = to_device(env, taytab)
-        d_out = cl.Buffer(env.context, mf.WRITE_ONLY, ntiles * tile * 16)
-        tvis = np.zeros(ntiles, np.int32)
-        d_vis = cl.Buffer(env.context, mf.WRITE_ONLY, tvis.nbytes)
-        knl = env.kernel("bssrdf_gather.cl", "gather_tile_v" if vec else "gather_tile",
-                         dict(defines, TILE=int(tile)))
-        tl = min(local_size or 8, 8)  # few, heavy work-items: small groups keep both cores busy
-        tb = _chunk_bounds(ntiles, chunks)
-        tbytes = tile * (12 if vec else 16)  # queries/results per tile: planar xyz or float4
-        for c in range(chunks):
-            a, b = tb[c], tb[c + 1]
-            if b <= a:
-                continue
-            whole = a == 0 and b == ntiles
-            sub_q = d_qt if whole else d_qt.get_sub_region(a * tbytes, (b - a) * tbytes)
-            sub_s = d_sph if whole else d_sph.get_sub_region(a * 16, (b - a) * 16)
-            sub_ss = d_ssph if whole or not vec else d_ssph.get_sub_region(a * 64, (b - a) * 64)
-            sub_o = d_out if whole else d_out.get_sub_region(a * tbytes, (b - a) * tbytes)
-            sub_v = d_vis if whole else d_vis.get_sub_region(a * 4, (b - a) * 4)
-            extra = ((d_xtab, np.float32(1.0 / h), np.float32(expand_mm), np.float32(expand_rt))
-                     if vec else (np.float32(1.0 / h),))
-            subarg = ((sub_ss, np.int32(use_sub), np.float32(sub_rt)) if vec else ())
-            events.append(knl(env.queue, _global(b - a, tl), (tl,), sub_q, sub_s, *subarg, d_node,
-                              d_start, np.int32(k), d_pa, d_pe, d_tab, d_ptab, *extra,
-                              rd_vec, np.int32(b - a), sub_o, sub_v))
-            if progress is not None:
-                events[-1].wait()
-                progress(b / ntiles)
-        outt = np.empty((ntiles * tile, 4), np.float32)
-        if vec:
-            planar = np.empty((ntiles, 3, tile), np.float32)
-            cl.enqueue_copy(env.queue, planar, d_out)
-            if use_sub:  # back from the interleaved lane order
-                planar = planar.reshape(ntiles, 3, 4, 4).transpose(0, 1, 3, 2).reshape(
-                    ntiles, 3, tile)
-            outt[:, :3] = planar.transpose(0, 2, 1).reshape(-1, 3)
-        else:
-            cl.enqueue_copy(env.queue, outt, d_out)
-        cl.enqueue_copy(env.queue, tvis, d_vis)
-        out[:] = outt[:nq]
-        visits[:] = np.repeat(tvis, tile)[:nq]
-        d_out = None
+        out, visits, events = _walk_brute(run, q4)
+    elif tuning.tile > 1:
+        out, visits, events = _walk_tiles(run, q4, octree, epsilon)
     else:
-        k = octree.n_nodes
-        d_node = to_device(env, _node_records(octree, epsilon, cmax))
-        d_start = to_device(env, octree.start.astype(np.int32))
-        d_deriv = to_device(env, deriv)
-        d_vis = cl.Buffer(env.context, mf.WRITE_ONLY, visits.nbytes)
-        knl = env.kernel("bssrdf_gather.cl", "gather_tree", defines)
-        for c in range(chunks):
-            a, b = bounds[c], bounds[c + 1]
-            if b <= a:
-                continue
-            whole = a == 0 and b == nq
-            sub_q = d_q if whole else d_q.get_sub_region(a * 16, (b - a) * 16)
-            sub_o = d_out if whole else d_out.get_sub_region(a * 16, (b - a) * 16)
-            sub_v = d_vis if whole else d_vis.get_sub_region(a * 4, (b - a) * 4)
-            events.append(knl(env.queue, _global(b - a, local_size), _local(local_size),
-                              sub_q, d_node, d_start, np.int32(k), d_pa, d_pe, d_tab, d_deriv,
-                              np.float32(1.0 / h), rd_vec, np.int32(b - a), sub_o, sub_v))
-            if progress is not None:
-                events[-1].wait()
-                progress(b / nq)
-        cl.enqueue_copy(env.queue, visits, d_vis)
-    if d_out is not None:
-        cl.enqueue_copy(env.queue, out, d_out)
-    env.queue.finish()
+        out, visits, events = _walk_queries(run, q4, octree, epsilon)
+    run.env.queue.finish()
     m = np.empty((nq, 3), np.float32)
     m[perm] = out[:, :3]
     vis = np.empty(nq, np.int32)
     vis[perm] = visits
     stats = {"kernel_seconds": event_seconds(events), "wall_seconds": time.perf_counter() - t0,
              "epsilon": None if brute_force else float(epsilon), "normalisation": normalisation,
-             "brute_force": bool(brute_force), "cutoff_mm": cmax, "queries": nq,
-             "kernel_sigma_mm": sigma,
-             "points": int(len(pts_pa)), "device": env.description}
+             "brute_force": bool(brute_force), "cutoff_mm": run.cmax, "queries": nq,
+             "kernel_sigma_mm": run.sigma, "points": run.n_points,
+             "device": run.env.description}
     if not brute_force:
         stats["mean_visits"] = float(vis.mean())
     return m, stats
 
 
+def _check_queries(query_positions, *, epsilon, normalisation: str,
+                   brute_force: bool) -> np.ndarray:
+    """Validate the options and the query points; the queries as (Q, 3) float64."""
+    if normalisation not in ("energy", "thesis"):
+        raise DermisError(f"gather: normalisation = {normalisation!r}: must be 'energy' or 'thesis'")
+    if not brute_force and not (epsilon is not None and epsilon > 0 and math.isfinite(epsilon)):
+        raise DermisError(f"gather: epsilon = {epsilon}: must be a finite number > 0")
+    qp = np.asarray(query_positions, np.float64)
+    if qp.ndim != 2 or qp.shape[1] != 3:
+        raise DermisError(f"gather: query_positions must be (Q, 3); got {qp.shape}")
+    if not np.isfinite(qp).all():
+        raise DermisError("gather: query_positions contains NaN or infinity")
+    return qp
+
+
+@dataclass
+class _Run:
+    """What every walk needs: the device, the profile tables (host) and the point buffers
+    (device), the normalisation defines, the tuning and the progress chunking."""
+
+    env: object
+    tuning: GatherTuning
+    sigma: float          # reconstruction width the profile was blurred with, mm
+    tab: np.ndarray       # (TABLE_N, 4) R rgb
+    h: float              # table step, mm
+    cmax: float           # largest cut-off (after the blur's reach), mm
+    deriv: np.ndarray     # (2 TABLE_N, 4) R'' - R'/r, R'/r
+    taytab: np.ndarray    # (4 TABLE_N, 4) Taylor rows of the far-field expansion
+    rd_vec: object        # cl float4 Rd rgb (thesis mode)
+    n_points: int
+    d_pa: object          # (N) float4 x, y, z, A in leaf order
+    d_pe: object          # (N) float4 E A rgb, 0
+    d_tab: object
+    defines: dict
+    chunks: int
+    progress: object
+
+    @property
+    def inv_h(self) -> np.float32:
+        return np.float32(1.0 / self.h)
+
+    def launch(self, n: int, enqueue) -> list:
+        """Enqueue ``enqueue(a, b, whole)`` for each launch chunk [a, b) of n items (one chunk
+        without a progress callback); report progress after each.  Returns the events."""
+        events = []
+        bounds = _chunk_bounds(n, self.chunks)
+        for c in range(self.chunks):
+            a, b = bounds[c], bounds[c + 1]
+            if b <= a:
+                continue
+            events.append(enqueue(a, b, a == 0 and b == n))
+            if self.progress is not None:
+                events[-1].wait()
+                self.progress(b / n)
+        return events
+
+
+def _prepare(octree: Octree, profile, env, *, normalisation: str, tuning: GatherTuning,
+             progress) -> _Run:
+    """Profile tables (blurred with the octree's reconstruction width) and point buffers."""
+    import pyopencl as cl
+    from dermis.pipeline.cl import to_device
+
+    sigma = kernel_sigma(octree) if tuning.kernel_sigma_mm is None else float(tuning.kernel_sigma_mm)
+    tab, h, cmax, deriv, taytab = profile_table(profile, normalisation=normalisation,
+                                                cutoff_mm=tuning.cutoff_mm, sigma_mm=sigma,
+                                                taylor=True)
+    rd = np.zeros(4, np.float32)
+    rd[:3] = np.asarray(profile.Rd, np.float32)
+    pts_pa = np.zeros((len(octree.positions), 4), np.float32)
+    pts_pa[:, :3] = octree.positions
+    pts_pa[:, 3] = octree.areas
+    pts_e = np.zeros_like(pts_pa)
+    pts_e[:, :3] = octree.irradiance * octree.areas[:, None]
+    defines = {"TABLE_N": len(tab), "THESIS_NORM": int(normalisation == "thesis"),
+               "SECOND_ORDER": int(bool(tuning.second_order))}
+    return _Run(env=env, tuning=tuning, sigma=sigma, tab=tab, h=h, cmax=cmax, deriv=deriv,
+                taytab=taytab, rd_vec=cl.cltypes.make_float4(*rd), n_points=int(len(pts_pa)),
+                d_pa=to_device(env, pts_pa), d_pe=to_device(env, pts_e), d_tab=to_device(env, tab),
+                defines=defines, chunks=16 if progress is not None else 1, progress=progress)
+
+
+def _query_order(qp: np.ndarray, *, brute_force: bool, tuning: GatherTuning) -> np.ndarray:
+    """Launch order of the queries: Morton (results are returned in the input order).  The
+    tile walk always forms its tiles along the Morton curve (unsorted tiles span the scene:
+    measured 40x slower for random order); ``sort_queries`` applies to the other walks."""
+    tiled = not brute_force and tuning.tile > 1
+    return morton_order(qp) if (tuning.sort_queries or tiled) else np.arange(len(qp))
+
+
+def _part(buf, whole: bool, a: int, b: int, item_bytes: int):
+    """Sub-buffer of items [a, b) (the whole buffer when the chunk is all of it)."""
+    return buf if whole else buf.get_sub_region(a * item_bytes, (b - a) * item_bytes)
+
+
+def _walk_brute(run: _Run, q4: np.ndarray):
+    """Every point for every query (gather_brute): the reference.  (out (Q, 4), visits 0, events)"""
+    import pyopencl as cl
+    from dermis.pipeline.cl import to_device
+
+    env, nq, ls = run.env, len(q4), run.tuning.local_size
+    d_q = to_device(env, q4)
+    out = np.empty((nq, 4), np.float32)
+    d_out = cl.Buffer(env.context, cl.mem_flags.WRITE_ONLY, out.nbytes)
+    knl = env.kernel("bssrdf_gather.cl", "gather_brute", run.defines)
+    events = run.launch(nq, lambda a, b, whole: knl(
+        env.queue, _global(b - a, ls), _local(ls), _part(d_q, whole, a, b, 16), run.d_pa,
+        run.d_pe, np.int32(run.n_points), run.d_tab, run.inv_h, run.rd_vec, np.int32(b - a),
+        _part(d_out, whole, a, b, 16)))
+    cl.enqueue_copy(env.queue, out, d_out)
+    return out, np.zeros(nq, np.int32), events
+
+
+def _walk_queries(run: _Run, q4: np.ndarray, octree: Octree, epsilon: float):
+    """One tree walk per query (gather_tree, ``tile`` 1).  (out (Q, 4), visits (Q,), events)"""
+    import pyopencl as cl
+    from dermis.pipeline.cl import to_device
+
+    env, nq, ls = run.env, len(q4), run.tuning.local_size
+    d_q = to_device(env, q4)
+    d_node = to_device(env, _node_records(octree, epsilon, run.cmax))
+    d_start = to_device(env, octree.start.astype(np.int32))
+    d_deriv = to_device(env, run.deriv)
+    out = np.empty((nq, 4), np.float32)
+    visits = np.zeros(nq, np.int32)
+    d_out = cl.Buffer(env.context, cl.mem_flags.WRITE_ONLY, out.nbytes)
+    d_vis = cl.Buffer(env.context, cl.mem_flags.WRITE_ONLY, visits.nbytes)
+    knl = env.kernel("bssrdf_gather.cl", "gather_tree", run.defines)
+    events = run.launch(nq, lambda a, b, whole: knl(
+        env.queue, _global(b - a, ls), _local(ls), _part(d_q, whole, a, b, 16), d_node, d_start,
+        np.int32(octree.n_nodes), run.d_pa, run.d_pe, run.d_tab, d_deriv, run.inv_h,
+        run.rd_vec, np.int32(b - a), _part(d_out, whole, a, b, 16),
+        _part(d_vis, whole, a, b, 4)))
+    cl.enqueue_copy(env.queue, visits, d_vis)
+    cl.enqueue_copy(env.queue, out, d_out)
+    return out, visits, events
+
+
+def _tile_queries(q4: np.ndarray, tile: int, use_sub: bool):
+    """Morton-sorted queries cut into tiles of ``tile``, the last padded with copies of the
+    last query (their results are dropped).  Returns the planar per-tile queries (G, 3, T)
+    (with sub-tiles lane l belongs to sub-tile l % 4: cl SUBTILE), the tile spheres (G, 4) and
+    the sub-tile spheres (4 G, 4; each over 4 consecutive queries)."""
+    nq = len(q4)
+    ntiles = -(-nq // tile)
+    qt = np.zeros((ntiles * tile, 4), np.float32)
+    qt[:nq] = q4
+    qt[nq:] = q4[-1]
+    sph = _tile_spheres(qt[:, :3].astype(np.float64).reshape(ntiles, tile, 3))
+    ssph = _tile_spheres(qt[:, :3].astype(np.float64).reshape(ntiles * 4, tile // 4, 3))
+    q3 = qt[:, :3].reshape(ntiles, tile, 3)
+    if use_sub:
+        q3 = q3.reshape(ntiles, 4, 4, 3).transpose(0, 2, 1, 3).reshape(ntiles, tile, 3)
+    return np.ascontiguousarray(q3.transpose(0, 2, 1)), sph, ssph
+
+
+def _untile(planar: np.ndarray, tile: int, use_sub: bool, nq: int) -> np.ndarray:
+    """Planar per-tile results (G, 3, T) back to (Q, 4) in query order (column 3 unset)."""
+    ntiles = len(planar)
+    if use_sub:  # back from the interleaved lane order
+        planar = planar.reshape(ntiles, 3, 4, 4).transpose(0, 1, 3, 2).reshape(ntiles, 3, tile)
+    outt = np.empty((ntiles * tile, 4), np.float32)
+    outt[:, :3] = planar.transpose(0, 2, 1).reshape(-1, 3)
+    return outt[:nq]
+
+
+def _walk_tiles(run: _Run, q4: np.ndarray, octree: Octree, epsilon: float):
+    """One walk per tile of Morton-adjacent queries in vector lanes (gather_tile_v), with the
+    far-field expansion about the tile and (tile 16) its sub-tiles.  (out (Q, 4), visits
+    (Q,): the tile's, events)"""
+    import pyopencl as cl
+    from dermis.pipeline.cl import to_device
+
+    env, nq, tn = run.env, len(q4), run.tuning
+    tile = tn.tile
+    use_sub = tile == 16 and bool(tn.subtiles)
+    sub_rt = tn.expand_rt if tn.expand_sub_rt is None else tn.expand_sub_rt
+    qt, sph, ssph = _tile_queries(q4, tile, use_sub)
+    ntiles = len(qt)
+    d_qt, d_sph, d_ssph = to_device(env, qt), to_device(env, sph), to_device(env, ssph)
+    d_node = to_device(env, _node_records(octree, epsilon, run.cmax, distances=True))
+    d_start = to_device(env, octree.start.astype(np.int32))
+    d_ptab = to_device(env, _packed_table(run.tab, run.deriv))
+    d_xtab = to_device(env, run.taytab)
+    d_out = cl.Buffer(env.context, cl.mem_flags.WRITE_ONLY, ntiles * tile * 16)
+    tvis = np.zeros(ntiles, np.int32)
+    d_vis = cl.Buffer(env.context, cl.mem_flags.WRITE_ONLY, tvis.nbytes)
+    knl = env.kernel("bssrdf_gather.cl", "gather_tile_v", dict(run.defines, TILE=int(tile)))
+    tl = min(tn.local_size or 8, 8)  # few, heavy work-items: small groups keep both cores busy
+    tbytes = tile * 12  # planar xyz queries / rgb results per tile
+    events = run.launch(ntiles, lambda a, b, whole: knl(
+        env.queue, _global(b - a, tl), (tl,), _part(d_qt, whole, a, b, tbytes),
+        _part(d_sph, whole, a, b, 16), _part(d_ssph, whole, a, b, 64), np.int32(use_sub),
+        np.float32(sub_rt), d_node, d_start, np.int32(octree.n_nodes), run.d_pa, run.d_pe,
+        run.d_tab, d_ptab, d_xtab, run.inv_h, np.float32(tn.expand_mm),
+        np.float32(tn.expand_rt), run.rd_vec, np.int32(b - a),
+        _part(d_out, whole, a, b, tbytes), _part(d_vis, whole, a, b, 4)))
+    planar = np.empty((ntiles, 3, tile), np.float32)
+    cl.enqueue_copy(env.queue, planar, d_out)
+    cl.enqueue_copy(env.queue, tvis, d_vis)
+    return _untile(planar, tile, use_sub, nq), np.repeat(tvis, tile)[:nq], events
+
+
 def _node_records(t: Octree, epsilon: float, cutoff: float, *,
                   distances: bool = False) -> np.ndarray:
     """Device node records, 4 float4 (64 bytes, one cache line) per node; layout in the .cl
-    (``distances``: reach and opening distance for gather_tile, else their squares)."""
+    (``distances``: reach and opening distance for gather_tile_v, else their squares)."""
     k = t.n_nodes
     rec = np.zeros((k, 4, 4), np.float32)
     radius = t.radius.astype(np.float64)
@@ -775,29 +886,16 @@ def _tile_spheres(tq: np.ndarray) -> np.ndarray:
     return sph
 
 
-def _packed_table(tab: np.ndarray, deriv: np.ndarray, *, planar: bool = False) -> np.ndarray:
-    """(R, R'' - R'/r, R'/r) per table entry, 12 floats each (gather_tile's ptab): 3 float4
-    (rgb, 0), or (``planar``, gather_tile_v) 9 floats rgb rgb rgb then 3 zeros."""
+def _packed_table(tab: np.ndarray, deriv: np.ndarray) -> np.ndarray:
+    """(R, R'' - R'/r, R'/r) per table entry for gather_tile_v's ptab: 12 floats per row,
+    rgb rgb rgb then 3 zeros."""
     n = len(tab)
     out = np.zeros((n, 3, 4), np.float32)
     out[:, 0] = tab
     out[:, 1:] = deriv.reshape(n, 2, 4)
-    if planar:
-        flat = np.zeros((n, 12), np.float32)
-        flat[:, :9] = out[:, :, :3].reshape(n, 9)
-        return flat
-    return out.reshape(3 * n, 4)
-
-
-def _expansion_table(tab: np.ndarray, deriv: np.ndarray, h: float) -> np.ndarray:
-    """R, R', R'' - R'/r, R'/r per entry, 4 float4 each (gather_tile_v's xtab); R' = r (R'/r)."""
-    n = len(tab)
-    out = np.zeros((n, 4, 4), np.float32)
-    out[:, 0] = tab
-    dv = deriv.reshape(n, 2, 4)
-    out[:, 1] = dv[:, 1] * (np.arange(n) * h)[:, None]
-    out[:, 2:] = dv
-    return out.reshape(4 * n, 4)
+    flat = np.zeros((n, 12), np.float32)
+    flat[:, :9] = out[:, :, :3].reshape(n, 9)
+    return flat
 
 
 def _chunk_bounds(n: int, chunks: int) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Koenderink-Pont asperity scattering term (cl/asperity.cl, physics.md s5)."""
+"""Koenderink-Pont asperity scattering term (cl/asperity.cl, docs/physics.md §5)."""
 from __future__ import annotations
 
 import math
@@ -10,8 +10,8 @@ import pytest
 from brdf_testutil import hemisphere, mc_albedo, sample_pairs, with_cos
 from dermis.pipeline.cl import CL_DIR
 from dermis.pipeline.errors import ConfigError
-from dermis.stages.brdf_models import (ASPERITY_NPARAMS, AsperityParams, LafortuneParams,
-                                asperity_f_np, evaluate)
+from brdf_reference import asperity_f_np
+from dermis.stages.brdf_models import ASPERITY_NPARAMS, AsperityParams, LafortuneParams, evaluate
 
 # f = albedo tau / (4 pi m_i m_o): four float32 roundings and one division
 RTOL_F32 = 8 * 2.0 ** -24

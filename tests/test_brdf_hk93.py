@@ -1,4 +1,4 @@
-"""Hanrahan-Krueger two-layer BRDF (cl/brdf_hk93.cl, cl/optics.h, physics.md s2)."""
+"""Hanrahan-Krueger two-layer BRDF (cl/brdf_hk93.cl, cl/optics.h, docs/physics.md §2)."""
 from __future__ import annotations
 
 import math
@@ -13,9 +13,9 @@ from dermis.pipeline.cl import CL_DIR
 from dermis.pipeline.errors import ConfigError
 from dermis.physics.layers import PRESETS, Layer
 from dermis.physics.fresnel import dipole_Rd
+from brdf_reference import hk93_f_np
 from dermis.stages.brdf_models import (HK93_NPARAMS, HK93Params, evaluate,
-                                hk93_f_np, hk93_params_from_layers,
-                                hk93_single_scattering_albedo)
+                                       hk93_params_from_layers, hk93_single_scattering_albedo)
 
 # float32 kernel vs float64 reference: ~40 float32 operations incl. exp/expm1/sqrt (<= 4 ulp
 # each in OpenCL's full profile); errors add in quadrature-ish, 64 ulp is a safe bound.
@@ -112,7 +112,7 @@ def test02_matches_reference(cl_env, rng, layers):
 
 def test02_closed_form_chandrasekhar(cl_env, rng):
     """Index-matched, non-absorbing, isotropic, semi-infinite: f = 1/(4 pi (mu_i + mu_o))
-    (Chandrasekhar's first-order term; physics.md s2 BRDF form)."""
+    (Chandrasekhar's first-order term; docs/physics.md §2 BRDF form)."""
     params = HK93Params([_layer(eta=1.0, g=0.0, sigma_a=(0, 0, 0))], (0, 0, 0))
     wo, wi = sample_pairs(rng, 4000)
     got = evaluate("hk93", wo, wi, params, env=cl_env)
@@ -179,7 +179,7 @@ def test02_layer_split_invariance(cl_env, rng):
 
 def test02_default_multiple_scattering():
     """rho_ms = diffusion Rd - max single-scattering albedo; the dipole Rd reproduces Jensen
-    2001's Skin1/Skin2 values quoted in physics.md s3 (to their 2 digits)."""
+    2001's Skin1/Skin2 values quoted in docs/physics.md §3 (to their 2 digits)."""
     rd1 = dipole_Rd((0.032, 0.17, 0.48), (0.74, 0.88, 1.01), 1.3)
     rd2 = dipole_Rd((0.013, 0.070, 0.145), (1.09, 1.59, 1.79), 1.3)
     np.testing.assert_allclose(rd1, [0.44, 0.22, 0.13], atol=0.0075)

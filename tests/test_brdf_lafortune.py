@@ -1,4 +1,4 @@
-"""Lafortune measured-skin BRDF (cl/brdf_lafortune.cl, physics.md s1)."""
+"""Lafortune measured-skin BRDF (cl/brdf_lafortune.cl, docs/physics.md §1)."""
 from __future__ import annotations
 
 import math
@@ -10,7 +10,8 @@ import pytest
 from brdf_testutil import hemisphere, mc_albedo, sample_pairs, with_cos
 from dermis.pipeline.cl import CL_DIR
 from dermis.pipeline.errors import ConfigError
-from dermis.stages.brdf_models import LAFORTUNE_NPARAMS, LafortuneParams, evaluate, lafortune_f_np
+from brdf_reference import lafortune_f_np
+from dermis.stages.brdf_models import LAFORTUNE_NPARAMS, LafortuneParams, evaluate
 
 # float32 kernel vs float64 reference: the lobe base carries a few ulp (2^-24) of relative
 # error, which the exponent n <= 64.2 multiplies: 64 * 8 ulp ~ 3e-5.  Near a zero base the
@@ -102,7 +103,7 @@ def test02_matches_reference(cl_env, rng):
 
 
 def test02_closed_form_lobes_off(cl_env, rng):
-    """Lobes off: f = albedo / pi exactly (physics.md s1)."""
+    """Lobes off: f = albedo / pi exactly (docs/physics.md §1)."""
     wo, wi = sample_pairs(rng, 2000)
     albedo = rng.random((len(wo), 3)).astype(np.float32)
     got = evaluate("lafortune", wo, wi, LafortuneParams().lobes_off(), albedo=albedo, env=cl_env)
