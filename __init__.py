@@ -27,4 +27,4 @@ STAGES = (
 )
 
 # CLI subcommands provided by the physics packages: (name, module with add_parser and run).
-COMMANDS = (("profile", "dermis.stages.profile_cli"),)
+COMMANDS = (("profile", "dermis.stages.profile_cli"), ("sweep", "dermis.reports.sweep"))

@@ -414,7 +414,9 @@ def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | No
     problems = _Problems()
     units = table.get("scene", {}).get("units", "mm") if isinstance(table.get("scene"), dict) else "mm"
     length_scale = LENGTH_UNITS.get(units, 1.0)
-    body = {k: v for k, v in table.items() if k not in ("lights", "optics")}
+    body = {k: v for k, v in table.items() if k not in ("lights", "optics", "sweep")}
+    if "sweep" in table and not isinstance(table["sweep"], dict):  # checked by `dermis sweep`
+        problems.add(where, "sweep", f" = {_fmt(table['sweep'])}: must be a table ([sweep])")
     scene = _build(Scene, body, where, "", problems, length_scale)
 
     lights = []

@@ -209,6 +209,60 @@ class RunSummary:
         return "\n".join(lines)
 
 
+MEASUREMENT_KEYS = frozenset({"timings", "seconds", "kernel_seconds", "wall_seconds"})
+
+
+def _is_measurement(key: str, value) -> bool:
+    return key in MEASUREMENT_KEYS or key.endswith("_seconds") or (
+        key.endswith("_s") and isinstance(value, float) and not key.startswith("sigma"))
+
+
+def _split(d: dict) -> tuple[dict, dict]:
+    """(d without its time measurements, the measurements), recursively through dicts."""
+    kept, measured = {}, {}
+    for k, v in d.items():
+        if _is_measurement(k, v):
+            measured[k] = v
+        elif isinstance(v, dict):
+            kept[k], sub = _split(v)
+            if sub:
+                measured[k] = sub
+        else:
+            kept[k] = v
+    return kept, measured
+
+
+def _merge(d: dict, measured: dict) -> dict:
+    out = dict(d)
+    for k, v in measured.items():
+        out[k] = _merge(out.get(k, {}), v) if isinstance(v, dict) and isinstance(
+            out.get(k), dict) and k not in MEASUREMENT_KEYS else v
+    return out
+
+
+def split_measurements(artifact) -> dict:
+    """Move the time measurements out of an artifact's ``info`` / ``timings`` (in place) and
+    return them: cached data stays byte-identical between runs; the times go to meta.json."""
+    measured = {}
+    for name in ("info", "timings"):
+        value = getattr(artifact, name, None)
+        if isinstance(value, dict):
+            if name == "timings":
+                kept, sub = {}, dict(value)
+            else:
+                kept, sub = _split(value)
+            setattr(artifact, name, kept)
+            if sub:
+                measured[name] = sub
+    return measured
+
+
+def restore_measurements(artifact, measured: dict):
+    for name, sub in measured.items():
+        setattr(artifact, name, _merge(getattr(artifact, name, {}) or {}, sub))
+    return artifact
+
+
 def _load(store: Store, node_id: str, key: str):
     problem = store.verify(node_id, key)
     if problem is not None:  # changed since planning: refuse rather than use it
@@ -216,7 +270,8 @@ def _load(store: Store, node_id: str, key: str):
                           f"({problem}); run again to rebuild it")
     d = store.artifact_dir(node_id, key)
     if (d / "fields.json").is_file():
-        return artifacts.load(d)
+        return restore_measurements(artifacts.load(d), store.meta(node_id, key)
+                                    .get("measurements", {}))
     return d  # file-only artifacts (images): their directory
 
 
@@ -275,7 +330,9 @@ def execute(nodes: dict[str, Node], targets: list[str], store: Store, ctx, *,
                 if bad:  # a stage's arrays are finite by contract: never cache NaN or Inf
                     raise StageFailure(nid, ValueError(f"non-finite values in {', '.join(bad)}"),
                                        "")
+                measured = split_measurements(result.artifact)
                 artifacts.save(result.artifact, tmp)
+                restore_measurements(result.artifact, measured)
             info = dict(result.info)
             kernel_s = float(info.pop("kernel_seconds", 0.0) or 0.0)
             if result.artifact is not None and isinstance(getattr(result.artifact, "info", None), dict):
@@ -284,6 +341,7 @@ def execute(nodes: dict[str, Node], targets: list[str], store: Store, ctx, *,
             meta = {"node": nid, "stage": node.stage, "key": key, "parts": parts,
                     "seconds": seconds, "kernel_seconds": kernel_s, "info": info,
                     "build_seconds": build_s,
+                    "measurements": measured if result.artifact is not None else {},
                     "files": [str(f) for f in result.files], "device": ctx.device_description,
                     "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
             (tmp / META).write_text(json.dumps(meta, indent=1, sort_keys=True, default=str))

@@ -1,0 +1,171 @@
+"""Run stage graphs as independent tasks on Dask distributed (or serially).
+
+Every node of every graph becomes one Dask task named by its cache key, so a node that several
+graphs share (the mesh prep of every sweep point) runs once, and independent nodes (the render
+cells of a matrix, the points of a sweep) run in parallel.  Workers share the content-addressed
+cache (:class:`~dermis.pipeline.store.Store` allows concurrent writers): each task loads its
+inputs from the cache, runs one node and writes its artifact; a task that dies (a killed worker)
+is retried and, stages being deterministic, writes the same bytes.
+
+``workers=1`` and no scheduler run the graphs in this process, one after another.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+from .graph import Node, NodeReport, RunSummary, execute, key_parts, node_key, plan_order
+from .store import Store
+
+__all__ = ["run_graphs", "DistributedStats"]
+
+TASK_RETRIES = 2   # a killed worker's task is resubmitted this many times
+
+
+@dataclass
+class DistributedStats:
+    """How a distributed run went: tasks, their durations, and the overhead around them."""
+
+    tasks: int = 0
+    ran: int = 0
+    wall_seconds: float = 0.0
+    task_seconds: list = field(default_factory=list)    # node seconds of the tasks that ran
+    workers: int = 1
+
+    @property
+    def overhead_per_task(self) -> float:
+        """Wall time not explained by the node work, per task, with perfect packing assumed."""
+        if not self.tasks:
+            return 0.0
+        busy = sum(self.task_seconds) / max(self.workers, 1)
+        return max(self.wall_seconds - busy, 0.0) / self.tasks
+
+    def to_dict(self) -> dict:
+        n = len(self.task_seconds)
+        return {"tasks": self.tasks, "ran": self.ran, "workers": self.workers,
+                "wall_seconds": self.wall_seconds,
+                "mean_task_seconds": sum(self.task_seconds) / n if n else 0.0,
+                "overhead_per_task_seconds": self.overhead_per_task}
+
+
+def _keys(nodes: dict[str, Node], order: list[str]) -> dict[str, str]:
+    keys: dict[str, str] = {}
+    for nid in order:
+        keys[nid] = node_key(key_parts(nodes[nid], keys))
+    return keys
+
+
+def _ancestors(nodes: dict[str, Node], nid: str) -> dict[str, Node]:
+    out, todo = {}, [nid]
+    while todo:
+        n = todo.pop()
+        if n not in out:
+            out[n] = nodes[n]
+            todo.extend(nodes[n].dep_ids)
+    return out
+
+
+def _run_task(nodes: dict[str, Node], nid: str, cache_root: str, device: str | None,
+              warm: tuple = (), *_deps_done) -> dict:
+    """One Dask task: run node ``nid`` (its inputs are already in the cache).
+
+    ``warm`` names modules imported before the node is timed (first imports of heavy
+    libraries are a per-process cost, not the node's)."""
+    import importlib
+    from .api import RunContext
+    for name in (*warm, nodes[nid].module):
+        importlib.import_module(name)
+    store = Store(cache_root)
+    with store.locked():
+        summary = execute(nodes, [nid], store, RunContext(device=device))
+    rep = next(r for r in summary.nodes if r.id == nid)
+    return {"id": nid, "key": rep.key, "status": rep.status, "seconds": rep.seconds,
+            "kernel_seconds": rep.kernel_seconds, "reasons": rep.reasons, "path": rep.path}
+
+
+def run_graphs(graphs: list[tuple[dict[str, Node], list[str]]], cache_root, *,
+               workers: int = 1, scheduler: str | None = None, device: str | None = None,
+               progress=None, warm: tuple = ()) -> tuple[list[RunSummary], DistributedStats]:
+    """Build every graph's targets; returns one summary per graph and the run's statistics.
+
+    Parameters
+    ----------
+    graphs : list of (nodes, targets) from :func:`dermis.pipeline.plan.build_graph`
+    cache_root : the shared cache directory
+    workers : local worker processes (a Dask LocalCluster when > 1)
+    scheduler : address of an existing Dask scheduler (its workers must see ``cache_root``)
+    progress : callable(done, running, failed, total), optional
+    warm : module names each worker imports before timing a node
+    """
+    t0 = time.perf_counter()
+    store = Store(cache_root)
+    plans = []
+    tasks: dict[str, tuple] = {}          # task name -> (nodes subgraph, node id, dep task names)
+    for nodes, targets in graphs:
+        order = plan_order(nodes, targets)
+        keys = _keys(nodes, order)
+        plans.append((nodes, order, keys))
+        for nid in order:
+            name = f"{nid}-{keys[nid]}"
+            if name not in tasks:
+                deps = tuple(f"{d}-{keys[d]}" for d in nodes[nid].dep_ids)
+                tasks[name] = (_ancestors(nodes, nid), nid, deps)
+    stats = DistributedStats(tasks=len(tasks), workers=max(workers, 1))
+    if scheduler is None and workers <= 1:
+        results = _run_serial(tasks, str(store.root), device, progress, warm)
+    else:
+        results = _run_dask(tasks, str(store.root), device, workers, scheduler, progress, warm)
+    stats.wall_seconds = time.perf_counter() - t0
+    stats.ran = sum(1 for r in results.values() if r["status"] == "ran")
+    stats.task_seconds = [r["seconds"] for r in results.values() if r["status"] == "ran"]
+    summaries = []
+    for nodes, order, keys in plans:
+        reps = []
+        for nid in order:
+            r = results[f"{nid}-{keys[nid]}"]
+            reps.append(NodeReport(nid, nodes[nid].stage, r["status"], r["seconds"],
+                                   r["kernel_seconds"], keys[nid], r["reasons"], r["path"]))
+        summaries.append(RunSummary(reps))
+    return summaries, stats
+
+
+def _run_serial(tasks, cache_root, device, progress, warm) -> dict:
+    results, done = {}, 0
+    for name, (sub, nid, _) in tasks.items():      # insertion order is topological
+        results[name] = _run_task(sub, nid, cache_root, device, warm)
+        done += 1
+        if progress:
+            progress(done, 0, 0, len(tasks))
+    return results
+
+
+def _run_dask(tasks, cache_root, device, workers, scheduler, progress, warm) -> dict:
+    from dask.distributed import Client, LocalCluster, as_completed
+
+    cluster = None
+    if scheduler is None:
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                               dashboard_address=None)
+    client = Client(scheduler or cluster)
+    try:
+        futures = {}
+        for name, (sub, nid, deps) in tasks.items():   # topological: deps submitted first
+            futures[name] = client.submit(_run_task, sub, nid, cache_root, device, warm,
+                                          *(futures[d] for d in deps), key=name,
+                                          retries=TASK_RETRIES, pure=False)
+        results, failed = {}, 0
+        for fut in as_completed(list(futures.values())):
+            try:
+                results[fut.key] = fut.result()
+            except Exception:
+                failed += 1
+                raise
+            finally:
+                if progress:
+                    progress(len(results), len(futures) - len(results) - failed, failed,
+                             len(futures))
+        return results
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()

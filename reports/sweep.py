@@ -1,0 +1,469 @@
+"""``dermis sweep SCENE``: measure the speed-accuracy trade of the knobs a user turns.
+
+A ``[sweep]`` table in the scene names knobs and their values::
+
+    [sweep]
+    mode = "one_at_a_time"            # or "grid"
+    targets = [0.01, 0.05]            # relative-RMSE targets for the recommendations
+    budget_s = 60.0                   # time budget for the third recommendation
+    [sweep.knobs]
+    "bssrdf.epsilon" = [1.0, 0.5, 0.2]
+    "lights.samples" = { range = [4, 64], num = 5, scale = "log" }
+
+Every point is an ordinary scene variant, so the cache reuses everything upstream of the knob,
+and all points run as independent node tasks (:mod:`dermis.pipeline.distributed`; ``--workers``,
+``--scheduler``).  Each point is timed from the stage metadata (the seconds of the nodes the
+knob changed, and of those it shares with the scene as written) and scored against a reference
+suited to its knob (:data:`KNOBS`): relative RMSE in linear radiance and FLIP (Andersson et
+al. 2020, ``flip-evaluator``) over every image of the scene.  Results: ``sweep.json`` (points,
+Pareto fronts, recommended settings), one error-vs-time plot per knob and a joint one, and
+``sweep.pdf``.
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import itertools
+import json
+import math
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from dermis.pipeline.config import scene_from_dict
+from dermis.pipeline.errors import ConfigError, DermisError
+
+__all__ = ["KNOBS", "Knob", "SweepSpec", "parse_sweep", "run_sweep", "pareto_front",
+           "recommend", "add_parser", "run"]
+
+
+@dataclass(frozen=True)
+class Knob:
+    """A sweepable setting: where it lives in the scene, which way is finer, its reference.
+
+    reference: "finest" (the sweep's most refined value), "brute_force" (the exact gather) or
+    "high_mesh" (the same images on the ~1M-triangle mesh).
+    """
+
+    path: str
+    finer: str                 # "higher" or "lower"
+    reference: str = "finest"
+    integer: bool = False
+    doc: str = ""
+
+
+KNOBS = {k.path: k for k in (
+    Knob("bssrdf.epsilon", "lower", "brute_force", doc="gather solid-angle criterion"),
+    Knob("bssrdf.point_density", "higher", doc="irradiance points per pi mfp^2"),
+    Knob("bssrdf.irradiance_samples", "higher", integer=True, doc="irradiance shadow samples"),
+    Knob("bssrdf.leaf_size", "lower", "brute_force", integer=True, doc="points per octree leaf"),
+    Knob("lights.samples", "higher", integer=True, doc="area/environment light samples"),
+    Knob("bake.resolution", "higher", integer=True, doc="baked map resolution"),
+    Knob("mesh.low_triangles", "higher", "high_mesh", integer=True,
+         doc="triangles of the simplified mesh"),
+)}
+
+MODES = ("one_at_a_time", "grid")
+# Imported by every worker before it times a node: their first import is a per-process cost.
+WARM_IMPORTS = ("numpy", "scipy.fft", "scipy.sparse", "scipy.spatial", "open3d", "igl",
+                "pyopencl", "OpenImageIO", "dermis.physics.visibility")
+
+
+@dataclass
+class SweepSpec:
+    knobs: dict                # path -> list of values
+    mode: str = "one_at_a_time"
+    targets: tuple = (0.01, 0.05)
+    budget_s: float | None = None
+
+
+def _problem(where: str, key: str, msg: str) -> str:
+    return f"{where}: sweep.{key}{msg}"
+
+
+def _values(where: str, name: str, spec, knob: Knob) -> list:
+    if isinstance(spec, list):
+        values = spec
+    elif isinstance(spec, dict):
+        extra = set(spec) - {"range", "num", "scale"}
+        if extra:
+            raise ConfigError(_problem(where, f"knobs.{name}", f": unknown keys {sorted(extra)}; "
+                                       "allowed: range, num, scale"))
+        rng, num, scale = spec.get("range"), spec.get("num", 5), spec.get("scale", "linear")
+        if (not isinstance(rng, list) or len(rng) != 2
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in rng)):
+            raise ConfigError(_problem(where, f"knobs.{name}.range", f" = {rng!r}: must be "
+                                       "[low, high] numbers"))
+        if not isinstance(num, int) or isinstance(num, bool) or num < 2:
+            raise ConfigError(_problem(where, f"knobs.{name}.num", f" = {num!r}: must be an "
+                                       "integer >= 2"))
+        if scale not in ("linear", "log"):
+            raise ConfigError(_problem(where, f"knobs.{name}.scale", f" = {scale!r}: must be "
+                                       '"linear" or "log"'))
+        lo, hi = float(rng[0]), float(rng[1])
+        if scale == "log" and not (lo > 0 and hi > 0):
+            raise ConfigError(_problem(where, f"knobs.{name}.range", f" = {rng!r}: a log range "
+                                       "needs positive ends"))
+        values = list(np.geomspace(lo, hi, num) if scale == "log" else np.linspace(lo, hi, num))
+    else:
+        raise ConfigError(_problem(where, f"knobs.{name}", f" = {spec!r}: must be a list of "
+                                   "values or {range = [lo, hi], num = N, scale = ...}"))
+    if not values:
+        raise ConfigError(_problem(where, f"knobs.{name}", " = []: needs at least one value"))
+    out = []
+    for v in values:
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise ConfigError(_problem(where, f"knobs.{name}", f": value {v!r} must be a "
+                                       "finite number"))
+        out.append(int(round(v)) if knob.integer else float(v))
+    return sorted(set(out), key=out.index)
+
+
+def parse_sweep(table, where: str) -> SweepSpec:
+    """Validate a ``[sweep]`` table; errors name the file, the key, the value and the rule."""
+    if not isinstance(table, dict):
+        raise ConfigError(f"{where}: sweep = {table!r}: must be a table ([sweep])")
+    extra = set(table) - {"knobs", "mode", "targets", "budget_s"}
+    if extra:
+        raise ConfigError(f"{where}: sweep: unknown keys {sorted(extra)}; allowed: knobs, mode, "
+                          "targets, budget_s")
+    mode = table.get("mode", "one_at_a_time")
+    if mode not in MODES:
+        raise ConfigError(_problem(where, "mode", f" = {mode!r}: must be one of {', '.join(MODES)}"))
+    knobs = table.get("knobs")
+    if not isinstance(knobs, dict) or not knobs:
+        raise ConfigError(_problem(where, "knobs", " is missing or empty: name at least one of "
+                                   + ", ".join(KNOBS)))
+    values = {}
+    for name, spec in knobs.items():
+        if name not in KNOBS:
+            import difflib
+            close = difflib.get_close_matches(name, list(KNOBS), n=1)
+            raise ConfigError(_problem(where, f"knobs.{name}", ": unknown knob"
+                                       + (f" (did you mean '{close[0]}'?)" if close else "")
+                                       + "; knobs: " + ", ".join(KNOBS)))
+        values[name] = _values(where, name, spec, KNOBS[name])
+    targets = table.get("targets", [0.01, 0.05])
+    if (not isinstance(targets, list) or not targets
+            or not all(isinstance(t, (int, float)) and not isinstance(t, bool) and t > 0
+                       for t in targets)):
+        raise ConfigError(_problem(where, "targets", f" = {targets!r}: must be a list of "
+                                   "relative errors > 0"))
+    budget = table.get("budget_s")
+    if budget is not None and (isinstance(budget, bool) or not isinstance(budget, (int, float))
+                               or not budget > 0):
+        raise ConfigError(_problem(where, "budget_s", f" = {budget!r}: must be seconds > 0"))
+    return SweepSpec(values, mode, tuple(float(t) for t in targets),
+                     None if budget is None else float(budget))
+
+
+# ------------------------------------------------------------------------------ variants
+def _set(table: dict, path: str, value) -> dict:
+    """A copy of the raw scene table with knob ``path`` set to ``value``."""
+    out = copy.deepcopy(table)
+    if path == "lights.samples":   # every area and environment light
+        for light in out.get("lights", []):
+            if light.get("type") in ("disc", "environment"):
+                light["samples"] = value
+        return out
+    head, _, key = path.partition(".")
+    out.setdefault(head, {})[key] = value
+    return out
+
+
+def _scene(table: dict, where: str, label: str):
+    try:
+        return scene_from_dict(table, where=where)
+    except ConfigError as exc:
+        raise ConfigError(f"sweep point {label}: {exc}") from None
+
+
+def _current(table: dict, scene, path: str):
+    if path == "lights.samples":
+        vals = [l.samples for l in scene.lights if l.type in ("disc", "environment")]
+        return vals[0] if vals else None
+    head, _, key = path.partition(".")
+    return getattr(getattr(scene, head), key)
+
+
+@dataclass
+class Point:
+    knob: str                  # "" for the scene as written; "a=1,b=2" joined for grid points
+    values: dict               # knob path -> value
+    scene: object
+    role: str = "point"        # point | base | reference
+
+
+def sweep_points(table: dict, where: str, spec: SweepSpec) -> list[Point]:
+    """The scene as written, every sweep point and every knob's reference, as scene variants."""
+    base = _scene(table, where, "(scene as written)")
+    points = [Point("", {}, base, "base")]
+    combos = ([{k: v} for k, vals in spec.knobs.items() for v in vals] if spec.mode == "one_at_a_time"
+              else [dict(zip(spec.knobs, c)) for c in itertools.product(*spec.knobs.values())])
+    for combo in combos:
+        t = table
+        for k, v in combo.items():
+            t = _set(t, k, v)
+        label = ",".join(f"{k}={v}" for k, v in combo.items())
+        points.append(Point(",".join(combo), combo, _scene(t, where, label)))
+    for name, vals in spec.knobs.items():
+        knob = KNOBS[name]
+        if knob.reference == "brute_force":
+            t = _set(table, "bssrdf.brute_force", True)
+            points.append(Point(name, {"bssrdf.brute_force": True},
+                                _scene(t, where, f"{name} reference"), "reference"))
+        elif knob.reference == "high_mesh":
+            if "high" not in base.render.geometries:
+                raise ConfigError(_problem(where, f"knobs.{name}", ": its reference is the high "
+                                           'mesh: add "high" to render.geometries'))
+        # "finest": the reference is the sweep's own most refined point (no extra render)
+    return points
+
+
+# ------------------------------------------------------------------------------ scoring
+def _images(store, summary) -> dict:
+    """(model, light, geometry) -> RenderedImage of the render nodes of a summary."""
+    from dermis.pipeline import artifacts
+    out = {}
+    for rep in summary.nodes:
+        if rep.stage in ("render", "bssrdf"):
+            img = artifacts.load(store.artifact_dir(rep.id, rep.key))
+            out[(img.info["model"], img.info["light"], img.info["geometry"])] = img
+    return out
+
+
+def _flip(image, reference) -> float:
+    """Mean LDR FLIP of two linear images tone-mapped with the reference's exposure."""
+    import flip_evaluator as flip
+    from dermis.reports.tonemap import shared_exposure, tonemap
+    e = shared_exposure([reference.linear])
+    test, ref = tonemap([image.linear, reference.linear], exposure=e)
+    _, mean, _ = flip.evaluate(ref.astype(np.float32) / 255.0, test.astype(np.float32) / 255.0,
+                               "LDR")
+    return float(mean)
+
+
+def _errors(images: dict, refs: dict, *, high_mesh: bool = False) -> dict:
+    from dermis.reports.diff import difference
+    rel, flips = [], []
+    for (model, light, geom), img in images.items():
+        ref = refs.get((model, light, "high" if high_mesh else geom))
+        if ref is None or (high_mesh and geom == "high"):
+            continue
+        rel.append(float(difference(img, ref).metrics["rel_rmse"]))
+        flips.append(_flip(img, ref))
+    if not rel:
+        return {"rel_rmse": None, "flip": None, "images": 0}
+    return {"rel_rmse": float(np.mean(rel)), "rel_rmse_max": float(np.max(rel)),
+            "flip": float(np.mean(flips)), "images": len(rel)}
+
+
+def _varying(summaries: list) -> set[str]:
+    """Ids of the nodes whose key differs between the given runs: what the knob changes."""
+    keys: dict[str, set] = {}
+    for s in summaries:
+        for rep in s.nodes:
+            keys.setdefault(rep.id, set()).add(rep.key)
+    ids = {nid for nid, ks in keys.items() if len(ks) > 1}
+    ids |= {nid for nid in keys if any(nid not in {r.id for r in s.nodes} for s in summaries)}
+    return ids
+
+
+def _seconds(store, summary, varying: set[str]) -> dict:
+    """Node seconds from the stage metadata: the nodes the knob changes, and the rest."""
+    changed = shared = kernel = 0.0
+    for rep in summary.nodes:
+        meta = store.meta(rep.id, rep.key)
+        s = float(meta.get("seconds", 0.0)) - float(meta.get("build_seconds", 0.0))
+        if rep.id in varying:
+            changed += s
+            kernel += float(meta.get("kernel_seconds", 0.0))
+        else:
+            shared += s
+    return {"changed": changed, "shared": shared, "total": changed + shared, "kernel": kernel}
+
+
+def pareto_front(points: list[dict]) -> list[int]:
+    """Indices of the points no other point beats in both time and error (sorted by time)."""
+    idx = [i for i, p in enumerate(points) if p.get("rel_rmse") is not None]
+    idx.sort(key=lambda i: (points[i]["seconds"], points[i]["rel_rmse"]))
+    front, best = [], math.inf
+    for i in idx:
+        if points[i]["rel_rmse"] < best:
+            front.append(i)
+            best = points[i]["rel_rmse"]
+    return front
+
+
+def recommend(points: list[dict], targets, budget_s) -> dict:
+    """The cheapest point reaching each error target, and the most accurate within the budget."""
+    scored = [p for p in points if p.get("rel_rmse") is not None]
+    out = {}
+    for t in targets:
+        ok = [p for p in scored if p["rel_rmse"] <= t]
+        out[f"rel_rmse<={t:g}"] = (min(ok, key=lambda p: p["seconds"])["values"] if ok else None)
+    if budget_s is not None:
+        ok = [p for p in scored if p["seconds"] <= budget_s]
+        out[f"seconds<={budget_s:g}"] = (min(ok, key=lambda p: p["rel_rmse"])["values"]
+                                         if ok else None)
+    return out
+
+
+def run_sweep(scene_path, *, cache, out_dir=None, workers: int = 1, scheduler: str | None = None,
+              device: str | None = None, progress=None) -> dict:
+    """Run every point of the scene's ``[sweep]``; write and return the results."""
+    from dermis.pipeline.distributed import run_graphs
+    from dermis.pipeline.plan import build_graph
+    from dermis.pipeline.store import Store
+
+    path = Path(scene_path)
+    where = str(path)
+    try:
+        table = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"{where}: scene file does not exist") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{where}: not valid TOML: {exc}") from None
+    if "sweep" not in table:
+        raise ConfigError(f"{where}: no [sweep] table: name the knobs to sweep, e.g. "
+                          '[sweep.knobs] "bssrdf.epsilon" = [1.0, 0.5, 0.2]')
+    spec = parse_sweep(table.pop("sweep"), where)
+    points = sweep_points(table, where, spec)
+    graphs = [build_graph(p.scene) for p in points]
+    summaries, stats = run_graphs(graphs, cache, workers=workers, scheduler=scheduler,
+                                  device=device, progress=progress, warm=WARM_IMPORTS)
+    store = Store(cache)
+    groups = {}
+    for i, p in enumerate(points):
+        if p.role == "point":
+            groups.setdefault(p.knob if spec.mode == "one_at_a_time" else "grid", []).append(i)
+    varying = {g: _varying([summaries[i] for i in idx]) for g, idx in groups.items()}
+    images = [_images(store, s) for s in summaries]
+    by_role = {(p.role, p.knob): i for i, p in enumerate(points)}
+    rows = []
+    for i, p in enumerate(points):
+        if p.role != "point":
+            continue
+        errs = {}
+        if spec.mode == "one_at_a_time":
+            knob = KNOBS[p.knob]
+            if knob.reference == "brute_force":
+                errs = _errors(images[i], images[by_role[("reference", p.knob)]])
+            elif knob.reference == "high_mesh":
+                errs = _errors(images[i], images[0], high_mesh=True)
+            else:
+                vals = spec.knobs[p.knob]
+                finest = max(vals) if knob.finer == "higher" else min(vals)
+                j = next(k for k, q in enumerate(points)
+                         if q.role == "point" and q.knob == p.knob and q.values[p.knob] == finest)
+                errs = _errors(images[i], images[j])
+        else:   # grid: against the most refined corner
+            j = max((k for k, q in enumerate(points) if q.role == "point"),
+                    key=lambda k: sum((1 if KNOBS[n].finer == "higher" else -1) * v
+                                      for n, v in points[k].values.items()))
+            errs = _errors(images[i], images[j])
+        secs = _seconds(store, summaries[i],
+                        varying[p.knob if spec.mode == "one_at_a_time" else "grid"])
+        default = all(_current(table, points[0].scene, k) == v for k, v in p.values.items())
+        rows.append({"knob": p.knob, "values": p.values, "seconds": secs["changed"],
+                     "seconds_shared": secs["shared"], "kernel_seconds": secs["kernel"],
+                     "is_default": default, **errs})
+    result = {"scene": where, "mode": spec.mode, "targets": list(spec.targets),
+              "budget_s": spec.budget_s, "points": rows, "fronts": {}, "recommended": {},
+              "distributed": stats.to_dict(),
+              "reference_rules": {k: KNOBS[k].reference for k in spec.knobs}}
+    for name in ({p["knob"] for p in rows} if spec.mode == "one_at_a_time" else {""}):
+        sel = [k for k, r in enumerate(rows) if r["knob"] == name or spec.mode == "grid"]
+        front = pareto_front([rows[k] for k in sel])
+        result["fronts"][name or "grid"] = [sel[k] for k in front]
+        result["recommended"][name or "grid"] = recommend([rows[k] for k in sel], spec.targets,
+                                                          spec.budget_s)
+    result["fronts"]["joint"] = pareto_front(rows)
+    result["recommended"]["joint"] = recommend(rows, spec.targets, spec.budget_s)
+    out = Path(out_dir) if out_dir else Path(points[0].scene.output.output_dir) / \
+        points[0].scene.scene.name / "sweep"
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "sweep.json").write_text(json.dumps(result, indent=1, default=str))
+    _plots(result, out)
+    return result
+
+
+def _plots(result: dict, out: Path) -> None:
+    """Error-vs-time per knob with the Pareto front and the default marked; a joint plot; PDF."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.backends.backend_pdf import PdfPages
+
+    rows = result["points"]
+    groups = {name: idx for name, idx in result["fronts"].items()}
+    with PdfPages(out / "sweep.pdf") as pdf:
+        for name, front in groups.items():
+            sel = [k for k, r in enumerate(rows) if name in ("joint", "grid") or r["knob"] == name]
+            sel = [k for k in sel if rows[k].get("rel_rmse") is not None]
+            if not sel:
+                continue
+            fig, ax = plt.subplots(figsize=(7, 4.5))
+            for k in sel:
+                r = rows[k]
+                ax.scatter(r["seconds"], r["rel_rmse"], marker="*" if r["is_default"] else "o",
+                           s=120 if r["is_default"] else 30,
+                           color="C3" if r["is_default"] else "C0", zorder=3)
+                ax.annotate(",".join(f"{v:g}" for v in r["values"].values()),
+                            (r["seconds"], r["rel_rmse"]), fontsize=7, xytext=(3, 3),
+                            textcoords="offset points")
+            f = [k for k in front if k in sel]
+            ax.plot([rows[k]["seconds"] for k in f], [rows[k]["rel_rmse"] for k in f], "-",
+                    color="C1", label="Pareto front")
+            for t in result["targets"]:
+                ax.axhline(t, color="0.6", lw=0.8, ls=":")
+            ax.set_xlabel("seconds of the nodes the knob changes (from stage metadata)")
+            ax.set_ylabel("relative RMSE against the reference")
+            ax.set_yscale("log") if all(rows[k]["rel_rmse"] > 0 for k in sel) else None
+            ax.set_title(f"{name}  (reference: {result['reference_rules'].get(name, 'per knob')})"
+                         f";  default = star", fontsize=9)
+            ax.legend(fontsize=8)
+            fig.tight_layout()
+            fig.savefig(out / f"sweep-{name.replace('.', '_')}.png", dpi=110)
+            pdf.savefig(fig)
+            plt.close(fig)
+
+
+# ------------------------------------------------------------------------------ CLI
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    p = subparsers.add_parser("sweep", help="speed-accuracy sweep of the scene's [sweep] knobs")
+    p.add_argument("scene", help="scene TOML with a [sweep] table")
+    p.add_argument("--cache", help="cache directory (shared by every worker)")
+    p.add_argument("--out", help="output folder (default output_dir/<scene>/sweep)")
+    p.add_argument("--workers", type=int, default=1,
+                   help="local worker processes (Dask LocalCluster when > 1)")
+    p.add_argument("--scheduler", help="address of an existing Dask scheduler")
+    p.add_argument("--device", help="OpenCL device spec")
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args) -> int:
+    from dermis.pipeline.api import cache_dir_for
+    if args.workers < 1:
+        raise DermisError(f"--workers {args.workers}: must be >= 1")
+
+    def progress(done, running, failed, total):
+        print(f"\rsweep: {done}/{total} tasks done, {running} running, {failed} failed",
+              end="", flush=True)
+
+    res = run_sweep(args.scene, cache=cache_dir_for(None, args.cache), out_dir=args.out,
+                    workers=args.workers, scheduler=args.scheduler, device=args.device,
+                    progress=progress)
+    print()
+    print(f"{'knob':<28} {'value':>10} {'seconds':>9} {'rel RMSE':>9} {'FLIP':>7}")
+    for r in res["points"]:
+        for k, v in r["values"].items():
+            err = "-" if r.get("rel_rmse") is None else f"{r['rel_rmse']:.4f}"
+            fl = "-" if r.get("flip") is None else f"{r['flip']:.4f}"
+            mark = " *" if r["is_default"] else ""
+            print(f"{k:<28} {v:>10g} {r['seconds']:>9.2f} {err:>9} {fl:>7}{mark}")
+    print("recommended:", json.dumps(res["recommended"]["joint"]))
+    return 0
