@@ -1,0 +1,159 @@
+"""dermis sweep: JSON, convergence against the reference, Dask vs serial, retries, bad specs."""
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import os
+from pathlib import Path
+
+import pytest
+
+from dermis.pipeline.cli import main
+from dermis.pipeline.errors import ConfigError
+from dermis.pipeline.store import Store
+from dermis.reports.sweep import pareto_front, parse_sweep, recommend, run_sweep
+
+QUICK = Path(__file__).resolve().parents[1] / "scenes" / "quick.toml"
+
+
+def sweep_scene(tmp_path: Path, sweep: str, *, lights='["point"]') -> Path:
+    """The quick scene cut to one BSSRDF image per light (CI-sized), with a [sweep] table."""
+    src = QUICK.read_text()
+    for a, b in (('models = ["lafortune", "hk93", "bssrdf", "asperity"]', 'models = ["bssrdf"]'),
+                 ('lights = ["point", "area", "dir_left+dir_right", "sunset"]', f"lights = {lights}"),
+                 ('geometries = ["high", "low_bump", "low_bump_blur"]', 'geometries = ["high"]'),
+                 ("previews = true", "previews = false"),
+                 ('output_dir = "out"', f'output_dir = "{tmp_path / "out"}"')):
+        assert a in src, a
+        src = src.replace(a, b)
+    path = tmp_path / "sweep.toml"
+    path.write_text(src + "\n" + sweep)
+    return path
+
+
+EPS = '[sweep]\n[sweep.knobs]\n"bssrdf.epsilon" = [1.0, 0.25]\n'
+
+
+@pytest.fixture(scope="module")
+def serial(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("serial")
+    res = run_sweep(sweep_scene(tmp, EPS), cache=tmp / "cache", out_dir=tmp / "res")
+    return tmp, res
+
+
+def test01_sweep_writes_points_fronts_and_error_falls_as_epsilon_is_refined(serial):
+    tmp, res = serial
+    on_disk = json.loads((tmp / "res" / "sweep.json").read_text())
+    assert on_disk["points"] == json.loads(json.dumps(res["points"]))
+    pts = {p["values"]["bssrdf.epsilon"]: p for p in res["points"]}
+    assert set(pts) == {1.0, 0.25}
+    for p in pts.values():
+        assert p["images"] == 1 and p["seconds"] > 0 and p["seconds_shared"] > 0
+        assert p["flip"] is not None and 0 <= p["flip"] < 1
+    # against the brute-force gather: a finer criterion is closer, and both are close
+    assert 0 < pts[0.25]["rel_rmse"] < pts[1.0]["rel_rmse"] < 0.05
+    assert res["reference_rules"] == {"bssrdf.epsilon": "brute_force"}
+    assert res["fronts"]["bssrdf.epsilon"] and res["fronts"]["joint"]
+    assert set(res["recommended"]["joint"]) == {"rel_rmse<=0.01", "rel_rmse<=0.05"}
+    assert (tmp / "res" / "sweep.pdf").stat().st_size > 1000
+    assert (tmp / "res" / "sweep-bssrdf_epsilon.png").is_file()
+
+
+def test02_pareto_and_recommendations_follow_their_definitions():
+    pts = [{"seconds": 1.0, "rel_rmse": 0.10, "values": {"k": 1}},
+           {"seconds": 2.0, "rel_rmse": 0.04, "values": {"k": 2}},
+           {"seconds": 3.0, "rel_rmse": 0.06, "values": {"k": 3}},   # dominated by k=2
+           {"seconds": 5.0, "rel_rmse": 0.005, "values": {"k": 4}}]
+    assert pareto_front(pts) == [0, 1, 3]
+    rec = recommend(pts, (0.01, 0.05), 2.5)
+    assert rec == {"rel_rmse<=0.01": {"k": 4}, "rel_rmse<=0.05": {"k": 2},
+                   "seconds<=2.5": {"k": 2}}
+
+
+def _artifact_sums(cache: Path) -> dict:
+    """(node, key) -> the recorded checksums of its data files (meta.json itself excluded)."""
+    out = {}
+    for meta in cache.glob("*/*/meta.json"):
+        out[(meta.parent.parent.name, meta.parent.name)] = json.loads(meta.read_text())["checksums"]
+    return out
+
+
+def test03_two_dask_workers_give_byte_identical_artifacts(serial, tmp_path):
+    pytest.importorskip("distributed")
+    stmp, _ = serial
+    res = run_sweep(sweep_scene(tmp_path, EPS), cache=tmp_path / "cache",
+                    out_dir=tmp_path / "res", workers=2)
+    a, b = _artifact_sums(stmp / "cache"), _artifact_sums(tmp_path / "cache")
+    assert a.keys() == b.keys() and a == b
+    assert res["distributed"]["workers"] == 2 and res["distributed"]["tasks"] >= 7
+
+
+def _write_same_key(root, value, barrier):
+    store = Store(root)
+    with store.locked():
+        barrier.wait()
+        with store.writing("node", "key") as tmp:
+            (tmp / "data.bin").write_bytes(value * 100_000)
+            (tmp / "meta.json").write_text("{}")
+
+
+def test04_two_processes_writing_one_key_leave_one_valid_entry(tmp_path):
+    ctx = mp.get_context("spawn")
+    barrier = ctx.Barrier(2)
+    procs = [ctx.Process(target=_write_same_key, args=(str(tmp_path), v, barrier))
+             for v in (b"a", b"b")]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join(60)
+        assert p.exitcode == 0
+    store = Store(tmp_path)
+    assert store.verify("node", "key") is None
+    assert (tmp_path / "node" / "key" / "data.bin").read_bytes() in (b"a" * 100_000,
+                                                                      b"b" * 100_000)
+    assert [p.name for p in (tmp_path / "node").iterdir()] == ["key"]
+    assert not list((tmp_path / ".tmp").iterdir())
+
+
+def _killer_task(flag_path):
+    """Dies (as a killed worker would) the first time it runs, succeeds the second time."""
+    flag = Path(flag_path)
+    if not flag.exists():
+        flag.write_text("killed once")
+        os._exit(1)
+    return "done"
+
+
+def test05_a_killed_worker_is_retried(tmp_path):
+    distributed = pytest.importorskip("distributed")
+    from dermis.pipeline.distributed import TASK_RETRIES
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster, \
+            distributed.Client(cluster) as client:
+        fut = client.submit(_killer_task, str(tmp_path / "flag"), retries=TASK_RETRIES,
+                            pure=False)
+        assert fut.result(timeout=120) == "done"
+    assert (tmp_path / "flag").read_text() == "killed once"
+
+
+@pytest.mark.parametrize("sweep, key", [
+    ('[sweep]\n[sweep.knobs]\n"bssrdf.epsilonn" = [0.5]\n', "sweep.knobs.bssrdf.epsilonn"),
+    ('[sweep]\n[sweep.knobs]\n"bssrdf.epsilon" = []\n', "sweep.knobs.bssrdf.epsilon"),
+    ('[sweep]\n[sweep.knobs]\n"bssrdf.epsilon" = {range = [1.0], num = 3}\n',
+     "sweep.knobs.bssrdf.epsilon.range"),
+    ('[sweep]\n[sweep.knobs]\n"bssrdf.epsilon" = [-1.0]\n', "bssrdf.epsilon"),
+    ('[sweep]\nmode = "random"\n[sweep.knobs]\n"bssrdf.epsilon" = [0.5]\n', "sweep.mode"),
+])
+def test06_invalid_sweep_specs_exit_2_naming_the_key(tmp_path, capsys, sweep, key):
+    path = sweep_scene(tmp_path, sweep)
+    assert main(["sweep", str(path), "--cache", str(tmp_path / "cache")]) == 2
+    err = capsys.readouterr().err
+    assert key in err and str(path) in err, err
+
+
+def test07_parse_accepts_ranges():
+    spec = parse_sweep({"knobs": {"lights.samples": {"range": [4, 64], "num": 3,
+                                                     "scale": "log"}}}, "<t>")
+    assert spec.knobs == {"lights.samples": [4, 16, 64]}
+    with pytest.raises(ConfigError, match="log range needs positive"):
+        parse_sweep({"knobs": {"bssrdf.epsilon": {"range": [0, 1], "scale": "log"}}}, "<t>")
