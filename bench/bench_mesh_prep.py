@@ -84,6 +84,7 @@ def main() -> int:
     if not DATA.is_dir():
         print(f"skip: {DATA} not found")
         return 0
+    from dermis.pipeline.artifacts import angle_weighted_normals
     from dermis.stages import mesh_prep as mp, scan_io
 
     res: dict = {"machine": f"{os.cpu_count()} cores", "steps": {}}
@@ -102,7 +103,7 @@ def main() -> int:
     high = record("make_high", lambda: mp.make_high(
         base, target_triangles=1_000_000, displacement=disp, displacement_scale_mm=mp.LPS_DISPLACEMENT_SCALE_MM,
         displacement_mid=mp.LPS_DISPLACEMENT_MID))
-    record("normals", lambda: mp.vertex_normals(high.vertices, high.faces).shape)
+    record("normals", lambda: angle_weighted_normals(high.vertices, high.faces).shape)
     low = record("simplify", lambda: mp.simplify(high, target_triangles=16750))
     low_uv, rep = record("transfer_uv", lambda: mp.transfer_uv(high, low))
     res["high_triangles"] = int(len(high.faces))

@@ -19,6 +19,7 @@ import json
 import platform
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +34,7 @@ from dermis.stages.render import render  # noqa: E402
 
 SHARED = REPO.parent / "shared" / "data" / "lps_head" / "LeePerrySmith_cm.obj"
 
-# The thesis's four lights (physics.md s6; positions as in scenes/default.toml, relative to
+# The thesis's four lights (docs/physics.md §6; positions as in scenes/default.toml, relative to
 # the face centre).
 def _lights(centre: np.ndarray) -> dict:
     c = centre
@@ -82,7 +83,7 @@ def _synthetic_maps(resolution: int = 4096):
 
 def _camera(mesh, size: int) -> CameraConfig:
     """Frame the head like the thesis figures: the top 330 mm of the mesh (a face is ~300 mm
-    tall, physics.md conventions) seen from 900 mm along +z."""
+    tall, docs/physics.md "Conventions") seen from 900 mm along +z."""
     v = np.asarray(mesh.vertices)
     lo, hi = v.min(0), v.max(0)
     extent = min(330.0, hi[1] - lo[1])
@@ -138,8 +139,8 @@ def main(argv=None) -> dict:
         # warm-up: compile every kernel variant outside the timings
         for model in args.models.split(","):
             params = AsperityParams(base="hk93") if model == "asperity" else None
-            render(mesh, lights["point"], model, params, cam, visibility=vis, cl_env=env,
-                   width=16, height=16, **extra)
+            render(mesh, lights["point"], model, params, replace(cam, width=16, height=16),
+                   visibility=vis, cl_env=env, **extra)
         for lname in args.lights.split(","):
             for model in args.models.split(","):
                 params = AsperityParams(base="hk93") if model == "asperity" else None

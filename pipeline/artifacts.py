@@ -2,10 +2,10 @@
 
 Every artifact is a dataclass whose fields are numpy arrays, numbers, strings,
 ``None`` or JSON-able dicts.  ``save`` writes the arrays to ``data.npz`` and the
-rest to ``fields.json`` inside a directory; ``load`` reverses it.  Stages never
-import each other: they exchange only these types.
+rest to ``fields.json`` inside a directory; ``load`` reverses it.  Stages exchange
+data only through these types.
 
-Conventions (physics.md): lengths in mm, coefficients in 1/mm, colour in linear
+Conventions (docs/physics.md "Conventions"): lengths in mm, coefficients in 1/mm, colour in linear
 RGB unless a field says ``srgb``.  UV origin is the bottom-left of the texture
 (OBJ convention): texel row counted from the top is ``(1 - v) * (H - 1)``.
 """
@@ -20,8 +20,11 @@ from typing import Any
 
 import numpy as np
 
+from dermis.pipeline.errors import ConfigError, DermisError
+
 __all__ = ["Mesh", "BakedMaps", "LayerProfile", "RenderedImage", "SurfacePoints",
-           "PointIrradiance", "save", "load", "ARTIFACT_TYPES"]
+           "PointIrradiance", "angle_weighted_normals", "renormalise_f64", "save", "load",
+           "ARTIFACT_TYPES"]
 
 
 @dataclass
@@ -55,15 +58,49 @@ class Mesh:
             return angle_weighted_normals(self.vertices, self.faces)
         n = np.asarray(self.normals, dtype=np.float32)
         if n.shape != np.shape(self.vertices):
-            raise ValueError(f"mesh.normals has shape {n.shape}; need {np.shape(self.vertices)}")
+            raise DermisError(f"mesh.normals has shape {n.shape}; need {np.shape(self.vertices)}")
         return n
+
+    def check(self, what: str, *, need_uv: bool = False) -> None:
+        """Raise DermisError naming ``what`` (e.g. ``"bake: low"``) if an array is malformed.
+
+        Checks vertices (finite, (V, 3)), faces ((F, 3) indices into them), normals ((V, 3)
+        when set) and the UVs (``uv`` and ``uv_faces`` together, finite (T, 2) and (F, 3)
+        indices into ``uv``).  ``need_uv``: missing UVs raise ConfigError.
+        """
+        v, f = np.asarray(self.vertices), np.asarray(self.faces)
+        if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0:
+            raise DermisError(f"{what}.vertices has shape {v.shape}; need (V, 3) with V > 0")
+        if not np.all(np.isfinite(v)):
+            raise DermisError(f"{what}.vertices contains NaN/inf")
+        if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
+            raise DermisError(f"{what}.faces has shape {f.shape}; need (F, 3) with F > 0")
+        if f.min() < 0 or f.max() >= len(v):
+            raise DermisError(f"{what}.faces indexes vertices outside [0, {len(v) - 1}]")
+        if self.normals is not None and np.shape(self.normals) != v.shape:
+            raise DermisError(f"{what}.normals has shape {np.shape(self.normals)}; need {v.shape}")
+        if self.uv is None and self.uv_faces is None:
+            if need_uv:
+                raise ConfigError(f"{what}.uv is None; the mesh needs UVs (uv + uv_faces)")
+            return
+        if (self.uv is None) != (self.uv_faces is None):
+            raise DermisError(f"{what}.uv and .uv_faces must both be given or both be None")
+        uv, uvf = np.asarray(self.uv), np.asarray(self.uv_faces)
+        if uv.ndim != 2 or uv.shape[1] != 2 or not np.all(np.isfinite(uv)):
+            raise DermisError(f"{what}.uv has shape {uv.shape} or non-finite values; "
+                              "need finite (T, 2)")
+        if uvf.shape != f.shape:
+            raise DermisError(f"{what}.uv_faces has shape {uvf.shape}; need {f.shape} "
+                              "(one UV index per face corner)")
+        if uvf.min() < 0 or uvf.max() >= len(uv):
+            raise DermisError(f"{what}.uv_faces indexes uv outside [0, {len(uv) - 1}]")
 
 
 def angle_weighted_normals(vertices, faces) -> np.ndarray:
     """Angle-weighted unit vertex normals, (V, 3) float32; unused vertices get (0, 0, 0).
 
-    physics.md s6 ("area-independent, angle-weighted average of face normals"; Thuermer &
-    Wuethrich, JGT 3(1), 1998), computed by ``igl.per_vertex_normals`` (weighting ANGLE).
+    docs/physics.md §6 "Vertex normals" (Thuermer & Wuethrich, JGT 3(1), 1998), computed by
+    ``igl.per_vertex_normals`` (weighting ANGLE).
     """
     import igl
 
@@ -71,6 +108,13 @@ def angle_weighted_normals(vertices, faces) -> np.ndarray:
                                np.ascontiguousarray(faces, dtype=np.int64),
                                igl.PerVertexNormalsWeightingType.PER_VERTEX_NORMALS_WEIGHTING_TYPE_ANGLE)
     return np.nan_to_num(n, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
+
+
+def renormalise_f64(normals) -> np.ndarray:
+    """``normals`` as float64, NaN set to 0 and each non-zero row rescaled to unit length."""
+    n = np.nan_to_num(np.asarray(normals).astype(np.float64))
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    return n / np.where(length > 0, length, 1.0)
 
 
 @dataclass

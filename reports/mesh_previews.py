@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dermis.pipeline.artifacts import BakedMaps, Mesh
+from dermis.pipeline.artifacts import BakedMaps, Mesh, renormalise_f64
 from dermis.pipeline.errors import DermisError
 from dermis.pipeline.graph import Node, StageResult
 from dermis.physics.color import linear_to_srgb8
@@ -23,8 +23,8 @@ KERNELS = ()
 PREVIEW_SIZE = 800
 
 # Preview light: directional, from the upper left and grazing (about 65 deg from the view
-# axis) so that bumps cast strong shading gradients; not a thesis light (physics.md s6 lists
-# those), just a detail-revealing one.
+# axis) so that bumps cast strong shading gradients; not a thesis light (docs/physics.md §6
+# lists those), just a detail-revealing one.
 PREVIEW_LIGHT_DIR = np.array([-0.8, 0.45, 0.4])
 PREVIEW_AMBIENT = 0.05       # keeps unlit regions readable
 PREVIEW_FOV_DEG = 30.0
@@ -127,7 +127,7 @@ def lambert_render(mesh: Mesh, *, size: int = 800, maps: BakedMaps | None = None
         n = bake.bump_shading_normals_at_hits(mesh, maps, tri, bary, blurred=blurred)
     else:
         w = np.stack([1 - bary[:, 0] - bary[:, 1], bary[:, 0], bary[:, 1]], 1)
-        n = np.einsum("nk,nkd->nd", w, bake._vertex_normals(mesh)[mesh.faces[tri]])
+        n = np.einsum("nk,nkd->nd", w, renormalise_f64(mesh.vertex_normals())[mesh.faces[tri]])
     n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
     return _shade(mask, n)
 
@@ -141,7 +141,7 @@ def save_shaded_comparison(high: Mesh, low: Mesh, maps: BakedMaps, out_path, *,
     high, low : Mesh, mm
     maps : BakedMaps baked from ``high`` into ``low``
     out_path : path-like of the PNG
-    size : int, side of each panel in pixels (800 as the thesis's images, physics.md s6)
+    size : int, side of each panel in pixels (800 as the thesis's images, docs/physics.md §6)
 
     Returns
     -------

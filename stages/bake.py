@@ -1,6 +1,6 @@
-"""Albedo and bump maps baked from the high mesh into the low mesh's UV space (physics.md s6).
+"""Albedo and bump maps baked from the high mesh into the low mesh's UV space.
 
-The bake follows the thesis (physics.md section 6, "Bake"): every low-poly triangle is
+The bake follows the thesis (docs/physics.md §6, "Bake"): every low-poly triangle is
 rasterised in UV space, rays are cast both ways along the interpolated normal into the
 high-poly mesh, the signed distance of the nearest hit becomes the bump height and the hit's
 texture colour becomes the albedo; hits beyond a threshold distance are ignored.
@@ -21,26 +21,25 @@ a vectorised scanline fill (no per-texel Python loop) and measured fast enough
 """
 from __future__ import annotations
 
-from dataclasses import asdict
 import time
+from dataclasses import asdict, dataclass
 from typing import Callable
 
 import numpy as np
 from scipy import ndimage
 
 from dermis.pipeline.graph import Node, StageResult
-from dermis.pipeline.artifacts import BakedMaps, Mesh
+from dermis.pipeline.artifacts import BakedMaps, Mesh, renormalise_f64
 from dermis.pipeline.errors import ConfigError, DermisError
 from dermis.physics.color import linear_to_srgb, srgb_to_linear
 
 __all__ = [
     "VERSION", "KERNELS", "bake_maps", "NAME", "node", "run", "triangle_tangent_frames", "bump_shading_normals",
-    "bump_shading_normals_at_hits", "srgb_to_linear", "linear_to_srgb",
-    "DEFAULT_MAX_DISTANCE_EDGE_FRACTION",
+    "bump_shading_normals_at_hits", "DEFAULT_MAX_DISTANCE_EDGE_FRACTION",
 ]
 
 VERSION = 2
-PHONG_ALPHA = 0.5   # shape factor of the Phong reference surface (see the texel loop)
+PHONG_ALPHA = 0.5   # shape factor of the Phong reference surface (see _texel_points)
 KERNELS: tuple[str, ...] = ()
 
 # Default ray length: half the low mesh's mean edge length.  The low mesh deviates from the
@@ -66,7 +65,7 @@ NEUTRAL_LINEAR_ALBEDO = 0.5
 
 
 # ----------------------------------------------------------------------------------------
-# Colour helpers (the sRGB curves themselves live in pipeline.imageio)
+# Colour helpers (the sRGB curves themselves live in physics.color)
 # ----------------------------------------------------------------------------------------
 # Encoding table: linear quantised to 1/65535 (an sRGB step of <= 12.92 / 65535 = 2e-4,
 # far below the 1/255 output step) -> sRGB uint8; 50x faster than pow() on 16M texels.
@@ -91,47 +90,7 @@ _DECODE_ONCE_MAX_TEXELS = 4096 * 4096
 # ----------------------------------------------------------------------------------------
 # Validation
 # ----------------------------------------------------------------------------------------
-def _check_mesh(mesh: Mesh, name: str, *, need_uv: bool) -> None:
-    """Raise DermisError if ``mesh`` lacks what the bake needs."""
-    if mesh is None:
-        raise DermisError(f"bake: {name} mesh is None")
-    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
-    if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0:
-        raise DermisError(f"bake: {name}.vertices has shape {v.shape}; need (V, 3) with V > 0")
-    if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
-        raise DermisError(f"bake: {name}.faces has shape {f.shape}; need (F, 3) with F > 0")
-    if not np.all(np.isfinite(v)):
-        raise DermisError(f"bake: {name}.vertices contains NaN/inf")
-    if f.min() < 0 or f.max() >= len(v):
-        raise DermisError(f"bake: {name}.faces indexes vertices outside [0, {len(v) - 1}]")
-    if not need_uv:
-        return
-    if mesh.uv is None:
-        raise ConfigError(f"bake: {name}.uv is None; the {name} mesh needs UVs (uv + uv_faces) "
-                          "to bake into (run the UV transfer step of mesh prep first)")
-    uv = np.asarray(mesh.uv)
-    if uv.ndim != 2 or uv.shape[1] != 2 or not np.all(np.isfinite(uv)):
-        raise DermisError(f"bake: {name}.uv has shape {uv.shape} or non-finite values; "
-                          "need finite (T, 2)")
-    uvf = _uv_faces(mesh, name)
-    if uvf.shape != f.shape:
-        raise DermisError(f"bake: {name}.uv_faces has shape {uvf.shape}; need {f.shape} "
-                          "(one UV index per face corner)")
-    if uvf.min() < 0 or uvf.max() >= len(uv):
-        raise DermisError(f"bake: {name}.uv_faces indexes uv outside [0, {len(uv) - 1}]")
-
-
-def _uv_faces(mesh: Mesh, name: str) -> np.ndarray:
-    """Per-corner UV indices; per-vertex UVs (uv_faces None, len(uv) == V) use the faces."""
-    if mesh.uv_faces is not None:
-        return np.asarray(mesh.uv_faces)
-    if mesh.uv is not None and len(mesh.uv) == len(mesh.vertices):
-        return np.asarray(mesh.faces)
-    raise DermisError(f"bake: {name}.uv_faces is None and {name}.uv is not per-vertex "
-                      f"({0 if mesh.uv is None else len(mesh.uv)} UVs for {len(mesh.vertices)} vertices)")
-
-
-def _check_options(resolution, max_distance_mm, blur_sigma_px, dilate_px) -> None:
+def _check_options(resolution, max_distance_mm, blur_sigma_px, dilate_px, reference) -> None:
     """Raise ConfigError naming the first bad option."""
     if isinstance(resolution, bool) or not isinstance(resolution, (int, np.integer)) \
             or not 2 <= resolution <= MAX_RESOLUTION:
@@ -144,16 +103,8 @@ def _check_options(resolution, max_distance_mm, blur_sigma_px, dilate_px) -> Non
         raise ConfigError(f"bake: blur_sigma_px = {blur_sigma_px!r}: must be >= 0 (texels)")
     if isinstance(dilate_px, bool) or not isinstance(dilate_px, (int, np.integer)) or dilate_px < 0:
         raise ConfigError(f"bake: dilate_px = {dilate_px!r}: must be an integer >= 0 (texels)")
-
-
-def _vertex_normals(mesh: Mesh) -> np.ndarray:
-    """The mesh's unit vertex normals (float64); angle-weighted ones if absent (physics.md s6)."""
-    try:
-        n = np.nan_to_num(mesh.vertex_normals().astype(np.float64))
-    except ValueError as exc:
-        raise DermisError(f"bake: {exc}") from None
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    return n / np.where(length > 0, length, 1.0)
+    if reference not in ("phong", "flat"):
+        raise ConfigError(f"bake.reference = {reference!r}: must be 'phong' or 'flat'")
 
 
 def _mean_edge_length(vertices: np.ndarray, faces: np.ndarray) -> float:
@@ -302,46 +253,322 @@ def _squared_distance(idx: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------------------
+# Steps of the bake
+# ----------------------------------------------------------------------------------------
+def _max_distance(vertices: np.ndarray, faces: np.ndarray, max_distance_mm) -> tuple[float, str]:
+    """Ray reach in mm and the rule that gave it."""
+    if max_distance_mm is None:
+        return (DEFAULT_MAX_DISTANCE_EDGE_FRACTION * _mean_edge_length(vertices, faces),
+                f"{DEFAULT_MAX_DISTANCE_EDGE_FRACTION} x mean low edge length")
+    return float(max_distance_mm), "given"
+
+
+def _raycasting_scene(high: Mesh):
+    """Embree scene of the high mesh (open3d ``RaycastingScene``)."""
+    import open3d as o3d
+    import open3d.core as o3c
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3c.Tensor(np.ascontiguousarray(high.vertices, dtype=np.float32)),
+                        o3c.Tensor(np.ascontiguousarray(high.faces, dtype=np.uint32)))
+    return scene
+
+
+@dataclass
+class _HighTexture:
+    """The high mesh's albedo texture: ``image`` linear float32, or sRGB uint8 with ``lut``."""
+
+    image: np.ndarray
+    lut: np.ndarray | None
+    uv: np.ndarray
+    uv_faces: np.ndarray
+
+    @classmethod
+    def of(cls, high: Mesh) -> "_HighTexture | None":
+        """The texture of ``high``, or None when it has no texture or no UVs."""
+        if high.texture_srgb is None or high.uv is None:
+            return None
+        tex = np.asarray(high.texture_srgb)
+        if tex.ndim == 2:
+            tex = np.repeat(tex[..., None], 3, axis=2)
+        if tex.dtype != np.uint8 or tex.ndim != 3 or tex.shape[2] < 3:
+            raise DermisError(f"bake: high.texture_srgb has dtype {tex.dtype} shape {tex.shape}; "
+                              "need (H, W, 3) uint8 sRGB")
+        tex = np.ascontiguousarray(tex[..., :3])
+        lut = _SRGB8_TO_LINEAR
+        if tex.shape[0] * tex.shape[1] <= _DECODE_ONCE_MAX_TEXELS:
+            tex, lut = _SRGB8_TO_LINEAR[tex], None
+        return cls(tex, lut, np.asarray(high.uv, dtype=np.float32), np.asarray(high.uv_faces))
+
+    def at_hits(self, ans, ray_idx: np.ndarray) -> np.ndarray:
+        """Linear albedo at the hits of rays ``ray_idx``: the hit's barycentrics interpolate
+        the high mesh's UVs, the texture is read bilinearly in linear RGB."""
+        pid = ans["primitive_ids"].numpy()[ray_idx].astype(np.int64)
+        buv = ans["primitive_uvs"].numpy()[ray_idx]
+        c_uv = self.uv[self.uv_faces[pid]]                                 # (k, 3, 2)
+        huv = c_uv[:, 0] + buv[:, :1] * (c_uv[:, 1] - c_uv[:, 0]) \
+            + buv[:, 1:] * (c_uv[:, 2] - c_uv[:, 0])
+        del c_uv
+        return _bilinear(self.image, huv, self.lut)
+
+    def mean_colour(self) -> np.ndarray:
+        """Mean linear colour of a <= 256^2 subsample (albedo when no texel hit anything)."""
+        tex = self.image
+        sub = tex[::max(1, tex.shape[0] // 256), ::max(1, tex.shape[1] // 256)].reshape(-1, 3)
+        return (sub if self.lut is None else self.lut[sub]).mean(0)
+
+
+@dataclass
+class _TriangleFrames:
+    """Per low triangle, float32 relative to corner 0 (mm-scale positions keep ~3e-5 mm in
+    float32; the rays are float32 anyway): position, edges, normals and the barycentric
+    gradients in texel space (lambda_k = grad_k . (x - x0, y - y0), k = 1, 2)."""
+
+    p0: np.ndarray
+    e1: np.ndarray
+    e2: np.ndarray
+    n0: np.ndarray
+    dn1: np.ndarray
+    dn2: np.ndarray
+    face_normals: np.ndarray
+    grad: np.ndarray
+    x0: np.ndarray
+    y0: np.ndarray
+
+    @classmethod
+    def of(cls, vertices, faces, normals, coef, uv, uv_faces, resolution: int) -> "_TriangleFrames":
+        corners_v = vertices[faces]
+        corners_n = normals[faces]
+        e1 = (corners_v[:, 1] - corners_v[:, 0]).astype(np.float32)
+        e2 = (corners_v[:, 2] - corners_v[:, 0]).astype(np.float32)
+        fn = np.cross(e1, e2)
+        uvc = np.asarray(uv, dtype=np.float64)[uv_faces[:, 0]]
+        return cls(p0=corners_v[:, 0].astype(np.float32), e1=e1, e2=e2,
+                   n0=corners_n[:, 0].astype(np.float32),
+                   dn1=(corners_n[:, 1] - corners_n[:, 0]).astype(np.float32),
+                   dn2=(corners_n[:, 2] - corners_n[:, 0]).astype(np.float32),
+                   face_normals=fn / np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-30),
+                   grad=np.ascontiguousarray(coef[:, 1:, :2], dtype=np.float32),   # (F, 2, 2)
+                   x0=(uvc[:, 0] * (resolution - 1)).astype(np.float32),
+                   y0=((1.0 - uvc[:, 1]) * (resolution - 1)).astype(np.float32))
+
+
+def _texel_points(tf: _TriangleFrames, f_idx: np.ndarray, fl: np.ndarray, resolution: int,
+                  reference: str):
+    """Surface point ``p``, unit interpolated normal ``nrm`` and reference height ``h_ref``
+    (mm along ``nrm``; 0 for "flat") at each texel ``fl`` of triangle ``f_idx``."""
+    # Barycentrics relative to corner 0 in float32: (x - x0) stays small, so no
+    # cancellation (an absolute affine form would lose ~1e-4 at 4096 texels).
+    dx = (fl % resolution).astype(np.float32) - tf.x0[f_idx]
+    dy = (fl // resolution).astype(np.float32) - tf.y0[f_idx]
+    g = tf.grad[f_idx]                                               # (m, 2, 2)
+    l1 = np.clip(g[:, 0, 0] * dx + g[:, 0, 1] * dy, 0.0, 1.0)
+    l2 = np.clip(g[:, 1, 0] * dx + g[:, 1, 1] * dy, 0.0, 1.0)
+    over = l1 + l2
+    np.maximum(over, 1.0, out=over)          # clip back onto the triangle (edge texels)
+    l1 /= over
+    l2 /= over
+    del g, dx, dy, over
+    l1, l2 = l1[:, None], l2[:, None]
+    e1f, e2f = tf.e1[f_idx], tf.e2[f_idx]
+    d0 = l1 * e1f + l2 * e2f                                         # p - v0
+    p = tf.p0[f_idx] + d0
+    n0f = tf.n0[f_idx]
+    n1f, n2f = n0f + tf.dn1[f_idx], n0f + tf.dn2[f_idx]
+    nrm = n0f + l1 * tf.dn1[f_idx] + l2 * tf.dn2[f_idx]
+    length = np.sqrt(np.einsum("nd,nd->n", nrm, nrm))
+    bad = length < 1e-6         # opposite vertex normals cancel: use the face normal
+    if bad.any():
+        nrm[bad] = tf.face_normals[f_idx[bad]]
+        length[bad] = 1.0
+    nrm /= length[:, None]
+    if reference != "phong":
+        return p, nrm, np.zeros(len(nrm), np.float32)
+    # Height of the Phong-tessellated surface (Boubekeur & Alexa 2008) above the flat
+    # triangle, along nrm: alpha * sum_i l_i (projection of p on vertex i's tangent
+    # plane - p).  The renderer's interpolated normals already bend with that smooth
+    # surface, so the bump must hold only what lies beyond it, or every triangle's dip
+    # below the curved surface shows as a facet pattern.  alpha = 1/2 (not their 3/4):
+    # on a sphere the full projection sum is exactly twice the chord's dip to second
+    # order, so 1/2 reproduces the sphere (tests/test_bake.py test04b).
+    dot = lambda a, b: np.einsum("nd,nd->n", a, b)  # noqa: E731
+    h_ref = -PHONG_ALPHA * ((1.0 - l1[:, 0] - l2[:, 0]) * dot(d0, n0f) * dot(n0f, nrm)
+                            + l1[:, 0] * dot(d0 - e1f, n1f) * dot(n1f, nrm)
+                            + l2[:, 0] * dot(d0 - e2f, n2f) * dot(n2f, nrm))
+    return p, nrm, h_ref
+
+
+def _rays_both_ways(p: np.ndarray, nrm: np.ndarray, backoff: float) -> np.ndarray:
+    """(2m, 6) float32 rays: m along +nrm, then m along -nrm, each starting ``backoff`` behind p."""
+    m = len(p)
+    rays = np.empty((2 * m, 6), dtype=np.float32)
+    off = np.float32(backoff) * nrm
+    np.subtract(p, off, out=rays[:m, :3])
+    rays[:m, 3:] = nrm
+    np.add(p, off, out=rays[m:, :3])
+    np.negative(nrm, out=rays[m:, 3:])
+    return rays
+
+
+def _nearest_hits(ans, nrm: np.ndarray, backoff: float, max_distance: float):
+    """Per texel the nearer of its two hits within reach on a high face facing like ``nrm``
+    (a back-facing hit is the far side of a thin part, never the surface ``p`` approximates).
+
+    Returns (signed t: +t along +nrm, -t along -nrm; got; use_f: the +nrm ray won;
+    number of in-reach hits rejected as back-facing).
+    """
+    m = len(nrm)
+    t_hit = ans["t_hit"].numpy() - np.float32(backoff)
+    pn = ans["primitive_normals"].numpy()
+    facing = np.concatenate([np.einsum("nd,nd->n", pn[:m], nrm),
+                             np.einsum("nd,nd->n", pn[m:], nrm)]) > 0
+    del pn
+    in_reach = np.isfinite(t_hit) & (t_hit <= max_distance)
+    rejected = int(np.count_nonzero(in_reach & ~facing))
+    ok = in_reach & facing
+    tf = np.where(ok[:m], t_hit[:m], np.inf)
+    tb = np.where(ok[m:], t_hit[m:], np.inf)
+    use_f = tf <= tb
+    got = np.isfinite(np.minimum(tf, tb))
+    return np.where(use_f, tf, -tb), got, use_f, rejected
+
+
+def _cast_texels(scene, tf: _TriangleFrames, flat, tri, resolution, reference, max_distance,
+                 texture: _HighTexture | None, timings: dict, report):
+    """Steps 2-4 in chunks of ``CHUNK_TEXELS``: heights, hit flags, linear albedo per texel
+    and the count of back-facing rejections."""
+    import open3d.core as o3c
+    n_cov = len(flat)
+    height = np.zeros(n_cov, dtype=np.float32)
+    hit = np.zeros(n_cov, dtype=bool)
+    albedo_lin = np.zeros((n_cov, 3), dtype=np.float32)
+    t_interp = t_cast = t_shade = 0.0
+    backoff = RAY_BACKOFF_FRACTION * max_distance
+    rejected_backfacing = 0
+    for s in range(0, n_cov, CHUNK_TEXELS):
+        e = min(s + CHUNK_TEXELS, n_cov)
+        t0 = time.perf_counter()
+        p, nrm, h_ref = _texel_points(tf, tri[s:e], flat[s:e], resolution, reference)
+        rays = _rays_both_ways(p, nrm, backoff)
+        del p
+        t_interp += time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        ans = scene.cast_rays(o3c.Tensor(rays))
+        t_cast += time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        signed_t, got, use_f, rejected = _nearest_hits(ans, nrm, backoff, max_distance)
+        rejected_backfacing += rejected
+        height[s:e] = np.where(got, signed_t - h_ref, 0.0)
+        hit[s:e] = got
+        if texture is not None and got.any():
+            sel = np.nonzero(got)[0]
+            albedo_lin[s + sel] = texture.at_hits(ans, np.where(use_f[sel], sel, sel + (e - s)))
+        t_shade += time.perf_counter() - t0
+        report(0.05 + 0.75 * e / n_cov)
+    timings["interpolate_s"] = t_interp
+    timings["raycast_s"] = t_cast
+    timings["hit_lookup_s"] = t_shade
+    return height, hit, albedo_lin, rejected_backfacing
+
+
+def _albedo_without_texture_or_hits(albedo_lin: np.ndarray, texture, n_hit: int) -> str:
+    """In place: neutral grey without a texture, the mean texture colour when no texel hit.
+    Returns the albedo source recorded in ``info``."""
+    if texture is None:
+        albedo_lin[:] = NEUTRAL_LINEAR_ALBEDO
+        return "neutral grey (high mesh has no texture_srgb/uv)"
+    if n_hit == 0:
+        albedo_lin[:] = texture.mean_colour()
+        return "no hit: mean texture colour"
+    return "high texture"
+
+
+def _albedo_image(albedo_cov: np.ndarray, flat, resolution: int, hit) -> np.ndarray:
+    """Step 5: the (R*R, 3) sRGB map; unless ``hit`` is None, covered texels without a hit
+    take the albedo of the nearest texel with one (docs/physics.md §6: the thesis leaves it open)."""
+    n_pix = resolution * resolution
+    albedo = np.zeros((n_pix, 3), dtype=np.uint8)
+    albedo[flat] = albedo_cov
+    if hit is not None and 0 < hit.sum() < len(flat):
+        hit_img = np.zeros(n_pix, dtype=bool)
+        hit_img[flat[hit]] = True
+        iy, ix = _nearest_fill_indices(hit_img.reshape(resolution, resolution))
+        miss_flat = flat[~hit]
+        albedo[miss_flat] = albedo[iy.ravel()[miss_flat] * resolution + ix.ravel()[miss_flat]]
+    return albedo
+
+
+def _normalised_bump(height: np.ndarray, flat, resolution: int):
+    """Step 6: (bump in [0, 1], coverage, h_min, h_max, neutral bump of 0 mm) over covered texels."""
+    n_pix = resolution * resolution
+    h_min, h_max = float(height.min()), float(height.max())
+    h_range = h_max - h_min
+    coverage = np.zeros(n_pix, dtype=bool)
+    coverage[flat] = True
+    bump = np.zeros(n_pix, dtype=np.float32)
+    if h_range > 0:
+        bump[flat] = (height - np.float32(h_min)) / np.float32(h_range)
+    neutral = float(np.clip((0.0 - h_min) / h_range, 0.0, 1.0)) if h_range > 0 else 0.0
+    return (bump.reshape(resolution, resolution), coverage.reshape(resolution, resolution),
+            h_min, h_max, neutral)
+
+
+def _dilate(coverage: np.ndarray, dilate_px: int, maps_and_far_values) -> int:
+    """Step 8, in place: texels within ``dilate_px`` of a chart take the nearest covered
+    texel's value, farther ones the given neutral value.  Returns the band's texel count."""
+    if coverage.all():
+        return 0
+    idx = _nearest_fill_indices(coverage)
+    band = _squared_distance(idx) <= dilate_px * dilate_px
+    band &= ~coverage
+    src_y, src_x = idx[0][band], idx[1][band]
+    del idx
+    for image, _ in maps_and_far_values:
+        image[band] = image[src_y, src_x]
+    far = ~(band | coverage)
+    for image, far_value in maps_and_far_values:
+        image[far] = far_value
+    return int(band.sum())
+
+
+# ----------------------------------------------------------------------------------------
 # The bake
 # ----------------------------------------------------------------------------------------
 def bake_maps(low: Mesh, high: Mesh, *, resolution: int = 4096, max_distance_mm: float | None = None,
-        blur_sigma_px: float = 8.0, dilate_px: int = 16, reference: str = "phong",
-        progress: Callable[[float], None] | None = None) -> BakedMaps:
-    """Bake albedo and bump maps of ``high`` into the UV space of ``low``.
-
-    ``reference`` is the surface heights are measured from: "phong" (default) the low mesh's
-    Phong-tessellated smooth surface, which the renderer's interpolated normals already
-    describe; "flat" the flat triangle itself (the thesis's literal rule: on a coarse mesh it
-    adds each triangle's dip below the curved surface, seen as a facet pattern).
+              blur_sigma_px: float = 8.0, dilate_px: int = 16, reference: str = "phong",
+              progress: Callable[[float], None] | None = None) -> BakedMaps:
+    """Bake albedo and bump maps of ``high`` into the UV space of ``low`` (docs/physics.md §6).
 
     Parameters
     ----------
     low : Mesh
-        The simplified mesh, mm.  Needs ``uv`` + ``uv_faces`` (per-corner, seams allowed);
-        ``normals`` (V, 3) angle-weighted unit vertex normals (computed with libigl when None).
+        The simplified mesh, mm, with ``uv`` + ``uv_faces`` (per corner, seams allowed);
+        ``normals`` (angle-weighted ones when None).
     high : Mesh
         The detailed mesh, mm, faces counter-clockwise seen from outside.  ``uv``/``uv_faces``
         and ``texture_srgb`` (H, W, 3) uint8 give the albedo; without them the albedo is a
         neutral grey (recorded in ``info["albedo_source"]``).
-    resolution : int, optional
-        Side of the square maps in texels, 2..16384.  Default 4096.
-    max_distance_mm : float or None, optional
+    resolution : int
+        Side of the square maps in texels, 2..16384.
+    max_distance_mm : float or None
         Longest accepted distance from the low surface to a high-mesh hit, mm.  Default
         ``DEFAULT_MAX_DISTANCE_EDGE_FRACTION`` (0.5) times the low mesh's mean edge length.
-    blur_sigma_px : float, optional
-        Gaussian sigma of ``bump_blur``, texels (0 gives a copy).  Default 8.
-    dilate_px : int, optional
+    blur_sigma_px : float
+        Gaussian sigma of ``bump_blur``, texels (0 gives a copy).
+    dilate_px : int
         Width in texels of the band outside the charts filled with the nearest chart texel.
-        Default 16.
+    reference : {"phong", "flat"}
+        Surface the heights are measured from: the low mesh's Phong-tessellated smooth
+        surface, which the renderer's interpolated normals already describe, or the flat
+        triangle (the thesis's literal rule: on a coarse mesh it shows as a facet pattern).
     progress : callable, optional
         Called with the completed fraction in [0, 1].
 
     Returns
     -------
     BakedMaps
-        ``albedo_srgb`` (R, R, 3) uint8, ``bump``/``bump_blur`` (R, R) float32 in [0, 1] with
-        ``height_mm = bump_min_mm + bump * bump_range_mm``, ``coverage`` (R, R) bool; ``info``
-        has hit/miss counts, ``max_distance_mm`` and its rule, and per-step timings (s).
+        ``info`` has hit/miss counts, ``max_distance_mm`` and its rule, per-step timings (s).
 
     Raises
     ------
@@ -352,301 +579,86 @@ def bake_maps(low: Mesh, high: Mesh, *, resolution: int = 4096, max_distance_mm:
 
     Notes
     -----
-    physics.md section 6.  Steps:
-
-    1. Rasterise every low triangle in UV space at texel centres (vectorised scanline fill;
-       texels on shared edges are owned by one triangle).
-    2. Interpolate position ``p`` and normal ``n`` (unit vertex normals, renormalised).
-    3. Cast two rays with Embree (open3d ``RaycastingScene``), along ``+n`` and ``-n``, and keep
-       the nearest hit within ``max_distance_mm`` whose high-mesh face faces the same way as
-       ``n`` (``dot(n_face, n) > 0``): a hit on a back-facing face is the far side of a thin
-       part (ear, nose wing) seen from inside, never the surface that ``p`` approximates.
-       Height = +t for a hit along ``+n``, -t along ``-n`` (outward positive).
-    4. Albedo: the hit's barycentrics interpolate the high mesh's UVs; the texture is read
-       bilinearly in linear RGB (sRGB decoded per texel, re-encoded to sRGB uint8).
-    5. Texels without a hit: height 0 mm (neutral), albedo of the nearest texel with a hit.
-       They are counted in ``info["misses"]``.
-    6. Normalise heights over the covered texels to [0, 1] (``bump_min_mm``,
-       ``bump_range_mm``).
-    7. Blur: normalised convolution ``G*(b c) / G*c`` with the coverage mask ``c``, so only
-       covered texels enter the average and chart borders are not pulled toward the dilated
-       background (which plain blurring of the dilated map would do: the dilated band repeats
-       border values, weighting them up).  Texels of neighbouring charts that are close in UV
-       space still mix, as in any texture-space blur.
-    8. Dilate all three maps: texels within ``dilate_px`` of a chart take the value of the
-       nearest covered texel (scipy EDT feature transform) so bilinear lookups and mip maps at
-       seams do not bleed background in; texels farther out get neutral values (0 mm height,
-       the mean covered albedo).
+    1. Rasterise every low triangle in UV space at texel centres (:func:`_rasterise`).
+    2. Interpolate position and unit normal (:func:`_texel_points`).
+    3. Cast rays both ways along the normal (Embree) and keep the nearest hit in reach on a
+       face facing the same way (:func:`_nearest_hits`); height = +t along +n, -t along -n.
+    4. Albedo: the high texture at the hit, bilinear in linear RGB (:class:`_HighTexture`).
+    5. Texels without a hit: height 0 mm, albedo of the nearest texel with a hit (counted in
+       ``info["misses"]``).
+    6. Normalise heights over the covered texels to [0, 1] (``bump_min_mm``, ``bump_range_mm``).
+    7. Blur by normalised convolution over the coverage mask (:func:`_masked_blur`), so chart
+       borders are not pulled toward the dilated background.
+    8. Dilate all three maps past chart borders (:func:`_dilate`); texels farther out get 0 mm
+       height and the mean covered albedo.
     """
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
-    _check_options(resolution, max_distance_mm, blur_sigma_px, dilate_px)
-    if reference not in ("phong", "flat"):
-        raise ConfigError(f"bake.reference = {reference!r}: must be 'phong' or 'flat'")
-    _check_mesh(low, "low", need_uv=True)
-    _check_mesh(high, "high", need_uv=False)
+    _check_options(resolution, max_distance_mm, blur_sigma_px, dilate_px, reference)
+    low.check("bake: low", need_uv=True)
+    high.check("bake: high")
     resolution = int(resolution)
     report = progress if progress is not None else (lambda _f: None)
-
     vertices = np.asarray(low.vertices, dtype=np.float64)
     faces = np.asarray(low.faces, dtype=np.int64)
-    normals = _vertex_normals(low)
-    if max_distance_mm is None:
-        max_distance = DEFAULT_MAX_DISTANCE_EDGE_FRACTION * _mean_edge_length(vertices, faces)
-        distance_rule = f"{DEFAULT_MAX_DISTANCE_EDGE_FRACTION} x mean low edge length"
-    else:
-        max_distance = float(max_distance_mm)
-        distance_rule = "given"
+    max_distance, distance_rule = _max_distance(vertices, faces, max_distance_mm)
 
-    # 1. rasterise
     t0 = time.perf_counter()
-    flat, tri, coef, rast_info = _rasterise(low.uv, _uv_faces(low, "low"), resolution)
+    flat, tri, coef, rast_info = _rasterise(low.uv, low.uv_faces, resolution)
     timings["rasterise_s"] = time.perf_counter() - t0
     n_cov = len(flat)
     if n_cov == 0:
         raise DermisError(f"bake: low.uv covers no texel centre of a {resolution}^2 map; "
                           "UVs must lie inside [0, 1]^2 and the resolution must be large enough")
     report(0.05)
-
-    # Embree scene of the high mesh.
-    import open3d as o3d
-    import open3d.core as o3c
     t0 = time.perf_counter()
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3c.Tensor(np.ascontiguousarray(high.vertices, dtype=np.float32)),
-                        o3c.Tensor(np.ascontiguousarray(high.faces, dtype=np.uint32)))
+    scene = _raycasting_scene(high)
     timings["scene_build_s"] = time.perf_counter() - t0
-
-    has_texture = (high.texture_srgb is not None and high.uv is not None
-                   and (high.uv_faces is not None or len(high.uv) == len(high.vertices)))
-    if has_texture:
-        tex = np.asarray(high.texture_srgb)
-        if tex.ndim == 2:
-            tex = np.repeat(tex[..., None], 3, axis=2)
-        if tex.dtype != np.uint8 or tex.ndim != 3 or tex.shape[2] < 3:
-            raise DermisError(f"bake: high.texture_srgb has dtype {tex.dtype} shape {tex.shape}; "
-                              "need (H, W, 3) uint8 sRGB")
-        tex = np.ascontiguousarray(tex[..., :3])
-        tex_lut = _SRGB8_TO_LINEAR
-        if tex.shape[0] * tex.shape[1] <= _DECODE_ONCE_MAX_TEXELS:
-            tex, tex_lut = _SRGB8_TO_LINEAR[tex], None
-        high_uv = np.asarray(high.uv, dtype=np.float32)
-        high_uvf = _uv_faces(high, "high")
-        if high_uvf.shape != np.asarray(high.faces).shape:
-            raise DermisError(f"bake: high.uv_faces has shape {high_uvf.shape}; "
-                              f"need {np.asarray(high.faces).shape}")
-
-    # 2-5. per chunk: interpolate, cast, pick the nearest hit, look up albedo
-    height = np.zeros(n_cov, dtype=np.float32)
-    hit = np.zeros(n_cov, dtype=bool)
-    albedo_lin = np.zeros((n_cov, 3), dtype=np.float32)
-    t_interp = t_cast = t_shade = 0.0
-    backoff = RAY_BACKOFF_FRACTION * max_distance
-    rejected_backfacing = 0
-    # Per-triangle data for the texel loop, float32 relative to corner 0 (mm-scale positions
-    # keep ~3e-5 mm in float32; the rays are float32 anyway).
-    corners_v = vertices[faces]
-    corners_n = normals[faces]
-    tri_p0 = corners_v[:, 0].astype(np.float32)
-    tri_e1 = (corners_v[:, 1] - corners_v[:, 0]).astype(np.float32)
-    tri_e2 = (corners_v[:, 2] - corners_v[:, 0]).astype(np.float32)
-    tri_n0 = corners_n[:, 0].astype(np.float32)
-    tri_dn1 = (corners_n[:, 1] - corners_n[:, 0]).astype(np.float32)
-    tri_dn2 = (corners_n[:, 2] - corners_n[:, 0]).astype(np.float32)
-    fn = np.cross(tri_e1, tri_e2)
-    face_normals = fn / np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-30)
-    # lambda_k(x, y) = grad_k . (x - x0, y - y0) for k = 1, 2 (coef from _barycentric_planes)
-    tri_grad = np.ascontiguousarray(coef[:, 1:, :2], dtype=np.float32)   # (F, 2, 2)
-    uvc = np.asarray(low.uv, dtype=np.float64)[_uv_faces(low, "low")[:, 0]]
-    tri_x0 = (uvc[:, 0] * (resolution - 1)).astype(np.float32)
-    tri_y0 = ((1.0 - uvc[:, 1]) * (resolution - 1)).astype(np.float32)
-    del corners_v, corners_n, fn, uvc
-    for s in range(0, n_cov, CHUNK_TEXELS):
-        e = min(s + CHUNK_TEXELS, n_cov)
-        t0 = time.perf_counter()
-        f_idx = tri[s:e]
-        fl = flat[s:e]
-        # Barycentrics relative to corner 0 in float32: (x - x0) stays small, so no
-        # cancellation (an absolute affine form would lose ~1e-4 at 4096 texels).
-        dx = (fl % resolution).astype(np.float32) - tri_x0[f_idx]
-        dy = (fl // resolution).astype(np.float32) - tri_y0[f_idx]
-        g = tri_grad[f_idx]                                          # (m, 2, 2)
-        l1 = np.clip(g[:, 0, 0] * dx + g[:, 0, 1] * dy, 0.0, 1.0)
-        l2 = np.clip(g[:, 1, 0] * dx + g[:, 1, 1] * dy, 0.0, 1.0)
-        over = l1 + l2
-        np.maximum(over, 1.0, out=over)          # clip back onto the triangle (edge texels)
-        l1 /= over
-        l2 /= over
-        del g, dx, dy, over
-        l1, l2 = l1[:, None], l2[:, None]
-        e1f, e2f = tri_e1[f_idx], tri_e2[f_idx]
-        d0 = l1 * e1f + l2 * e2f                                     # p - v0
-        p = tri_p0[f_idx] + d0
-        n0f = tri_n0[f_idx]
-        n1f, n2f = n0f + tri_dn1[f_idx], n0f + tri_dn2[f_idx]
-        nrm = n0f + l1 * tri_dn1[f_idx] + l2 * tri_dn2[f_idx]
-        length = np.sqrt(np.einsum("nd,nd->n", nrm, nrm))
-        bad = length < 1e-6         # opposite vertex normals cancel: use the face normal
-        if bad.any():
-            nrm[bad] = face_normals[f_idx[bad]]
-            length[bad] = 1.0
-        nrm /= length[:, None]
-        if reference == "phong":
-            # Height of the Phong-tessellated surface (Boubekeur & Alexa 2008) above the flat
-            # triangle, along nrm: alpha * sum_i l_i (projection of p on vertex i's tangent
-            # plane - p).  The renderer's interpolated normals already bend with that smooth
-            # surface, so the bump must hold only what lies beyond it, or every triangle's dip
-            # below the curved surface shows as a facet pattern.  alpha = 1/2 (not their 3/4):
-            # on a sphere the full projection sum is exactly twice the chord's dip to second
-            # order, so 1/2 reproduces the sphere (tests/test_bake.py test04b).
-            dot = lambda a, b: np.einsum("nd,nd->n", a, b)  # noqa: E731
-            h_ref = -PHONG_ALPHA * ((1.0 - l1[:, 0] - l2[:, 0]) * dot(d0, n0f) * dot(n0f, nrm)
-                                    + l1[:, 0] * dot(d0 - e1f, n1f) * dot(n1f, nrm)
-                                    + l2[:, 0] * dot(d0 - e2f, n2f) * dot(n2f, nrm))
-        else:
-            h_ref = np.zeros(len(nrm), np.float32)
-        del d0, e1f, e2f, n0f, n1f, n2f
-        m = e - s
-        rays = np.empty((2 * m, 6), dtype=np.float32)
-        off = np.float32(backoff) * nrm
-        np.subtract(p, off, out=rays[:m, :3])
-        rays[:m, 3:] = nrm
-        np.add(p, off, out=rays[m:, :3])
-        np.negative(nrm, out=rays[m:, 3:])
-        del off, p
-        t_interp += time.perf_counter() - t0
-
-        t0 = time.perf_counter()
-        ans = scene.cast_rays(o3c.Tensor(rays))
-        t_cast += time.perf_counter() - t0
-
-        t0 = time.perf_counter()
-        t_hit = ans["t_hit"].numpy() - np.float32(backoff)
-        prim = ans["primitive_ids"].numpy()
-        pn = ans["primitive_normals"].numpy()
-        facing = np.concatenate([np.einsum("nd,nd->n", pn[:m], nrm),
-                                 np.einsum("nd,nd->n", pn[m:], nrm)]) > 0
-        del pn
-        in_reach = np.isfinite(t_hit) & (t_hit <= max_distance)
-        rejected_backfacing += int(np.count_nonzero(in_reach & ~facing))
-        ok = in_reach & facing
-        tf = np.where(ok[:m], t_hit[:m], np.inf)
-        tb = np.where(ok[m:], t_hit[m:], np.inf)
-        use_f = tf <= tb
-        got = np.isfinite(np.minimum(tf, tb))
-        height[s:e] = np.where(got, np.where(use_f, tf, -tb) - h_ref, 0.0)
-        hit[s:e] = got
-        if has_texture and got.any():
-            sel = np.nonzero(got)[0]
-            ray_idx = np.where(use_f[sel], sel, sel + m)
-            pid = prim[ray_idx].astype(np.int64)
-            buv = ans["primitive_uvs"].numpy()[ray_idx]
-            c_uv = high_uv[high_uvf[pid]]                                # (k, 3, 2)
-            huv = c_uv[:, 0] + buv[:, :1] * (c_uv[:, 1] - c_uv[:, 0]) \
-                + buv[:, 1:] * (c_uv[:, 2] - c_uv[:, 0])
-            del c_uv
-            albedo_lin[s + sel] = _bilinear(tex, huv, tex_lut)
-        t_shade += time.perf_counter() - t0
-        report(0.05 + 0.75 * e / n_cov)
-    del scene, coef
-    timings["interpolate_s"] = t_interp
-    timings["raycast_s"] = t_cast
-    timings["hit_lookup_s"] = t_shade
+    texture = _HighTexture.of(high)
+    frames = _TriangleFrames.of(vertices, faces, renormalise_f64(low.vertex_normals()), coef,
+                                low.uv, np.asarray(low.uv_faces), resolution)
+    height, hit, albedo_lin, rejected_backfacing = _cast_texels(
+        scene, frames, flat, tri, resolution, reference, max_distance, texture, timings, report)
+    del scene, coef, frames
     n_hit = int(hit.sum())
 
-    # Albedo of texels without a hit: nearest texel with one (physics.md s6 leaves it open).
     t0 = time.perf_counter()
-    if not has_texture:
-        albedo_lin[:] = NEUTRAL_LINEAR_ALBEDO
-        albedo_source = "neutral grey (high mesh has no texture_srgb/uv)"
-    elif n_hit == 0:
-        sub = tex[::max(1, tex.shape[0] // 256), ::max(1, tex.shape[1] // 256)].reshape(-1, 3)
-        albedo_lin[:] = (sub if tex_lut is None else tex_lut[sub]).mean(0)
-        albedo_source = "no hit: mean texture colour"
-    else:
-        albedo_source = "high texture"
+    albedo_source = _albedo_without_texture_or_hits(albedo_lin, texture, n_hit)
     albedo_cov = _encode_srgb8(albedo_lin)
     del albedo_lin
-    n_pix = resolution * resolution
-    albedo = np.zeros((n_pix, 3), dtype=np.uint8)
-    albedo[flat] = albedo_cov
-    if has_texture and 0 < n_hit < n_cov:
-        hit_img = np.zeros(n_pix, dtype=bool)
-        hit_img[flat[hit]] = True
-        iy, ix = _nearest_fill_indices(hit_img.reshape(resolution, resolution))
-        miss_flat = flat[~hit]
-        albedo[miss_flat] = albedo[iy.ravel()[miss_flat] * resolution + ix.ravel()[miss_flat]]
-        del iy, ix, hit_img
+    mean_albedo = _encode_srgb8(_SRGB8_TO_LINEAR[albedo_cov].mean(0))
+    albedo = _albedo_image(albedo_cov, flat, resolution,
+                           hit if texture is not None else None).reshape(resolution, resolution, 3)
+    del albedo_cov
     timings["miss_fill_s"] = time.perf_counter() - t0
     report(0.85)
 
-    # 6. normalise heights over covered texels (misses included at 0 mm).
-    h_min, h_max = float(height.min()), float(height.max())
-    h_range = h_max - h_min
-    coverage = np.zeros(n_pix, dtype=bool)
-    coverage[flat] = True
-    coverage = coverage.reshape(resolution, resolution)
-    bump = np.zeros(n_pix, dtype=np.float32)
-    if h_range > 0:
-        bump[flat] = (height - np.float32(h_min)) / np.float32(h_range)
-    bump = bump.reshape(resolution, resolution)
-    neutral_bump = float(np.clip((0.0 - h_min) / h_range, 0.0, 1.0)) if h_range > 0 else 0.0
-    mean_albedo = _encode_srgb8(_SRGB8_TO_LINEAR[albedo_cov].mean(0))
-    del height, albedo_cov
-
-    # 7. blur by normalised convolution over covered texels only.
+    bump, coverage, h_min, h_max, neutral_bump = _normalised_bump(height, flat, resolution)
+    del height
     t0 = time.perf_counter()
     bump_blur = _masked_blur(bump, coverage, blur_sigma_px)
     timings["blur_s"] = time.perf_counter() - t0
     report(0.9)
 
-    # 8. dilate past chart borders.
     t0 = time.perf_counter()
-    albedo = albedo.reshape(resolution, resolution, 3)
-    if not coverage.all():
-        idx = _nearest_fill_indices(coverage)
-        band = _squared_distance(idx) <= dilate_px * dilate_px
-        band &= ~coverage
-        src_y, src_x = idx[0][band], idx[1][band]
-        del idx
-        albedo[band] = albedo[src_y, src_x]
-        bump[band] = bump[src_y, src_x]
-        bump_blur[band] = bump_blur[src_y, src_x]
-        far = ~(band | coverage)
-        albedo[far] = mean_albedo
-        bump[far] = neutral_bump
-        bump_blur[far] = neutral_bump
-        n_band = int(band.sum())
-        del band, far, src_y, src_x
-    else:
-        n_band = 0
+    n_band = _dilate(coverage, dilate_px, [(albedo, mean_albedo), (bump, neutral_bump),
+                                           (bump_blur, neutral_bump)])
     timings["dilate_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
     report(1.0)
-
     info = {
-        "resolution": resolution,
-        "covered_texels": n_cov,
-        "hits": n_hit,
-        "misses": n_cov - n_hit,
-        "rejected_backfacing_rays": rejected_backfacing,
-        "max_distance_mm": max_distance,
-        "max_distance_rule": distance_rule,
-        "height_min_mm": h_min,
-        "height_max_mm": h_max,
-        "miss_height_mm": 0.0,
-        "height_reference": reference,
-        "dilated_texels": n_band,
-        "dilate_px": int(dilate_px),
-        "albedo_source": albedo_source,
+        "resolution": resolution, "covered_texels": n_cov, "hits": n_hit, "misses": n_cov - n_hit,
+        "rejected_backfacing_rays": rejected_backfacing, "max_distance_mm": max_distance,
+        "max_distance_rule": distance_rule, "height_min_mm": h_min, "height_max_mm": h_max,
+        "miss_height_mm": 0.0, "height_reference": reference, "dilated_texels": n_band,
+        "dilate_px": int(dilate_px), "albedo_source": albedo_source,
         "blur": "normalised convolution over covered texels (mode=constant)",
-        "low_triangles": int(len(faces)),
-        "high_triangles": int(len(high.faces)),
+        "low_triangles": int(len(faces)), "high_triangles": int(len(high.faces)),
         "timings": {k: round(v, 4) for k, v in timings.items()},
         **rast_info,
     }
     return BakedMaps(albedo_srgb=albedo, bump=bump, bump_blur=bump_blur, coverage=coverage,
-                     bump_min_mm=h_min, bump_range_mm=h_range,
+                     bump_min_mm=h_min, bump_range_mm=h_max - h_min,
                      blur_sigma_px=float(blur_sigma_px), info=info)
 
 
@@ -772,13 +784,13 @@ def bump_shading_normals_at_hits(low: Mesh, maps: BakedMaps, tri_ids: np.ndarray
     -------
     (N, 3) float32 unit shading normals (see :func:`bump_shading_normals`).
     """
-    _check_mesh(low, "low", need_uv=True)
+    low.check("bump mapping: low", need_uv=True)
     tri_ids = np.asarray(tri_ids, dtype=np.int64)
     b = np.asarray(bary, dtype=np.float64)
     w = np.stack([1.0 - b[:, 0] - b[:, 1], b[:, 0], b[:, 1]], axis=1)
     faces = np.asarray(low.faces)
-    uvf = _uv_faces(low, "low")
-    normals = _vertex_normals(low)
+    uvf = np.asarray(low.uv_faces)
+    normals = renormalise_f64(low.vertex_normals())
     n = np.einsum("nk,nkd->nd", w, normals[faces[tri_ids]])
     uv = np.einsum("nk,nkd->nd", w, np.asarray(low.uv, dtype=np.float64)[uvf[tri_ids]])
     dpdu, dpdv = triangle_tangent_frames(low.vertices, faces, low.uv, uvf)

@@ -22,6 +22,7 @@ def node(scene) -> Node:
 
 
 def run(params: dict, inputs: dict, ctx) -> StageResult:
+    from dermis.pipeline.artifacts import angle_weighted_normals
     from dermis.pipeline.imageio import read_image
     from dermis.stages import mesh_prep
     disp = params["displacement"]
@@ -30,5 +31,5 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
                                displacement=image,
                                displacement_scale_mm=params["displacement_scale_mm"],
                                displacement_mid=params["displacement_mid"])
-    high.normals = mesh_prep.vertex_normals(high.vertices, high.faces)
+    high.normals = angle_weighted_normals(high.vertices, high.faces)
     return StageResult(high, info={"triangles": high.n_triangles})

@@ -18,6 +18,5 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     from dermis.stages import mesh_prep
     high = inputs["high"]
     low = mesh_prep.simplify(high, target_triangles=params["target_triangles"])
-    low.normals = mesh_prep.vertex_normals(low.vertices, low.faces)
     low, report = mesh_prep.transfer_uv(high, low)
     return StageResult(low, info={"uv_transfer": report, "triangles": low.n_triangles})

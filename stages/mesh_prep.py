@@ -1,6 +1,6 @@
 """Mesh preparation, geometry steps: load a scan, validate it, build the high and low meshes.
 
-The thesis setup (physics.md section 6) renders a ~1M-triangle scan and a ~16,750-triangle
+The thesis setup (docs/physics.md §6) renders a ~1M-triangle scan and a ~16,750-triangle
 QSlim simplification of it whose texture coordinates are transferred from the scan ("nearest
 old vertex -> its UV(s); at seams pick the UV combination with the smallest texture-space
 perimeter; repair triangles that straddle the cut").  This module holds those steps as pure
@@ -14,7 +14,6 @@ Steps
                    duplicate faces and unreferenced vertices (reported)
 ``make_high``      subdivide (Loop or midpoint) to a target count, optionally displace along normals
 ``simplify``       quadric-error decimation (fast-simplification, measured against libigl)
-``vertex_normals`` angle-weighted vertex normals (Thuermer & Wuethrich 1998, physics.md section 6)
 ``transfer_uv``    the thesis's nearest-vertex UV transfer with seam choice and straddle repair
 
 Conventions (pipeline/artifacts.py): mm; UV origin bottom-left (OBJ convention): texel row from
@@ -29,7 +28,7 @@ from dermis.pipeline.errors import DermisError
 
 __all__ = [
     "VERSION", "KERNELS", "LPS_DISPLACEMENT_SCALE_MM", "LPS_DISPLACEMENT_MID",
-    "validate", "make_high", "simplify", "vertex_normals", "transfer_uv", "sample_image",
+    "validate", "make_high", "simplify", "transfer_uv", "sample_image",
 ]
 
 VERSION = 1
@@ -191,34 +190,9 @@ def validate(mesh: Mesh, *, source: str) -> tuple[Mesh, dict]:
     info = dict(mesh.info)
     info["validate"] = report
     out = Mesh(vertices=v.astype(np.float64), faces=f.astype(np.int32),
-               normals=vertex_normals(v, f), uv=uv.astype(np.float32), uv_faces=uvf.astype(np.int32),
-               texture_srgb=tex, info=info)
+               normals=angle_weighted_normals(v, f), uv=uv.astype(np.float32),
+               uv_faces=uvf.astype(np.int32), texture_srgb=tex, info=info)
     return out, report
-
-
-# ----------------------------------------------------------------------------------------------
-# normals
-# ----------------------------------------------------------------------------------------------
-
-def vertex_normals(vertices, faces) -> np.ndarray:
-    """Angle-weighted vertex normals (physics.md section 6: "area-independent, angle-weighted").
-
-    Parameters
-    ----------
-    vertices : (V, 3) float ndarray, mm
-    faces : (F, 3) int ndarray, counter-clockwise seen from outside
-
-    Returns
-    -------
-    (V, 3) float32 ndarray
-        Unit normals; vertices used by no face get (0, 0, 0).
-
-    References
-    ----------
-    G. Thuermer, C. Wuethrich, "Computing vertex normals from polygonal facets", JGT 3(1), 1998.
-    Computed by ``igl.per_vertex_normals`` (weighting ANGLE).
-    """
-    return angle_weighted_normals(vertices, faces)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -371,7 +345,7 @@ def make_high(mesh: Mesh, *, target_triangles: int, displacement=None, displacem
     while len(f) < target_triangles:
         v, f, uv, uvf = _subdivide_once(v, f, uv, uvf, scheme)
         splits += 1
-    normals = vertex_normals(v, f)
+    normals = angle_weighted_normals(v, f)
     rec = {"splits": splits, "scheme": scheme, "triangles": int(len(f))}
     if displacement is not None:
         d_img = np.asarray(displacement, dtype=np.float32)
@@ -385,7 +359,7 @@ def make_high(mesh: Mesh, *, target_triangles: int, displacement=None, displacem
         d_v = np.bincount(pv, weights=d, minlength=len(v)) / np.maximum(cnt, 1)
         offset = (d_v - displacement_mid) * displacement_scale_mm
         v = v + offset[:, None] * normals.astype(np.float64)
-        normals = vertex_normals(v, f)
+        normals = angle_weighted_normals(v, f)
         rec.update({"displacement_scale_mm": float(displacement_scale_mm), "displacement_mid": float(displacement_mid),
                     "offset_mm_min": float(offset.min()), "offset_mm_max": float(offset.max()),
                     "displacement_shape": list(d_img.shape)})
@@ -399,14 +373,14 @@ def make_high(mesh: Mesh, *, target_triangles: int, displacement=None, displacem
 # ----------------------------------------------------------------------------------------------
 
 def simplify(mesh: Mesh, *, target_triangles: int = 16750) -> Mesh:
-    """Quadric-error simplification to about ``target_triangles`` (physics.md section 6: QSlim).
+    """Quadric-error simplification to about ``target_triangles`` (docs/physics.md §6: QSlim).
 
     Parameters
     ----------
     mesh : Mesh
         The high mesh.
     target_triangles : int
-        Wanted count; default 16,750 is the thesis's low-quality mesh (physics.md section 6).
+        Wanted count; default 16,750 is the thesis's low-quality mesh (docs/physics.md §6).
 
     Returns
     -------
@@ -443,7 +417,7 @@ def simplify(mesh: Mesh, *, target_triangles: int = 16750) -> Mesh:
     info = dict(mesh.info)
     if len(f) <= target_triangles:
         info["simplify"] = {"triangles_in": int(len(f)), "triangles_out": int(len(f)), "note": "already small"}
-        return Mesh(vertices=v, faces=f, normals=vertex_normals(v, f), info=info)
+        return Mesh(vertices=v, faces=f, normals=angle_weighted_normals(v, f), info=info)
     vo, fo = fast_simplification.simplify(v, f, target_count=int(target_triangles))
     fo = np.asarray(fo, dtype=np.int64)
     # Drop vertices no face uses any more (the library keeps none, but be sure) and degenerate faces.
@@ -455,21 +429,168 @@ def simplify(mesh: Mesh, *, target_triangles: int = 16750) -> Mesh:
     fo = remap[fo]
     info["simplify"] = {"method": "fast-simplification", "triangles_in": int(len(f)),
                         "triangles_out": int(len(fo)), "target": int(target_triangles)}
-    return Mesh(vertices=vo, faces=fo.astype(np.int32), normals=vertex_normals(vo, fo), info=info)
+    return Mesh(vertices=vo, faces=fo.astype(np.int32), normals=angle_weighted_normals(vo, fo),
+                info=info)
 
 
 # ----------------------------------------------------------------------------------------------
 # UV transfer
 # ----------------------------------------------------------------------------------------------
 
-def _uv_perimeter(t0, t1, t2):
-    """Perimeter of UV triangles (any leading shape, last axis 2)."""
+def _perimeter(t0, t1, t2):
+    """Perimeter of triangles with corners t0, t1, t2 (any leading shape, points on the last axis)."""
     return (np.linalg.norm(t1 - t0, axis=-1) + np.linalg.norm(t2 - t1, axis=-1)
             + np.linalg.norm(t0 - t2, axis=-1))
 
 
+class _HighCharts:
+    """The high mesh's UV parameterisation, as the UV transfer reads it.
+
+    ``pv``/``pt``: the (vertex, uv) pairs of the face corners, sorted by vertex (``pstart``,
+    ``pcount``: CSR by vertex); ``sigma``: local UV/3-D scale per vertex (transfer_uv Notes 3);
+    :meth:`pair_jacobian`: the chart's d(uv)/d(x) around a pair (Notes 4).
+    """
+
+    def __init__(self, high: Mesh):
+        hv = np.asarray(high.vertices, dtype=np.float64)
+        hf = np.asarray(high.faces, dtype=np.int64)
+        huv = np.asarray(high.uv, dtype=np.float64)
+        huvf = np.asarray(high.uv_faces, dtype=np.int64)
+        nh, nuv = len(hv), len(huv)
+        self.vertices, self.uv = hv, huv
+        self.pv, self.pt = _vertex_uv_pairs(hf, huvf, nuv)
+        self.pcount = np.bincount(self.pv, minlength=nh)
+        self.pstart = np.concatenate([[0], np.cumsum(self.pcount)[:-1]])
+        p0, p1, p2 = hv[hf[:, 0]], hv[hf[:, 1]], hv[hf[:, 2]]
+        t0, t1, t2 = huv[huvf[:, 0]], huv[huvf[:, 1]], huv[huvf[:, 2]]
+        corner_v = hf.reshape(-1)
+        sig_num = np.bincount(corner_v, weights=np.repeat(_perimeter(t0, t1, t2), 3), minlength=nh)
+        sig_den = np.bincount(corner_v, weights=np.repeat(_perimeter(p0, p1, p2), 3), minlength=nh)
+        self.sigma = sig_num / np.maximum(sig_den, 1e-300)
+        self.area, self.jac = self._face_jacobians(p1 - p0, p2 - p0, t1 - t0, t2 - t0)
+        # pair index of each high face corner
+        self.corner_pair = np.searchsorted(self.pv * nuv + self.pt, corner_v * nuv + huvf.reshape(-1))
+
+    @staticmethod
+    def _face_jacobians(e1, e2, d1, d2):
+        """Per face: area and the Jacobian J = D pinv(E) (2 x 3) of uv with respect to x."""
+        g11, g12, g22 = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
+        det = g11 * g22 - g12 * g12
+        inv_det = np.where(det > 0, 1.0 / np.maximum(det, 1e-300), 0.0)
+        # pinv(E) rows: (g22 e1 - g12 e2)/det, (g11 e2 - g12 e1)/det ; J = D @ pinv(E)
+        r1 = (g22[:, None] * e1 - g12[:, None] * e2) * inv_det[:, None]
+        r2 = (g11[:, None] * e2 - g12[:, None] * e1) * inv_det[:, None]
+        jac = d1[:, :, None] * r1[:, None, :] + d2[:, :, None] * r2[:, None, :]     # (Fh, 2, 3)
+        return 0.5 * np.sqrt(np.maximum(det, 0)), jac
+
+    def nearest_vertex(self, points: np.ndarray) -> np.ndarray:
+        """Index of the nearest high vertex of each point (scipy cKDTree)."""
+        from scipy.spatial import cKDTree
+
+        _, near = cKDTree(self.vertices).query(points, k=1)
+        return np.asarray(near, dtype=np.int64)
+
+    def pair_jacobian(self, pairs: np.ndarray) -> np.ndarray:
+        """Area-weighted mean Jacobian of the high faces around each (vertex, uv) pair."""
+        want = np.full(len(self.pt), -1, np.int64)
+        want[pairs] = np.arange(len(pairs))
+        slot = want[self.corner_pair]
+        m = slot >= 0
+        face_of = np.repeat(np.arange(len(self.area)), 3)[m]
+        w = self.area[face_of]
+        out = np.zeros((len(pairs), 2, 3))
+        for a in range(2):
+            for b in range(3):
+                out[:, a, b] = np.bincount(slot[m], weights=w * self.jac[face_of, a, b], minlength=len(pairs))
+        wsum = np.bincount(slot[m], weights=w, minlength=len(pairs))
+        return out / np.maximum(wsum, 1e-300)[:, None, None]
+
+
+def _smallest_perimeter_pairs(charts: _HighCharts, corner_h: np.ndarray) -> tuple[np.ndarray, int, int]:
+    """Notes 1-2: per low corner the high pair of the smallest-UV-perimeter combination.
+
+    Returns the (F, 3) pair indices, the number of triangles with a choice ("seam_choices")
+    and of corners with more than ``_MAX_CANDIDATES`` candidates ("truncated_candidates").
+    """
+    K = _MAX_CANDIDATES
+    ncand = charts.pcount[corner_h]
+    truncated = int((ncand > K).sum())
+    ks = np.arange(K)
+    cand = np.where(ks[None, None, :] < np.minimum(ncand, K)[:, :, None],
+                    charts.pstart[corner_h][:, :, None] + ks[None, None, :], -1)   # (F, 3, K)
+    chosen = cand[:, :, 0].copy()
+    seam_tris = np.flatnonzero((ncand > 1).any(axis=1))
+    if len(seam_tris):
+        c = cand[seam_tris]                         # (S, 3, K)
+        i0, i1, i2 = np.meshgrid(ks, ks, ks, indexing="ij")
+        combos = np.stack([i0.ravel(), i1.ravel(), i2.ravel()], axis=1)   # (K^3, 3)
+        sel = np.stack([c[:, 0, combos[:, 0]], c[:, 1, combos[:, 1]], c[:, 2, combos[:, 2]]], axis=2)  # (S, K^3, 3)
+        valid = (sel >= 0).all(axis=2)
+        uvs = charts.uv[charts.pt[np.maximum(sel, 0)]]           # (S, K^3, 3, 2)
+        per = _perimeter(uvs[:, :, 0], uvs[:, :, 1], uvs[:, :, 2])
+        per[~valid] = np.inf
+        best = np.argmin(per, axis=1)
+        chosen[seam_tris] = sel[np.arange(len(seam_tris)), best]
+    return chosen, int(len(seam_tris)), truncated
+
+
+def _uv_ratio(low_uv, corner_uv_idx, expect):
+    """Notes 3: UV perimeter of each low triangle over its expected value."""
+    t = low_uv[corner_uv_idx]
+    return _perimeter(t[:, 0], t[:, 1], t[:, 2]) / expect
+
+
+def _relay_odd_corner(charts, low_uv, corner_uv_idx, corner_pair, lp, bad):
+    """Notes 4, one pass: the odd corner of each triangle in ``bad`` gets a new UV extrapolated
+    from the two good corners' charts.  Returns the extended UV table (indices updated in place)."""
+    t = low_uv[corner_uv_idx[bad]]                                  # (B, 3, 2)
+    dist = np.stack([np.linalg.norm(t[:, 0] - t[:, 1], axis=1) + np.linalg.norm(t[:, 0] - t[:, 2], axis=1),
+                     np.linalg.norm(t[:, 1] - t[:, 0], axis=1) + np.linalg.norm(t[:, 1] - t[:, 2], axis=1),
+                     np.linalg.norm(t[:, 2] - t[:, 0], axis=1) + np.linalg.norm(t[:, 2] - t[:, 1], axis=1)], 1)
+    off = np.argmax(dist, axis=1)
+    goods = np.stack([(off + 1) % 3, (off + 2) % 3], axis=1)
+    rows = np.arange(len(bad))
+    new_uv = np.zeros((len(bad), 2))
+    for g in range(2):
+        gk = goods[:, g]
+        gpair = corner_pair[bad, gk]
+        ok = gpair >= 0
+        jac_g = np.zeros((len(bad), 2, 3))
+        if ok.any():
+            jac_g[ok] = charts.pair_jacobian(gpair[ok])
+        dp = lp[bad, off] - lp[bad, gk]
+        new_uv += t[rows, gk] + np.einsum("nij,nj->ni", jac_g, dp)
+    new_uv *= 0.5
+    start = len(low_uv)
+    corner_uv_idx[bad, off] = start + rows
+    corner_pair[bad, off] = -1
+    return np.concatenate([low_uv, new_uv])
+
+
+def _flatten_into_anchor_chart(charts, low_uv, corner_uv_idx, corner_pair, lp, bad):
+    """Notes 4, last resort: keep the corner of ``bad`` nearest the others in UV (an original
+    pair) and lay the other two out with its Jacobian.  Returns (UV table, triangles changed)."""
+    t = low_uv[corner_uv_idx[bad]]
+    dist = np.stack([np.linalg.norm(t[:, k] - t[:, (k + 1) % 3], axis=1)
+                     + np.linalg.norm(t[:, k] - t[:, (k + 2) % 3], axis=1) for k in range(3)], 1)
+    dist[~(corner_pair[bad] >= 0)] = np.inf
+    has_anchor = np.isfinite(dist).any(axis=1)
+    bad, dist, t = bad[has_anchor], dist[has_anchor], t[has_anchor]
+    anchor = np.argmin(dist, axis=1)
+    rows = np.arange(len(bad))
+    jac_a = charts.pair_jacobian(corner_pair[bad, anchor])
+    for step in (1, 2):
+        k = (anchor + step) % 3
+        dp = lp[bad, k] - lp[bad, anchor]
+        start = len(low_uv)
+        low_uv = np.concatenate([low_uv, t[rows, anchor] + np.einsum("nij,nj->ni", jac_a, dp)])
+        corner_uv_idx[bad, k] = start + rows
+        corner_pair[bad, k] = -1
+    return low_uv, bad
+
+
 def transfer_uv(high: Mesh, low: Mesh) -> tuple[Mesh, dict]:
-    """Give the low mesh texture coordinates from the high mesh (thesis method, physics.md section 6).
+    """Give the low mesh texture coordinates from the high mesh (thesis method, docs/physics.md §6).
 
     Parameters
     ----------
@@ -484,8 +605,8 @@ def transfer_uv(high: Mesh, low: Mesh) -> tuple[Mesh, dict]:
         Copy of ``low`` with ``uv`` (T, 2) float32, ``uv_faces`` (F, 3) int32 and ``texture_srgb``
         from ``high``.
     report : dict
-        ``{"triangles", "seam_choices", "repaired", "unrepaired", "max_uv_perimeter_ratio",
-        "truncated_candidates"}``.
+        ``{"triangles", "seam_choices", "straddling", "repaired", "unrepaired",
+        "max_uv_perimeter_ratio", "truncated_candidates", "seam_ratio_bound"}``.
 
     Notes
     -----
@@ -510,169 +631,44 @@ def transfer_uv(high: Mesh, low: Mesh) -> tuple[Mesh, dict]:
        "unrepaired" those still above it (only at parameterisation singularities such as a lat-long
        pole); "max_uv_perimeter_ratio" is the largest r after repair.
     """
-    from scipy.spatial import cKDTree
-
     if high.uv is None or high.uv_faces is None:
         raise DermisError("transfer_uv: the high mesh has no UVs; run validate() on it first")
-    hv = np.asarray(high.vertices, dtype=np.float64)
-    hf = np.asarray(high.faces, dtype=np.int64)
-    huv = np.asarray(high.uv, dtype=np.float64)
-    huvf = np.asarray(high.uv_faces, dtype=np.int64)
+    charts = _HighCharts(high)
     lv = np.asarray(low.vertices, dtype=np.float64)
     lf = np.asarray(low.faces, dtype=np.int64)
-    nh, nuv = len(hv), len(huv)
-
-    # (vertex, uv) pairs of the high mesh, CSR by vertex.
-    pv, pt = _vertex_uv_pairs(hf, huvf, nuv)
-    pcount = np.bincount(pv, minlength=nh)
-    pstart = np.concatenate([[0], np.cumsum(pcount)[:-1]])
-
-    # Per high face: UV and 3-D perimeters, area, Jacobian d(uv)/d(x).
-    p0, p1, p2 = hv[hf[:, 0]], hv[hf[:, 1]], hv[hf[:, 2]]
-    t0, t1, t2 = huv[huvf[:, 0]], huv[huvf[:, 1]], huv[huvf[:, 2]]
-    per3 = np.linalg.norm(p1 - p0, axis=1) + np.linalg.norm(p2 - p1, axis=1) + np.linalg.norm(p0 - p2, axis=1)
-    peruv = _uv_perimeter(t0, t1, t2)
-    corner_v = hf.reshape(-1)
-    sig_num = np.bincount(corner_v, weights=np.repeat(peruv, 3), minlength=nh)
-    sig_den = np.bincount(corner_v, weights=np.repeat(per3, 3), minlength=nh)
-    sigma_h = sig_num / np.maximum(sig_den, 1e-300)
-
-    # Nearest high vertex per low vertex.
-    _, near = cKDTree(hv).query(lv, k=1)
-    near = np.asarray(near, dtype=np.int64)
-
-    # Candidates per low triangle corner: (F, 3, K) pair indices, -1 padded.
-    K = _MAX_CANDIDATES
     nl = len(lf)
-    corner_h = near[lf]                            # (F, 3)
-    ncand = pcount[corner_h]
-    truncated = int((ncand > K).sum())
-    ks = np.arange(K)
-    cand = np.where(ks[None, None, :] < np.minimum(ncand, K)[:, :, None],
-                    pstart[corner_h][:, :, None] + ks[None, None, :], -1)
-    chosen = cand[:, :, 0].copy()                  # pair index per corner
-    multi = (ncand > 1).any(axis=1)
-    seam_tris = np.flatnonzero(multi)
-    if len(seam_tris):
-        c = cand[seam_tris]                         # (S, 3, K)
-        # all K^3 combinations
-        i0, i1, i2 = np.meshgrid(ks, ks, ks, indexing="ij")
-        combos = np.stack([i0.ravel(), i1.ravel(), i2.ravel()], axis=1)   # (K^3, 3)
-        sel = np.stack([c[:, 0, combos[:, 0]], c[:, 1, combos[:, 1]], c[:, 2, combos[:, 2]]], axis=2)  # (S, K^3, 3)
-        valid = (sel >= 0).all(axis=2)
-        uvs = huv[pt[np.maximum(sel, 0)]]           # (S, K^3, 3, 2)
-        per = _uv_perimeter(uvs[:, :, 0], uvs[:, :, 1], uvs[:, :, 2])
-        per[~valid] = np.inf
-        best = np.argmin(per, axis=1)
-        chosen[seam_tris] = sel[np.arange(len(seam_tris)), best]
+    corner_h = charts.nearest_vertex(lv)[lf]                            # (F, 3)
+    chosen, seam_choices, truncated = _smallest_perimeter_pairs(charts, corner_h)
 
     # Low UV table: one entry per used pair, then repaired corners appended.
     used_pairs, corner_uv_idx = np.unique(chosen, return_inverse=True)
     corner_uv_idx = corner_uv_idx.reshape(nl, 3)
-    low_uv = huv[pt[used_pairs]]
-
-    # Per-pair Jacobian: area-weighted mean over the high faces using that (vertex, uv) corner.
-    e1, e2 = p1 - p0, p2 - p0
-    d1, d2 = t1 - t0, t2 - t0
-    g11, g12, g22 = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
-    det = g11 * g22 - g12 * g12
-    inv_det = np.where(det > 0, 1.0 / np.maximum(det, 1e-300), 0.0)
-    # pinv(E) rows: (g22 e1 - g12 e2)/det, (g11 e2 - g12 e1)/det ; J = D @ pinv(E)
-    r1 = (g22[:, None] * e1 - g12[:, None] * e2) * inv_det[:, None]
-    r2 = (g11[:, None] * e2 - g12[:, None] * e1) * inv_det[:, None]
-    jac = d1[:, :, None] * r1[:, None, :] + d2[:, :, None] * r2[:, None, :]     # (Fh, 2, 3)
-    area = 0.5 * np.sqrt(np.maximum(det, 0))
-
-    def pair_jacobian(pairs: np.ndarray) -> np.ndarray:
-        """Area-weighted mean Jacobian of the high faces around each (vertex, uv) pair."""
-        want = np.full(len(pt), -1, np.int64)
-        want[pairs] = np.arange(len(pairs))
-        code_v = corner_v
-        code_t = huvf.reshape(-1)
-        # pair index of each high corner: position in (pv, pt) sorted codes
-        codes = pv * nuv + pt
-        corner_pair = np.searchsorted(codes, code_v * nuv + code_t)
-        slot = want[corner_pair]
-        m = slot >= 0
-        face_of = np.repeat(np.arange(len(hf)), 3)[m]
-        w = area[face_of]
-        out = np.zeros((len(pairs), 2, 3))
-        for a in range(2):
-            for b in range(3):
-                out[:, a, b] = np.bincount(slot[m], weights=w * jac[face_of, a, b], minlength=len(pairs))
-        wsum = np.bincount(slot[m], weights=w, minlength=len(pairs))
-        return out / np.maximum(wsum, 1e-300)[:, None, None]
+    low_uv = charts.uv[charts.pt[used_pairs]]
+    corner_pair = used_pairs[corner_uv_idx]  # pair index (into pv/pt) of each corner, -1 after repair
 
     lp = lv[lf]                                                         # (F, 3, 3)
-    per3_low = (np.linalg.norm(lp[:, 1] - lp[:, 0], axis=1) + np.linalg.norm(lp[:, 2] - lp[:, 1], axis=1)
-                + np.linalg.norm(lp[:, 0] - lp[:, 2], axis=1))
-    sigma_low = sigma_h[corner_h].mean(axis=1)
-    expect = np.maximum(per3_low * sigma_low, 1e-300)
-
-    def ratios():
-        t = low_uv[corner_uv_idx]
-        return _uv_perimeter(t[:, 0], t[:, 1], t[:, 2]) / expect
-
-    r = ratios()
+    expect = np.maximum(_perimeter(lp[:, 0], lp[:, 1], lp[:, 2]) * charts.sigma[corner_h].mean(axis=1),
+                        1e-300)
+    r = _uv_ratio(low_uv, corner_uv_idx, expect)
     flagged0 = r > _SEAM_RATIO
     repaired_any = np.zeros(nl, bool)
-    corner_pair = used_pairs[corner_uv_idx]  # pair index (into pv/pt) of each corner, -1 after repair
     for _ in range(_REPAIR_PASSES):
         bad = np.flatnonzero(r > _SEAM_RATIO)
         if not len(bad):
             break
-        t = low_uv[corner_uv_idx[bad]]                                  # (B, 3, 2)
-        dist = np.stack([np.linalg.norm(t[:, 0] - t[:, 1], axis=1) + np.linalg.norm(t[:, 0] - t[:, 2], axis=1),
-                         np.linalg.norm(t[:, 1] - t[:, 0], axis=1) + np.linalg.norm(t[:, 1] - t[:, 2], axis=1),
-                         np.linalg.norm(t[:, 2] - t[:, 0], axis=1) + np.linalg.norm(t[:, 2] - t[:, 1], axis=1)], 1)
-        off = np.argmax(dist, axis=1)
-        goods = np.stack([(off + 1) % 3, (off + 2) % 3], axis=1)
-        rows = np.arange(len(bad))
-        new_uv = np.zeros((len(bad), 2))
-        for g in range(2):
-            gk = goods[:, g]
-            gpair = corner_pair[bad, gk]
-            ok = gpair >= 0
-            jac_g = np.zeros((len(bad), 2, 3))
-            if ok.any():
-                jac_g[ok] = pair_jacobian(gpair[ok])
-            dp = lp[bad, off] - lp[bad, gk]
-            new_uv += t[rows, gk] + np.einsum("nij,nj->ni", jac_g, dp)
-        new_uv *= 0.5
-        start = len(low_uv)
-        low_uv = np.concatenate([low_uv, new_uv])
-        corner_uv_idx[bad, off] = start + rows
-        corner_pair[bad, off] = -1
+        low_uv = _relay_odd_corner(charts, low_uv, corner_uv_idx, corner_pair, lp, bad)
         repaired_any[bad] = True
-        r = ratios()
-    # Last resort for triangles still above the bound (corners in three charts, or a good pair that is
-    # itself stretched): keep the corner nearest the others in UV and lay the other two out with its
-    # Jacobian, i.e. flatten the triangle into the anchor's chart.
+        r = _uv_ratio(low_uv, corner_uv_idx, expect)
     bad = np.flatnonzero(r > _SEAM_RATIO)
     if len(bad):
-        t = low_uv[corner_uv_idx[bad]]
-        dist = np.stack([np.linalg.norm(t[:, k] - t[:, (k + 1) % 3], axis=1)
-                         + np.linalg.norm(t[:, k] - t[:, (k + 2) % 3], axis=1) for k in range(3)], 1)
-        pairs_ok = corner_pair[bad] >= 0
-        dist[~pairs_ok] = np.inf                   # anchor must be an original (vertex, uv) pair
-        has_anchor = np.isfinite(dist).any(axis=1)
-        bad, dist, t = bad[has_anchor], dist[has_anchor], t[has_anchor]
-        anchor = np.argmin(dist, axis=1)
-        rows = np.arange(len(bad))
-        jac_a = pair_jacobian(corner_pair[bad, anchor])
-        for step in (1, 2):
-            k = (anchor + step) % 3
-            dp = lp[bad, k] - lp[bad, anchor]
-            start = len(low_uv)
-            low_uv = np.concatenate([low_uv, t[rows, anchor] + np.einsum("nij,nj->ni", jac_a, dp)])
-            corner_uv_idx[bad, k] = start + rows
-            corner_pair[bad, k] = -1
-        repaired_any[bad] = True
-        r = ratios()
+        low_uv, flattened = _flatten_into_anchor_chart(charts, low_uv, corner_uv_idx, corner_pair,
+                                                       lp, bad)
+        repaired_any[flattened] = True
+        r = _uv_ratio(low_uv, corner_uv_idx, expect)
     still = r > _SEAM_RATIO
     report = {
         "triangles": int(nl),
-        "seam_choices": int(len(seam_tris)),
+        "seam_choices": seam_choices,
         "straddling": int(flagged0.sum()),
         "repaired": int((repaired_any & ~still).sum()),
         "unrepaired": int(still.sum()),

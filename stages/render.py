@@ -1,12 +1,12 @@
 """BRDF images: camera rays, Embree visibility, light samples with shadow rays, OpenCL shading.
 
-Pipeline of :func:`render` (architecture.md "Where the work runs"):
+Pipeline of :func:`render` (docs/architecture.md "Where the work runs"):
 
 1. **visibility** - one pinhole ray per pixel centre through Embree
-   (:class:`pipeline.visibility.Visibility`); the hits (triangle id + barycentrics) go to
+   (:class:`physics.visibility.Visibility`); the hits (triangle id + barycentrics) go to
    ``cl/surface.cl``, which returns position, geometric and shading normal (interpolated,
    bump-mapped from the baked map for the low-mesh variants), UV and linear albedo.
-2. **shadows** - :func:`pipeline.lights.sample_lights` draws the light samples (environment
+2. **shadows** - :func:`physics.lights.sample_lights` draws the light samples (environment
    lights: MIS of luminance and cosine samples about the geometric normal); samples
    below the geometric or the shading horizon are dropped before any ray is traced, and the
    rest go through Embree occlusion queries.  Pixels that miss the mesh or see a back face
@@ -14,9 +14,9 @@ Pipeline of :func:`render` (architecture.md "Where the work runs"):
 3. **shading** - ``cl/shade.cl`` evaluates f(wo, wi) W cos(theta_i) for every surviving
    sample (one work-item each, loop-free); the host sums them per pixel.
 
-Decisions on physics.md "check" items touched here:
+Decisions touched here (docs/physics.md §6):
 
-* Disc lights emit from both faces (pipeline/lights.py docstring): only the axis matters.
+* Disc lights emit from both faces (physics/lights.py docstring): only the axis matters.
 * Back faces (geometric normal facing away from the camera, e.g. inside an open neck) are
   covered (mask true) but black: the BRDF models are one-sided (f = 0 for wo.z <= 0), as in
   pbrt.  Same for pixels whose shading normal faces away from the camera (silhouettes of
@@ -25,7 +25,7 @@ Decisions on physics.md "check" items touched here:
   start inside the surface; below the shading one cos(theta_i) = 0.
 * One camera ray per pixel centre (no anti-aliasing): the thesis images' quality is set by
   the shading, and 800x800 at one sample per pixel keeps the 2 s budget.
-* Asperity is a term added to a base model (physics.md s5); the base is chosen by the
+* Asperity is a term added to a base model (docs/physics.md §5); the base is chosen by the
   caller (``RenderConfig.asperity_base``); ``"none"`` renders the term alone so the BSSRDF
   stage can add it to its own image (same light, same exposure: images are linear).
 
@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Callable
 
 import numpy as np
@@ -52,8 +52,8 @@ from dermis.physics.color import srgb_to_linear
 from dermis.physics.lights import EnvironmentMap, environment_map, sample_lights
 from dermis.physics.visibility import Visibility, shared as shared_visibility
 
-__all__ = ["VERSION", "KERNELS", "MODELS", "LambertParams", "RenderResult", "render",
-           "camera_rays", "pixel_surface", "vertex_normals", "NAME", "node", "run"]
+__all__ = ["VERSION", "KERNELS", "MODELS", "LambertParams", "LightSampling", "RenderResult",
+           "render", "camera_rays", "pixel_surface", "NAME", "node", "run"]
 
 VERSION = 1
 KERNELS = ("surface.cl", "shade.cl")
@@ -86,6 +86,22 @@ class LambertParams:
     def pack(self) -> np.ndarray:
         """(4,) float32 placeholder block (the albedo travels per pixel)."""
         return np.zeros(4, dtype=np.float32)
+
+
+@dataclass(frozen=True)
+class LightSampling:
+    """Research options of the light sampling (the pipeline uses the defaults).
+
+    shadow_samples : samples per pixel for disc and environment lights (None: each light's
+        ``samples``, 16 in the thesis)
+    env : pre-built EnvironmentMap for an environment light (None: from ``light.map``, cached)
+    env_strategy : "mis" (luminance and cosine samples about the geometric normal) or
+        "luminance" (:func:`physics.lights.sample_lights`)
+    """
+
+    shadow_samples: int | None = None
+    env: EnvironmentMap | None = None
+    env_strategy: str = "mis"
 
 
 @dataclass
@@ -126,24 +142,15 @@ def _camera_vectors(camera) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndar
     return pos, fwd, right, np.cross(right, fwd)
 
 
-def camera_rays(camera, *, width: int | None = None, height: int | None = None
-                ) -> tuple[np.ndarray, np.ndarray]:
+def camera_rays(camera) -> tuple[np.ndarray, np.ndarray]:
     """Pinhole camera rays through pixel centres, row-major from the top-left pixel.
 
-    Parameters
-    ----------
-    camera : pipeline.config.CameraConfig
-        ``position``, ``look_at``, ``up`` (mm), ``fov_deg`` (full angle across the SHORTER
-        image side, pbrt's convention), ``width``, ``height``.
-    width, height : int, optional
-        Override the camera's image size.
-
-    Returns
-    -------
-    origins, directions : (H*W, 3) float32 (directions unit)
+    ``camera`` (CameraConfig): ``position``, ``look_at``, ``up`` (mm), ``fov_deg`` (full angle
+    across the SHORTER image side, pbrt's convention), ``width``, ``height``.  Returns origins
+    and unit directions, (H*W, 3) float32 each.
     """
-    w = int(width or camera.width)
-    h = int(height or camera.height)
+    w = int(camera.width)
+    h = int(camera.height)
     if w < 1 or h < 1:
         raise ConfigError(f"camera width x height = {w} x {h}: both must be >= 1")
     fov = float(camera.fov_deg)
@@ -161,14 +168,6 @@ def camera_rays(camera, *, width: int | None = None, height: int | None = None
 
 
 # --------------------------------------------------------------------------- helpers
-def vertex_normals(mesh) -> np.ndarray:
-    """(V, 3) float32 unit vertex normals: the mesh's own, or angle-weighted ones (physics.md s6)."""
-    try:
-        return mesh.vertex_normals()
-    except ValueError as exc:
-        raise DermisError(str(exc)) from None
-
-
 def _resolve_model(model: str, params, asperity_base, base_params):
     """(base name, base params, asperity params or None) for a model name."""
     from dermis.stages.brdf_models import AsperityParams, HK93Params, LafortuneParams
@@ -212,19 +211,26 @@ def _fallback_albedo(base: str, base_params) -> np.ndarray:
     return np.full(3, 0.5, dtype=np.float32)
 
 
-def _check_mesh(mesh) -> None:
-    v = np.asarray(mesh.vertices)
-    f = np.asarray(mesh.faces)
-    if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0 or not np.all(np.isfinite(v)):
-        raise DermisError(f"render: mesh.vertices must be finite (V, 3), got shape {v.shape}")
-    if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0 or f.min() < 0 or f.max() >= len(v):
-        raise DermisError(f"render: mesh.faces must be (F, 3) indices into the {len(v)} "
-                          f"vertices, got shape {f.shape}")
-    if (mesh.uv is None) != (mesh.uv_faces is None):
-        raise DermisError("render: mesh.uv and mesh.uv_faces must be given together")
-    if mesh.uv_faces is not None and np.shape(mesh.uv_faces) != f.shape:
-        raise DermisError(f"render: mesh.uv_faces has shape {np.shape(mesh.uv_faces)}; need "
-                          f"{f.shape}")
+def _check_bump(mesh, maps, bump) -> None:
+    """Raise unless ``bump`` is None, or "sharp"/"blur" with maps and a mesh with UVs."""
+    if bump not in (None, "sharp", "blur"):
+        raise ConfigError(f"bump = {bump!r}: must be None, 'sharp' or 'blur'")
+    if bump is not None and (maps is None or mesh.uv is None):
+        raise DermisError(f"bump = {bump!r} needs baked maps and a mesh with UVs "
+                          f"(maps {'missing' if maps is None else 'given'}, "
+                          f"uv {'missing' if mesh.uv is None else 'given'})")
+
+
+def _light_sampling(sampling: LightSampling | None, lights) -> LightSampling:
+    """``sampling`` (defaults when None), checked, with the environment map a light needs."""
+    sampling = sampling if sampling is not None else LightSampling()
+    if sampling.shadow_samples is not None and int(sampling.shadow_samples) < 1:
+        raise ConfigError(f"shadow_samples = {sampling.shadow_samples}: must be >= 1")
+    env = sampling.env
+    for lt in lights:
+        if lt.type == "environment" and env is None:
+            env = environment_map(lt)
+    return replace(sampling, env=env)
 
 
 def _buf(cl, env, array):
@@ -258,7 +264,7 @@ def _surface(env, mesh, hits_tri, hits_bary, camera_pos, *, texture, bump_map, b
         np.int32(m),
         _buf(cl, env, np.asarray(mesh.vertices, dtype=np.float32)),
         _buf(cl, env, np.asarray(mesh.faces, dtype=np.int32)),
-        _buf(cl, env, vertex_normals(mesh)),
+        _buf(cl, env, mesh.vertex_normals()),
         _buf(cl, env, np.asarray(mesh.uv if has_uv else np.zeros((1, 2)), dtype=np.float32)),
         _buf(cl, env, np.asarray(mesh.uv_faces if has_uv else np.zeros((1, 3)), dtype=np.int32)),
         _buf(cl, env, np.ascontiguousarray(tex, dtype=np.uint8)),
@@ -302,8 +308,7 @@ class PixelSurface:
 
 
 def pixel_surface(mesh, camera, *, maps=None, bump: str | None = None,
-                  visibility: Visibility | None = None, cl_env=None, width: int | None = None,
-                  height: int | None = None, textured: bool = True,
+                  visibility: Visibility | None = None, cl_env=None, textured: bool = True,
                   albedo_const=(0.5, 0.5, 0.5)) -> PixelSurface:
     """Camera rays through Embree, then cl/surface.cl: the shading inputs of every pixel.
 
@@ -314,9 +319,8 @@ def pixel_surface(mesh, camera, *, maps=None, bump: str | None = None,
 
     env_cl = cl_env or get_env()
     visibility = visibility or Visibility(mesh.vertices, mesh.faces)
-    w = int(width or camera.width)
-    h = int(height or camera.height)
-    origins, directions = camera_rays(camera, width=w, height=h)
+    w, h = int(camera.width), int(camera.height)
+    origins, directions = camera_rays(camera)
     hits = visibility.intersect(origins, directions)
     hit_idx = np.flatnonzero(hits.hit)
     texture = maps.albedo_srgb if maps is not None else mesh.texture_srgb
@@ -337,88 +341,162 @@ def pixel_surface(mesh, camera, *, maps=None, bump: str | None = None,
 
 
 # --------------------------------------------------------------------------- render
+class _Shader:
+    """cl/shade.cl built for one model, with the per-hit shading inputs on the device."""
+
+    def __init__(self, env_cl, base: str, bparams, asp, px: PixelSurface):
+        import pyopencl as cl
+
+        self.env = env_cl
+        defines = {"DERMIS_BASE": _BASE_CODE[base], "DERMIS_ASPERITY": int(asp is not None)}
+        self.kernel = cl.Kernel(env_cl.program("shade.cl", defines), "shade_samples")
+        base_block = bparams.pack() if bparams is not None else np.zeros(4, np.float32)
+        asp_block = asp.pack() if asp is not None else np.zeros(8, np.float32)
+        albedo = px.surf["albedo"]
+        if base == "hk93":  # the texture tints rho_ms: shade.cl expects albedo / Rd (1 = untinted)
+            albedo = (albedo / bparams.texture_reference()).astype(np.float32) \
+                if px.texture is not None else np.ones_like(albedo)
+        self.inputs = [_buf(cl, env_cl, px.surf["shading_normal"]), _buf(cl, env_cl, px.surf["wo"]),
+                       _buf(cl, env_cl, albedo),
+                       _buf(cl, env_cl, np.asarray(base_block, dtype=np.float32)),
+                       _buf(cl, env_cl, np.asarray(asp_block, dtype=np.float32))]
+
+    def __call__(self, gidx: np.ndarray, dirs: np.ndarray, wts: np.ndarray) -> tuple[np.ndarray, float]:
+        """f W cos(theta_i) of each sample of hit ``gidx``: (k, 3) float32, kernel seconds."""
+        import pyopencl as cl
+        from dermis.pipeline.cl import event_seconds
+
+        env, k = self.env, len(gidx)
+        out = np.empty((k, 3), dtype=np.float32)
+        out_buf = cl.Buffer(env.context, cl.mem_flags.WRITE_ONLY, out.nbytes)
+        ev = self.kernel(env.queue, _global_size(k), None, _buf(cl, env, gidx), _buf(cl, env, dirs),
+                         _buf(cl, env, wts), np.int32(k), *self.inputs, out_buf)
+        cl.enqueue_copy(env.queue, out, out_buf, wait_for=[ev])
+        env.queue.finish()
+        return out, event_seconds(ev)
+
+
+def _unshadowed_samples(lights, visibility: Visibility, surf: dict, pts: np.ndarray,
+                        sampling: LightSampling, seed):
+    """Light samples of hits ``pts`` above both horizons that reach the light.
+
+    Returns (index into ``pts``, directions, weights, shadow rays traced, sampling seconds).
+    """
+    pos, ng, ns = surf["position"], surf["geo_normal"], surf["shading_normal"]
+    t0 = time.perf_counter()
+    ls = sample_lights(lights, pos[pts], ng[pts], samples=sampling.shadow_samples, seed=seed,
+                       env=sampling.env, env_strategy=sampling.env_strategy)
+    t_sampling = time.perf_counter() - t0
+    cos_s = np.einsum("nsk,nk->ns", ls.directions, ns[pts])
+    live = (cos_s > 0) & np.any(ls.weights > 0, axis=2)
+    ip, isamp = np.nonzero(live)
+    dirs = ls.directions[ip, isamp]
+    blocked = visibility.occluded(pos[pts][ip], ng[pts][ip], dirs, ls.distance[ip, isamp])
+    keep = ~blocked
+    ip, isamp, dirs = ip[keep], isamp[keep], dirs[keep]
+    return ip, dirs, ls.weights[ip, isamp], len(keep), t_sampling
+
+
+def _shade_hits(px: PixelSurface, lights, visibility: Visibility, shader: _Shader,
+                sampling: LightSampling, seed: int, per_point: int, progress):
+    """Shadows and shading of the front-facing hits in batches of ``CHUNK_SAMPLES`` samples.
+
+    Returns (M, 3) float64 radiance per hit and a dict of seconds and ray counts.
+    """
+    shade_idx, n_hits = px.front_idx, len(px.hit_idx)
+    chunk = max(1, CHUNK_SAMPLES // per_point)
+    radiance = np.zeros((n_hits, 3), dtype=np.float64)
+    stats = dict.fromkeys(("shadows", "shading", "light_sampling", "kernel_seconds"), 0.0)
+    stats.update(shadow_rays=0, shaded_samples=0)
+    for c, start in enumerate(range(0, len(shade_idx), chunk)):
+        pts = shade_idx[start:start + chunk]
+        t0 = time.perf_counter()
+        ip, dirs, wts, n_traced, t_sampling = _unshadowed_samples(lights, visibility, px.surf, pts,
+                                                                  sampling, (seed, c))
+        stats["light_sampling"] += t_sampling
+        stats["shadow_rays"] += n_traced
+        stats["shadows"] += time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        if len(ip):
+            gidx = pts[ip].astype(np.int32)
+            out, seconds = shader(gidx, dirs, wts)
+            stats["kernel_seconds"] += seconds
+            for ch in range(3):
+                radiance[:, ch] += np.bincount(gidx, weights=out[:, ch], minlength=n_hits)
+            stats["shaded_samples"] += len(ip)
+        stats["shading"] += time.perf_counter() - t0
+        if progress is not None:
+            progress(min(1.0, (start + len(pts)) / max(len(shade_idx), 1)))
+    return radiance, stats
+
+
+def _image(radiance: np.ndarray, px: PixelSurface) -> tuple[np.ndarray, int]:
+    """(H, W, 3) float32 image of the hits' radiance; non-finite values zeroed, pixels counted."""
+    image = np.zeros((px.height * px.width, 3), dtype=np.float32)
+    image[px.hit_idx] = radiance.astype(np.float32)
+    bad = ~np.isfinite(image)
+    nonfinite = int(bad.any(axis=1).sum())
+    if nonfinite:  # never hand a NaN on; the count is recorded (tests require 0)
+        image[bad] = 0.0
+    return image.reshape(px.height, px.width, 3), nonfinite
+
+
 def render(mesh, light, model: str, params, camera, *, maps=None, bump: str | None = None,
-           shadow_samples: int | None = None, seed: int = 0, env: EnvironmentMap | None = None,
-           visibility: Visibility | None = None, asperity_base: str | None = None,
-           base_params=None, cl_env=None, width: int | None = None,
-           height: int | None = None, textured: bool = True, env_strategy: str = "mis",
+           seed: int = 0, visibility: Visibility | None = None, asperity_base: str | None = None,
+           base_params=None, cl_env=None, textured: bool = True,
+           sampling: LightSampling | None = None,
            progress: Callable[[float], None] | None = None) -> RenderResult:
     """Render one image of ``mesh`` under ``light`` with a BRDF model.
 
     Parameters
     ----------
     mesh : pipeline.artifacts.Mesh
-        Triangles in mm; vertex normals (else libigl angle-weighted ones); UVs and
-        ``texture_srgb`` optional (albedo texture).
+        Triangles in mm; vertex normals (else angle-weighted ones); UVs and ``texture_srgb``
+        optional (albedo texture).
     light : LightConfig or sequence of LightConfig
         Point, disc, directional (several are summed, e.g. the thesis's two) or environment.
     model : {"lambert", "lafortune", "hk93", "asperity"}
-    params : LambertParams, LafortuneParams, HK93Params or AsperityParams, or None
-        Parameters of ``model`` (None: the model's defaults).
-    camera : pipeline.config.CameraConfig
+    params : LambertParams, LafortuneParams, HK93Params or AsperityParams, or None (defaults)
+    camera : pipeline.config.CameraConfig (its ``width`` x ``height`` is the image size)
     maps : pipeline.artifacts.BakedMaps, optional
         Baked maps of a low mesh; their ``albedo_srgb`` replaces the mesh's texture.
     bump : {None, "sharp", "blur"}
-        Bump-map the shading normal with ``maps.bump`` or ``maps.bump_blur`` (needs maps
-        and UVs).
-    shadow_samples : int, optional
-        Samples per pixel for disc and environment lights (default: ``light.samples``, 16
-        in the thesis).
+        Bump-map the shading normal with ``maps.bump`` or ``maps.bump_blur`` (needs maps and UVs).
     seed : int
         Seed of the light samples (results are deterministic for a seed and chunk size).
-    env : EnvironmentMap, optional
-        Pre-built map for an environment light (else from ``light.map``, cached).
-    visibility : pipeline.visibility.Visibility, optional
+    visibility : physics.visibility.Visibility, optional
         Embree scene of ``mesh`` built earlier (build once, render many).
     asperity_base : {"none", "lambert", "lafortune", "hk93"}, optional
         Base model under the asperity term (default ``params.base``); "none" = term alone.
     base_params : optional
         Parameters of the asperity base model (default: its defaults).
     cl_env : pipeline.cl.ClEnv, optional
-    width, height : int, optional
-        Override the camera's image size.
     textured : bool
         False ignores the albedo texture (the model's constant albedo everywhere), e.g. to
         render only Lafortune's specular lobes (rho_d = 0) on top of a BSSRDF image.
-    env_strategy : {"mis", "luminance"}
-        Sampling of environment lights (:func:`pipeline.lights.sample_lights`): "mis"
-        (default) mixes luminance and cosine samples about the geometric normal.
+    sampling : LightSampling, optional
+        Research options of the light sampling (sample count, environment map, strategy).
     progress : callable(float), optional
         Called with the completed fraction in [0, 1].
-
-    Returns
-    -------
-    RenderResult
 
     Raises
     ------
     ConfigError
-        Unknown model, wrong parameter type, bad camera or light.
+        Unknown model, wrong parameter type, bad camera, light or sampling option.
     DermisError
         Malformed mesh or maps, bump without maps/UVs.
     """
-    from dermis.pipeline.cl import event_seconds, get_env
-    import pyopencl as cl
+    from dermis.pipeline.cl import get_env
 
     t_start = time.perf_counter()
-    _check_mesh(mesh)
+    mesh.check("render: mesh")
     base, bparams, asp = _resolve_model(model, params, asperity_base, base_params)
     lights = list(light) if isinstance(light, (list, tuple)) else [light]
-    if bump not in (None, "sharp", "blur"):
-        raise ConfigError(f"bump = {bump!r}: must be None, 'sharp' or 'blur'")
-    if bump is not None and (maps is None or mesh.uv is None):
-        raise DermisError(f"bump = {bump!r} needs baked maps and a mesh with UVs "
-                          f"(maps {'missing' if maps is None else 'given'}, "
-                          f"uv {'missing' if mesh.uv is None else 'given'})")
-    if shadow_samples is not None and int(shadow_samples) < 1:
-        raise ConfigError(f"shadow_samples = {shadow_samples}: must be >= 1")
-    for lt in lights:
-        if lt.type == "environment" and env is None:
-            env = environment_map(lt)
+    _check_bump(mesh, maps, bump)
+    sampling = _light_sampling(sampling, lights)
     env_cl = cl_env or get_env()
-    kernel_s = 0.0
 
-    # ---- visibility: camera rays, Embree closest hits, surface attributes
     t0 = time.perf_counter()
     if visibility is None:
         visibility = Visibility(mesh.vertices, mesh.faces)
@@ -426,98 +504,34 @@ def render(mesh, light, model: str, params, camera, *, maps=None, bump: str | No
     else:
         scene_build = 0.0
     t0 = time.perf_counter()
-    px = pixel_surface(mesh, camera, maps=maps, bump=bump, visibility=visibility,
-                       cl_env=env_cl, width=width, height=height, textured=textured,
-                       albedo_const=_fallback_albedo(base, bparams))
-    w, h, hits, hit_idx, surf, texture = px.width, px.height, px.hits, px.hit_idx, px.surf, px.texture
-    kernel_s += px.kernel_seconds
-    ng, ns, wo = surf["geo_normal"], surf["shading_normal"], surf["wo"]
-    shade_idx = px.front_idx
+    px = pixel_surface(mesh, camera, maps=maps, bump=bump, visibility=visibility, cl_env=env_cl,
+                       textured=textured, albedo_const=_fallback_albedo(base, bparams))
     t_visibility = time.perf_counter() - t0
 
-    # ---- per-model device program and constant buffers
-    prog_defines = {"DERMIS_BASE": _BASE_CODE[base], "DERMIS_ASPERITY": int(asp is not None)}
-    shade_kernel = cl.Kernel(env_cl.program("shade.cl", prog_defines), "shade_samples")
-    base_block = bparams.pack() if bparams is not None else np.zeros(4, np.float32)
-    asp_block = asp.pack() if asp is not None else np.zeros(8, np.float32)
-    base_buf = _buf(cl, env_cl, np.asarray(base_block, dtype=np.float32))
-    asp_buf = _buf(cl, env_cl, np.asarray(asp_block, dtype=np.float32))
-    ns_buf = _buf(cl, env_cl, ns)
-    wo_buf = _buf(cl, env_cl, wo)
-    albedo = surf["albedo"]
-    if base == "hk93":  # the texture tints rho_ms: shade.cl expects albedo / Rd (1 = untinted)
-        albedo = (albedo / bparams.texture_reference()).astype(np.float32) if texture is not None \
-            else np.ones_like(albedo)
-    albedo_buf = _buf(cl, env_cl, albedo)
-
-    # ---- shadows and shading, in batches of points
+    shader = _Shader(env_cl, base, bparams, asp, px)
     per_point = sum(1 if lt.type in ("point", "directional")
-                    else int(shadow_samples or lt.samples) for lt in lights)
-    chunk = max(1, CHUNK_SAMPLES // per_point)
-    radiance = np.zeros((len(hit_idx), 3), dtype=np.float64)
-    t_shadows = t_shading = t_sampling = 0.0
-    n_shadow = n_shaded = 0
-    pos = surf["position"]
-    for c, start in enumerate(range(0, len(shade_idx), chunk)):
-        pts = shade_idx[start:start + chunk]
-        t0 = time.perf_counter()
-        ls = sample_lights(lights, pos[pts], ng[pts], samples=shadow_samples, seed=(seed, c),
-                           env=env, env_strategy=env_strategy)
-        t_sampling += time.perf_counter() - t0
-        cos_s = np.einsum("nsk,nk->ns", ls.directions, ns[pts])
-        live = (cos_s > 0) & np.any(ls.weights > 0, axis=2)
-        ip, isamp = np.nonzero(live)
-        dirs = ls.directions[ip, isamp]
-        blocked = visibility.occluded(pos[pts][ip], ng[pts][ip], dirs, ls.distance[ip, isamp])
-        n_shadow += len(ip)
-        keep = ~blocked
-        ip, isamp, dirs = ip[keep], isamp[keep], dirs[keep]
-        wts = ls.weights[ip, isamp]
-        t_shadows += time.perf_counter() - t0
-
-        t0 = time.perf_counter()
-        k = len(ip)
-        if k:
-            gidx = pts[ip].astype(np.int32)
-            out = np.empty((k, 3), dtype=np.float32)
-            out_buf = cl.Buffer(env_cl.context, cl.mem_flags.WRITE_ONLY, out.nbytes)
-            ev = shade_kernel(env_cl.queue, _global_size(k), None,
-                              _buf(cl, env_cl, gidx), _buf(cl, env_cl, dirs),
-                              _buf(cl, env_cl, wts), np.int32(k), ns_buf, wo_buf, albedo_buf,
-                              base_buf, asp_buf, out_buf)
-            cl.enqueue_copy(env_cl.queue, out, out_buf, wait_for=[ev])
-            env_cl.queue.finish()
-            kernel_s += event_seconds(ev)
-            for ch in range(3):
-                radiance[:, ch] += np.bincount(gidx, weights=out[:, ch], minlength=len(hit_idx))
-            n_shaded += k
-        t_shading += time.perf_counter() - t0
-        if progress is not None:
-            progress(min(1.0, (start + len(pts)) / max(len(shade_idx), 1)))
-
-    image = np.zeros((h * w, 3), dtype=np.float32)
-    image[hit_idx] = radiance.astype(np.float32)
-    bad = ~np.isfinite(image)
-    nonfinite = int(bad.any(axis=1).sum())
-    if nonfinite:  # never hand a NaN on; the count is recorded (tests require 0)
-        image[bad] = 0.0
-    mask = hits.hit.reshape(h, w)
+                    else int(sampling.shadow_samples or lt.samples) for lt in lights)
+    radiance, stats = _shade_hits(px, lights, visibility, shader, sampling, seed, per_point,
+                                  progress)
+    image, nonfinite = _image(radiance, px)
     if progress is not None:
         progress(1.0)
-    timings = {"visibility": t_visibility, "shadows": t_shadows, "shading": t_shading,
-               "light_sampling": t_sampling, "kernel_seconds": kernel_s, "scene_build": scene_build,
-               "total": time.perf_counter() - t_start}
+    timings = {"visibility": t_visibility, "shadows": stats["shadows"], "shading": stats["shading"],
+               "light_sampling": stats["light_sampling"],
+               "kernel_seconds": px.kernel_seconds + stats["kernel_seconds"],
+               "scene_build": scene_build, "total": time.perf_counter() - t_start}
+    w, h = px.width, px.height
     info = {
         "model": model, "base": base if asp is not None else model,
         "lights": [lt.name for lt in lights], "light_types": [lt.type for lt in lights],
         "width": w, "height": h, "samples_per_pixel": per_point, "seed": int(seed),
-        "bump": bump, "textured": texture is not None, "env_strategy": env_strategy,
-        "primary_rays": int(h * w), "hits": int(len(hit_idx)), "shaded_pixels": int(len(shade_idx)),
-        "shadow_rays": int(n_shadow), "shaded_samples": int(n_shaded),
-        "triangles": int(len(mesh.faces)), "nonfinite_pixels": nonfinite,
-        "device": env_cl.description,
+        "bump": bump, "textured": px.texture is not None, "env_strategy": sampling.env_strategy,
+        "primary_rays": int(h * w), "hits": int(len(px.hit_idx)),
+        "shaded_pixels": int(len(px.front_idx)), "shadow_rays": int(stats["shadow_rays"]),
+        "shaded_samples": int(stats["shaded_samples"]), "triangles": int(len(mesh.faces)),
+        "nonfinite_pixels": nonfinite, "device": env_cl.description,
     }
-    return RenderResult(linear=image.reshape(h, w, 3), mask=mask, timings=timings, info=info)
+    return RenderResult(linear=image, mask=px.hits.hit.reshape(h, w), timings=timings, info=info)
 
 
 # --------------------------------------------------------------------------- stage
@@ -544,7 +558,8 @@ def node(scene, model: str, label: str, lights: tuple, geometry: str) -> Node:
               "seed": scene.mesh.seed, "asperity_base": base,
               "optics": scene.optics.to_dict() if uses_optics else None}
     return Node(f"render-{model}-{label}-{geometry}", NAME, __name__, params,
-                geometry_inputs(geometry), label=f"{model} / {label} / {geometry}")
+                geometry_inputs(geometry), label=f"{model} / {label} / {geometry}",
+                locations=("lights[].map",))
 
 
 def model_params(model: str, asperity_base: str | None, optics: dict | None):

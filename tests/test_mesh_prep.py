@@ -1,5 +1,5 @@
 """Tests for stages/mesh_prep.py: loading, validation, subdivision/displacement, normals,
-simplification and the thesis's UV transfer (physics.md section 6).
+simplification and the thesis's UV transfer (docs/physics.md §6).
 
 Meshes are built here from closed forms (spheres, lat-long UVs) so each check has independent
 evidence; the LPS scan test skips when /work/shared/data is absent.
@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dermis.pipeline.artifacts import Mesh
+from dermis.pipeline.artifacts import Mesh, angle_weighted_normals
 from dermis.pipeline.errors import DermisError
 from dermis.stages import mesh_prep as mp, scan_io
 
@@ -63,7 +63,7 @@ def angle_deg(a, b):
 # ---------------------------------------------------------------------------------------------
 def test01_vertex_normals_match_sphere():
     m = latlong_sphere(40, 80)
-    n = mp.vertex_normals(m.vertices, m.faces)
+    n = angle_weighted_normals(m.vertices, m.faces)
     assert n.dtype == np.float32 and n.shape == m.vertices.shape
     err = angle_deg(n.astype(float), m.vertices)
     # Vertices lie exactly on the sphere and the lat-long mesh is symmetric about each vertex's

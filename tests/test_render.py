@@ -18,7 +18,7 @@ from dermis.pipeline.errors import ConfigError, DermisError
 from dermis.physics.color import srgb_to_linear
 from dermis.physics.visibility import Visibility
 from dermis.reports.tonemap import shared_exposure, tonemap
-from dermis.stages.render import LambertParams, camera_rays, render
+from dermis.stages.render import LambertParams, LightSampling, camera_rays, render
 
 sys.path.insert(0, str(Path(__file__).parent))
 from render_fixtures import icosphere, merge, plane  # noqa: E402
@@ -300,6 +300,15 @@ def test10_camera_and_argument_errors(sphere, cl_env):
         render(mesh, light, "lambert", None, cam, bump="sharp", visibility=vis)
     with pytest.raises(ConfigError, match="params"):
         render(mesh, light, "lafortune", LambertParams(), cam, visibility=vis)
+    with pytest.raises(ConfigError, match="shadow_samples"):
+        render(mesh, light, "lambert", None, cam, visibility=vis,
+               sampling=LightSampling(shadow_samples=0))
+    from dataclasses import replace
+    with pytest.raises(DermisError, match=r"render: mesh\.faces"):
+        render(replace(mesh, faces=mesh.faces + len(mesh.vertices)), light, "lambert", None, cam)
+    with pytest.raises(DermisError, match=r"render: mesh\.uv and \.uv_faces must both"):
+        render(replace(mesh, uv=np.zeros((len(mesh.vertices), 2), np.float32)), light, "lambert",
+               None, cam, visibility=vis)
 
 
 @pytest.mark.parametrize("strategy", ("mis", "luminance"))
@@ -316,8 +325,8 @@ def test11_lambert_sphere_constant_environment_is_albedo_L(sphere, cl_env, strat
     env = EnvironmentMap(np.tile(radiance, (16, 32, 1)))
     light = LightConfig(name="e", type="environment", samples=16)
     albedo = np.array([0.5, 0.25, 0.8])
-    res = render(mesh, light, "lambert", LambertParams(albedo), cam, visibility=vis, env=env,
-                 cl_env=cl_env, seed=11, env_strategy=strategy)
+    res = render(mesh, light, "lambert", LambertParams(albedo), cam, visibility=vis,
+                 cl_env=cl_env, seed=11, sampling=LightSampling(env=env, env_strategy=strategy))
     n, inner = _analytic_sphere_normals(cam, min_cos_view=MIN_COS_VIEW)
     px = res.linear.reshape(-1, 3)[inner & res.mask.ravel()]
     # pixels are independent estimates: mean within 5 standard errors of albedo x L
@@ -344,7 +353,8 @@ def test12_mis_lowers_environment_render_noise(sphere, cl_env):
     _, inner = _analytic_sphere_normals(cam, min_cos_view=MIN_COS_VIEW)
     noise = {}
     for strategy in ("luminance", "mis"):
-        a, b = (render(mesh, light, "lambert", None, cam, visibility=vis, env=env, cl_env=cl_env,
-                       seed=s, env_strategy=strategy).linear.reshape(-1, 3)[inner] for s in (1, 2))
+        sampling = LightSampling(env=env, env_strategy=strategy)
+        a, b = (render(mesh, light, "lambert", None, cam, visibility=vis, cl_env=cl_env, seed=s,
+                       sampling=sampling).linear.reshape(-1, 3)[inner] for s in (1, 2))
         noise[strategy] = math.sqrt(np.mean((a - b) ** 2) / np.mean(((a + b) / 2) ** 2))
     assert noise["luminance"] / noise["mis"] > MIS_MIN_RENDER_NOISE_RATIO, noise
