@@ -209,6 +209,16 @@ ARTIFACT_TYPES = {cls.__name__: cls for cls in (Mesh, BakedMaps, LayerProfile, R
                                                 SurfacePoints, PointIrradiance)}
 
 
+def nonfinite_fields(artifact: Any) -> list[str]:
+    """Names of the artifact's float array fields that hold NaN or Inf."""
+    bad = []
+    for f in dataclasses.fields(artifact):
+        v = getattr(artifact, f.name)
+        if isinstance(v, np.ndarray) and v.dtype.kind == "f" and not np.all(np.isfinite(v)):
+            bad.append(f.name)
+    return bad
+
+
 def _jsonable(value: Any) -> Any:
     if isinstance(value, (np.floating, np.integer, np.bool_)):
         return value.item()

@@ -18,7 +18,7 @@ def node(scene) -> Node:
               "displacement_scale_mm": m.displacement_scale_mm,
               "displacement_mid": m.displacement_mid}
     return Node(NAME, NAME, __name__, params, {"source": "mesh_source"},
-                label="high mesh + normals")
+                label="high mesh + normals", locations=("displacement",))
 
 
 def run(params: dict, inputs: dict, ctx) -> StageResult:
