@@ -22,6 +22,7 @@ STAGES = (
     ("irradiance", "dermis.stages.irradiance"),
     ("render", "dermis.stages.render"),
     ("bssrdf", "dermis.stages.bssrdf"),
+    ("reference", "dermis.stages.reference"),
     ("images", "dermis.reports.images"),
     ("report", "dermis.reports.report"),
 )

@@ -146,6 +146,27 @@ class BssrdfConfig:
 
 
 @dataclass(frozen=True)
+class ReferenceConfig:
+    # Mitsuba 3 path-traced ground truth (stages/reference.py, docs/ground-truth.md); costly:
+    # ~0.7 s per spp at 100x100 for the two-layer head on 2 cores (bench/results/reference.json)
+    enabled: bool = spec(False, doc="render Mitsuba 3 references (pip install dermis[reference])")
+    width: int = spec(100, lo=1, hi=16384, doc="pixels; must divide camera.width (block-averaged comparison)")
+    height: int = spec(100, lo=1, hi=16384, doc="pixels; must divide camera.height")
+    spp: int = spec(256, lo=1, hi=1 << 20, doc="samples per pixel of each of the two seeds")
+    seed: int = spec(1, lo=0, hi=30000, doc="the two independent renders use seeds 2 seed and 2 seed + 1")
+    lights: tuple = spec((), doc="lighting conditions to reference (names as in [render] lights); empty = all")
+    roughness: float = spec(0.3, lo=0.0, lo_open=True, hi=1.0, doc="GGX alpha of the skin boundary")
+    # ground-truth.md trap 7, and rr_depth measured here: Mitsuba's Russian roulette keeps a
+    # path with probability <= 0.99 per event, so in skin (hundreds of events) it biases red
+    max_depth: int = spec(-1, lo=-1, doc="path events, -1 = unlimited")
+    rr_depth: int = spec(1024, lo=1, doc="events before Russian roulette starts")
+    env_clamp: float = spec(0.0, lo=0.0, doc="clamp environment radiance (0 = none, as the models)")
+    slab_samples: int = spec(1 << 18, lo=1024, doc="paths of the flat-slab Rd that normalises the albedo tint")
+    variant: str = spec("auto", choices=("auto", "cuda_ad_rgb", "llvm_ad_rgb", "scalar_rgb"),
+                        doc="Mitsuba variant (auto: cuda, else llvm, else scalar)")
+
+
+@dataclass(frozen=True)
 class OutputConfig:
     cache_dir: str = spec("", doc="empty: $DERMIS_CACHE or ./.dermis-cache")
     output_dir: str = spec("out", doc="outputs go to output_dir/<scene name>/")
@@ -164,6 +185,7 @@ class Scene:
     render: RenderConfig = spec(factory=RenderConfig)
     optics: Any = spec(None, doc='layer stack: preset = "two_layer" or [[optics.layers]]')
     bssrdf: BssrdfConfig = spec(factory=BssrdfConfig)
+    reference: ReferenceConfig = spec(factory=ReferenceConfig)
     output: OutputConfig = spec(factory=OutputConfig)
     path: str = ""
 
@@ -342,7 +364,8 @@ def _fmt_rule(meta) -> str:
 
 SCHEMA_TABLES = (("scene", SceneInfo), ("mesh", MeshConfig), ("bake", BakeConfig),
                  ("camera", CameraConfig), ("[lights]", LightConfig), ("render", RenderConfig),
-                 ("bssrdf", BssrdfConfig), ("output", OutputConfig))
+                 ("bssrdf", BssrdfConfig), ("reference", ReferenceConfig),
+                 ("output", OutputConfig))
 
 
 def schema_markdown() -> str:

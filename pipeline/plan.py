@@ -62,9 +62,35 @@ def build_graph(scene: Scene) -> tuple[dict[str, Node], list[str]]:
                 else:
                     node = stage("render").node(scene, model, label, lights, geometry)
                 render_ids.append(add(node).id)
+    if scene.reference.enabled:  # Mitsuba ground truth, one node per lighting condition
+        _add_references(scene, add)
     if render_ids:
         add(stage("images").node(scene, render_ids), target=True)
     if REFERENCE_MODEL in models and len(models) > 1:  # differences need the reference + another
         irradiance_ids = [n for n, node in nodes.items() if node.stage == "irradiance"]
         add(stage("report").node(scene, render_ids, irradiance_ids), target=True)
     return nodes, targets
+
+
+_SKIP_NOTICES: set = set()
+
+
+def _add_references(scene: Scene, add) -> None:
+    """The reference nodes the scene asks for; without Mitsuba, none and one message."""
+    import sys
+    from .errors import ConfigError
+    ref = stage("reference")
+    groups = dict(scene.light_groups())
+    wanted = scene.reference.lights or tuple(groups)
+    unknown = [l for l in wanted if l not in groups]
+    if unknown:
+        raise ConfigError(f"{scene.path}: reference.lights: {unknown[0]!r} is not a lighting "
+                          f"condition of [render] lights ({', '.join(groups)})")
+    reason = ref.unavailable_reason()
+    if reason:
+        if reason not in _SKIP_NOTICES:
+            _SKIP_NOTICES.add(reason)
+            print(f"dermis: reference stage skipped: {reason}", file=sys.stderr)
+        return
+    for label in wanted:
+        add(ref.node(scene, label, groups[label]), target=True)
