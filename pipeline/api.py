@@ -9,17 +9,21 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .config import Scene, load_scene
+import numpy as np
+
+from .config import Scene, load_scene, scene_warnings
 from .errors import DermisError
 from .graph import RunSummary, execute
 from .plan import build_graph
 from .registry import STAGE_NAMES, stage
 from .store import CACHE_ENV_VAR, Store
 
-__all__ = ["load_scene", "run", "status", "clean", "devices", "cache_dir_for", "RunContext"]
+__all__ = ["load_scene", "run", "status", "clean", "devices", "cache_dir_for", "RunContext",
+           "output_folder", "dark_renders"]
 
 
 @dataclass
@@ -104,13 +108,22 @@ def run(scene: Scene, *, cache=None, until: str | None = None, force=(), device:
     targets = _targets(nodes, targets, until)
     store = Store(cache_dir_for(scene, cache))
     ctx = RunContext(device=device)
-    if device is not None:
-        ctx.cl  # an explicit device is checked before any stage runs
+    from .cl import check_device
+    check_device(device)  # --device or $DERMIS_CL_DEVICE: checked before any stage runs
     if notice is None:
         notice = _stderr_notice
+    if export:
+        output_folder(scene)  # writable, checked before any stage runs
+    warnings = scene_warnings(scene)
+    for text in warnings:
+        notice(f"warning: {text}")
     with store.locked():
         summary = execute(nodes, targets, store, ctx, force=tuple(force), progress=progress,
                           notice=notice)
+        dark = dark_renders(scene, summary)
+        for text in dark:
+            notice(f"warning: {text}")
+        summary.warnings = warnings + dark
         if export:
             _export(scene, store, summary)
     return summary
@@ -121,24 +134,101 @@ def _stderr_notice(text: str) -> None:
     print(f"dermis: {text}", file=sys.stderr)
 
 
-def _export(scene: Scene, store: Store, summary: RunSummary) -> Path:
-    """Copy file artifacts to ``output_dir/<scene>/<stage>/`` and write run.json beside them."""
-    out = Path(scene.output.output_dir) / scene.scene.name
-    out.mkdir(parents=True, exist_ok=True)
+def output_folder(scene: Scene) -> Path:
+    """``output_dir/<scene.name>/``, created; refused (exit 2, naming ``output.output_dir``)
+    when it cannot be written.  Checked before any stage runs."""
+    base = Path(scene.output.output_dir)
+    out = base / scene.scene.name
+    key = f"output.output_dir = {json.dumps(scene.output.output_dir)}"
+    for p in (base, out):
+        if p.exists() and not p.is_dir():
+            raise DermisError(f"{scene.path}: {key}: {p} is a file, not a folder; choose "
+                              "another output_dir (or remove the file)")
+    probe = out / f".write-check-{uuid.uuid4().hex}"
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe.mkdir()
+        probe.rmdir()
+    except OSError as exc:
+        raise DermisError(f"{scene.path}: {key}: outputs cannot be written to {out}: "
+                          f"{exc.strerror or exc}; choose another output_dir") from None
+    return out
+
+
+def _owned_entries() -> set[str]:
+    """The entries of ``output_dir/<scene>/`` a run writes (and replaces): run.json and the
+    stage output folders.  Anything else there (a sweep's folder, a user's notes) is kept."""
+    return {"run.json"} | {getattr(stage(n), "OUTPUT_FOLDER", n) for n in STAGE_NAMES}
+
+
+def dark_renders(scene: Scene, summary: RunSummary) -> list[str]:
+    """Warnings for renders that came out entirely black, naming the likely cause."""
+    out = []
+    cam = scene.camera
     for rep in summary.nodes:
-        meta = store.meta(rep.id, rep.key)
-        folder = (getattr(stage(rep.stage), "OUTPUT_FOLDER", rep.stage)
-                  if rep.stage in STAGE_NAMES else rep.stage)
-        for name in meta.get("files", []):
-            src = Path(rep.path) / name
-            if src.is_file():
-                (out / folder).mkdir(exist_ok=True)
-                shutil.copy2(src, out / folder / name)
-    (out / "run.json").write_text(json.dumps({
-        "scene": scene.path, "cache": str(store.root),
-        "nodes": [{"id": r.id, "status": r.status, "seconds": r.seconds,
-                   "kernel_seconds": r.kernel_seconds, "key": r.key, "reasons": r.reasons}
-                  for r in summary.nodes]}, indent=1))
+        if rep.stage not in ("render", "bssrdf") or rep.status not in ("ran", "cached"):
+            continue
+        try:
+            with np.load(Path(rep.path) / "data.npz", allow_pickle=False) as data:
+                mask, linear = data["mask"], data["linear"]
+        except (OSError, KeyError, ValueError):
+            continue
+        if not mask.any():
+            out.append(f"{rep.id}: the image is black: no camera ray hits the mesh (camera at "
+                       f"{list(cam.position)} looking at {list(cam.look_at)}, fov_deg "
+                       f"{cam.fov_deg}): the camera looks away from the mesh; check "
+                       "camera.position, camera.look_at and mesh.units")
+        elif not float(np.max(linear)) > 0.0:
+            out.append(f"{rep.id}: the image is black although the camera sees the mesh: the "
+                       "light emits nothing (zero intensity or scale), the light is inside the "
+                       "mesh or behind the visible surface, or the camera is inside the mesh "
+                       "(it sees back faces only); check [[lights]] and camera.position")
+    return out
+
+
+def _export(scene: Scene, store: Store, summary: RunSummary) -> Path:
+    """Copy file artifacts to ``output_dir/<scene>/<stage>/`` and write run.json beside them.
+
+    The folder then holds exactly this run's outputs: they are assembled in a temporary folder
+    beside them and swapped in per entry, replacing every entry an earlier run wrote
+    (:func:`_owned_entries`), so nothing of an earlier run (of another scene with the same
+    name, or with other models) is left among them."""
+    out = output_folder(scene)
+    tmp = out / f".export-{uuid.uuid4().hex}"
+    trash = out / f".old-{uuid.uuid4().hex}"
+    files = []
+    try:
+        tmp.mkdir()
+        for rep in summary.nodes:
+            meta = store.meta(rep.id, rep.key)
+            folder = (getattr(stage(rep.stage), "OUTPUT_FOLDER", rep.stage)
+                      if rep.stage in STAGE_NAMES else rep.stage)
+            for name in meta.get("files", []):
+                src = Path(rep.path) / name
+                if src.is_file():
+                    (tmp / folder).mkdir(exist_ok=True)
+                    shutil.copy2(src, tmp / folder / name)
+                    files.append(f"{folder}/{name}")
+        (tmp / "run.json").write_text(json.dumps({
+            "scene": scene.path, "cache": str(store.root), "files": sorted(files),
+            "warnings": list(getattr(summary, "warnings", [])),
+            "nodes": [{"id": r.id, "status": r.status, "seconds": r.seconds,
+                       "kernel_seconds": r.kernel_seconds, "key": r.key, "reasons": r.reasons}
+                      for r in summary.nodes]}, indent=1))
+        trash.mkdir()
+        for name in sorted(_owned_entries() | {p.name for p in tmp.iterdir()}):
+            if (out / name).exists() or (out / name).is_symlink():
+                os.rename(out / name, trash / name)
+            if (tmp / name).exists():
+                os.rename(tmp / name, out / name)
+    except OSError as exc:
+        raise DermisError(f"{scene.path}: output.output_dir: writing the outputs to {out} "
+                          f"failed: {exc.strerror or exc} ({exc.filename or out}); the cache "
+                          "is intact: free space or choose another output_dir and run again") \
+            from None
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.rmtree(trash, ignore_errors=True)
     return out
 
 

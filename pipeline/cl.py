@@ -28,7 +28,7 @@ from .errors import DermisError
 
 __all__ = [
     "ClEnv", "KernelBuildError", "NoOpenCLError", "CL_DIR", "get_env", "list_devices",
-    "kernel_sources_hash", "kernel_closure", "event_seconds",
+    "kernel_sources_hash", "kernel_closure", "event_seconds", "check_device",
 ]
 
 ENV_VAR = "DERMIS_CL_DEVICE"
@@ -240,6 +240,21 @@ _BUILD_SECONDS = [0.0]   # this process's time in OpenCL program builds (each is
 def build_seconds() -> float:
     """Seconds this process has spent building OpenCL programs so far."""
     return _BUILD_SECONDS[0]
+
+
+def check_device(spec: str | None = None) -> str | None:
+    """Validate a device choice up front, before any stage runs: the explicit ``spec``
+    (``--device``), else ``$DERMIS_CL_DEVICE``.  Returns the device description, or None
+    when neither is set (the default device is found when a stage first needs it).
+
+    Raises :class:`NoOpenCLError` naming where the bad spec came from."""
+    source = "--device" if spec else (f"${ENV_VAR}" if os.environ.get(ENV_VAR) else None)
+    if source is None:
+        return None
+    try:
+        return get_env(spec).description
+    except NoOpenCLError as exc:
+        raise NoOpenCLError(f"{source} = {(spec or os.environ[ENV_VAR])!r}: {exc}") from None
 
 
 def get_env(spec: str | None = None) -> ClEnv:

@@ -5,6 +5,7 @@ Exit codes: 0 success, 2 bad input (scene, file, device, locked cache), 1 intern
 from __future__ import annotations
 
 import argparse
+import errno
 import os
 import sys
 import traceback
@@ -146,13 +147,44 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+# File-system faults the user can fix (exit 2, not a traceback): a full disk or quota, a
+# read-only or unwritable folder, a file where a folder should be, a file-size limit.
+FS_FAULTS = {errno.ENOSPC: "no space left on the device", errno.EDQUOT: "disk quota exceeded",
+             errno.EROFS: "read-only file system", errno.EACCES: "permission denied",
+             errno.EPERM: "operation not permitted", errno.ENOTDIR: "not a folder",
+             errno.EISDIR: "is a folder", errno.EEXIST: "already exists",
+             errno.EFBIG: "file too large (file-size limit)",
+             errno.ENAMETOOLONG: "file name too long"}
+
+
+def user_fault(exc: BaseException) -> str | None:
+    """The message for a failure the user can fix though it is not a DermisError: a file-system
+    fault or running out of memory (possibly inside a stage); None for a real bug."""
+    where = ""
+    node = getattr(exc, "node_id", None)
+    cause = exc.__cause__ if node is not None and exc.__cause__ is not None else exc
+    if node is not None:
+        where = f" in stage {node}"
+    if isinstance(cause, MemoryError):
+        return (f"out of memory{where}: the scene needs more memory than this machine has; "
+                "lower camera.width/height, bake.resolution, bssrdf.point_density or "
+                "mesh.high_triangles (finished stages stay cached)")
+    if isinstance(cause, OSError) and cause.errno in FS_FAULTS:
+        name = cause.filename or ""
+        return (f"{FS_FAULTS[cause.errno]}{where}" + (f": {name}" if name else "")
+                + "; free space or fix the folder's permissions (or choose another --cache / "
+                "output_dir) and run again: cache entries are written whole or not at all, so "
+                "nothing was corrupted")
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
     try:
-        args = parser.parse_args(argv)
-    except SystemExit as exc:  # argparse: usage errors exit 2, --help exits 0
-        return int(exc.code or 0)
-    try:
+        parser = build_parser()
+        try:
+            args = parser.parse_args(argv)
+        except SystemExit as exc:  # argparse: usage errors exit 2, --help exits 0
+            return int(exc.code or 0)
         return int(args.func(args) or 0)
     except DermisError as exc:
         print(f"dermis: error: {exc}", file=sys.stderr)
@@ -162,6 +194,10 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 130
     except Exception as exc:  # internal failure: show the traceback, exit 1
+        fault = user_fault(exc)
+        if fault is not None:
+            print(f"dermis: error: {fault}", file=sys.stderr)
+            return 2
         tb = getattr(exc, "tb", None) or traceback.format_exc()
         print(tb, file=sys.stderr)
         print(f"dermis: internal error: {exc}", file=sys.stderr)

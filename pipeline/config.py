@@ -22,7 +22,8 @@ from typing import Any, get_type_hints
 from .errors import ConfigError
 
 __all__ = ["Scene", "load_scene", "default_scene_path", "LENGTH_UNITS", "MODELS", "ASPERITY_BASES",
-           "GEOMETRIES"]
+           "GEOMETRIES", "estimate_memory", "machine_memory", "resource_problems",
+           "scene_warnings"]
 
 LENGTH_UNITS = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
 # The four models in the thesis's order (measured BRDF, asperity, Hanrahan-Krueger, BSSRDF):
@@ -425,6 +426,163 @@ def _merge(base: dict, over: dict) -> dict:
     out = dict(base)
     for k, v in over.items():
         out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+def _not_plain_name(value: str, extra: str = "") -> str | None:
+    """Why ``value`` cannot be used as one file-name component (None if it can)."""
+    if not value.strip():
+        return "must not be empty"
+    if value in (".", "..") or value.startswith("."):
+        return "must not start with '.'"
+    bad = [c for c in "/\\" + extra if c in value]
+    if bad:
+        return f"must be a plain name without {' or '.join(repr(c) for c in bad)}"
+    if any(ord(c) < 32 or ord(c) == 127 for c in value):
+        return "must not contain control characters"
+    if len(value.encode()) > 100:
+        return "must be at most 100 bytes long"
+    return None
+
+
+def _check_camera(camera: CameraConfig, where: str) -> list[str]:
+    """The camera problems the renderer would otherwise find only after the mesh stages."""
+    out = []
+    pos, look, up = camera.position, camera.look_at, camera.up
+    fwd = [b - a for a, b in zip(pos, look)]
+    nf = math.sqrt(sum(x * x for x in fwd))
+    nu = math.sqrt(sum(x * x for x in up))
+    if not nf > 0:
+        out.append(f"{where}: camera.look_at = {_fmt(look)}: must differ from camera.position "
+                   f"= {_fmt(pos)}")
+    elif not nu > 0:
+        out.append(f"{where}: camera.up = {_fmt(up)}: must not be zero")
+    else:
+        cross = (fwd[1] * up[2] - fwd[2] * up[1], fwd[2] * up[0] - fwd[0] * up[2],
+                 fwd[0] * up[1] - fwd[1] * up[0])
+        if not math.sqrt(sum(x * x for x in cross)) > 1e-9 * nf * nu:
+            out.append(f"{where}: camera.up = {_fmt(up)}: must not be parallel to the view "
+                       f"direction camera.look_at - camera.position = {_fmt(tuple(fwd))}")
+    return out
+
+
+def _check_environment_file(path: Path, where: str, key: str, value: str) -> list[str]:
+    """Header check of an environment map file (the pixels are read by the stages)."""
+    try:
+        import OpenImageIO as oiio
+    except ImportError:  # pragma: no cover - a dependency
+        return []
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        reason = oiio.geterror().strip() or "not an image format OpenImageIO reads"
+        return [f"{where}: {key} = {_fmt(value)}: cannot be read as an image ({reason}); "
+                "give a lat-long HDR or EXR file"]
+    try:
+        spec = inp.spec()
+        if spec.width < 2 or spec.height < 1:
+            return [f"{where}: {key} = {_fmt(value)}: the image is {spec.width} x "
+                    f"{spec.height} pixels; a lat-long map needs at least 2 x 1"]
+    finally:
+        inp.close()
+    return []
+
+
+# --------------------------------------------------------------------------- resources
+# Peak memory of the stages that grow with a scene setting, fitted to measured peaks
+# (docs/hardening.md "Memory estimates": resident set size of `dermis run --until STAGE`
+# on the procedural head, 2-core PoCL machine).  Bytes.
+MEMORY_BASE = 300 << 20          # interpreter, numpy, open3d, OpenCL runtime (measured 290 MB)
+RENDER_BYTES_PER_PIXEL = 104     # BRDF render: camera rays, hits, surface attributes, image
+BSSRDF_BYTES_PER_PIXEL = 180     # BSSRDF render: the same plus gather queries and exitance
+RENDER_BATCH_BYTES = 300 << 20   # light samples of one batch (render.CHUNK_SAMPLES)
+BAKE_BYTES_PER_TEXEL = 48        # rasterised positions/normals, bake rays, maps, blur
+POINT_BYTES = 2800               # sample points: candidates, kd-trees, partition-of-unity areas
+# Surface area of the embedded procedural head (mm^2, measured at 2k-60k triangles: 1.55e5
+# to 1.59e5); a scan is assumed head-sized, twice that (the LPS head: 3.7e5 mm^2).
+HEAD_AREA_MM2 = {"procedural": 1.6e5, "scan": 4.0e5}
+MEMORY_ENV_VAR = "DERMIS_MEMORY_MB"   # override the machine memory the check compares with
+
+
+def machine_memory() -> int:
+    """Bytes of memory this process may use: ``$DERMIS_MEMORY_MB``, else the smaller of the
+    machine's physical memory and the cgroup limit."""
+    import os
+    env = os.environ.get(MEMORY_ENV_VAR, "").strip()
+    if env:
+        try:
+            return int(float(env) * (1 << 20))
+        except ValueError:
+            raise ConfigError(f"${MEMORY_ENV_VAR} = {env!r}: must be a number of MiB") from None
+    total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    for limit in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
+        try:
+            text = Path(limit).read_text().strip()
+        except OSError:
+            continue
+        if text.isdigit():
+            total = min(total, int(text))
+    return total
+
+
+def estimate_memory(scene: Scene) -> list[tuple[str, str, int]]:
+    """Estimated peak bytes of the stages that grow with a setting: (what, key, bytes)."""
+    out = []
+    cam = scene.camera
+    renders = bool(scene.render.models and scene.lights and scene.render.geometries)
+    if renders:
+        px = cam.width * cam.height
+        per_px = (BSSRDF_BYTES_PER_PIXEL if "bssrdf" in scene.render.models
+                  else RENDER_BYTES_PER_PIXEL)
+        out.append((f"rendering {cam.width} x {cam.height} pixels", "camera.width, camera.height",
+                    MEMORY_BASE + RENDER_BATCH_BYTES + per_px * px))
+    if set(scene.render.geometries) & {"low_bump", "low_bump_blur"}:
+        n = scene.bake.resolution
+        out.append((f"baking {n} x {n} texels", "bake.resolution",
+                    MEMORY_BASE + BAKE_BYTES_PER_TEXEL * n * n))
+    if renders and "bssrdf" in scene.render.models and scene.optics is not None:
+        pairs = [(a, s) for l in scene.optics.layers if l.thickness_mm > 0
+                 for a, s in zip(l.sigma_a, l.sigma_s_prime)]
+        if pairs:
+            mfp = min(1.0 / (a + s) for a, s in pairs)
+            kind = "procedural" if scene.mesh.source == "procedural" else "scan"
+            points = HEAD_AREA_MM2[kind] * scene.bssrdf.point_density / (math.pi * mfp * mfp)
+            out.append((f"about {points:.3g} irradiance points", "bssrdf.point_density",
+                        MEMORY_BASE + int(POINT_BYTES * points)))
+    return out
+
+
+def resource_problems(scene: Scene) -> list[str]:
+    """Settings whose estimated peak memory exceeds the machine's (see :func:`estimate_memory`)."""
+    have = machine_memory()
+    out = []
+    for what, key, need in estimate_memory(scene):
+        if need > have:
+            out.append(f"{key}: {what} needs about {need / 2**30:.1f} GiB at its peak; this "
+                       f"machine has {have / 2**30:.1f} GiB (${MEMORY_ENV_VAR} overrides); "
+                       f"lower {key}")
+    return out
+
+
+def scene_warnings(scene: Scene) -> list[str]:
+    """Settings that validate but make a run useless (it would render nothing, or black)."""
+    where = scene.path
+    out = []
+    r = scene.render
+    if not r.models:
+        out.append(f"{where}: render.models = []: nothing is rendered (only the meshes are "
+                   "prepared)")
+    elif not r.geometries:
+        out.append(f"{where}: render.geometries = []: nothing is rendered (only the meshes are "
+                   "prepared)")
+    for label, lights in scene.light_groups():
+        dark = [l for l in lights if not any(l.intensity if l.type != "environment"
+                                             else (l.scale,))]
+        if r.models and r.geometries and len(dark) == len(lights):
+            keys = ", ".join(f"lights.{l.name}." + ("scale = 0.0" if l.type == "environment"
+                                                    else f"intensity = {_fmt(l.intensity)}")
+                             for l in dark)
+            out.append(f"{where}: lighting condition {_fmt(label)} emits no light ({keys}); "
+                       "its renders will be black")
+    return out
+
+
     return out
 
 
@@ -442,7 +600,7 @@ def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | No
         problems.add(where, "sweep", f" = {_fmt(table['sweep'])}: must be a table ([sweep])")
     scene = _build(Scene, body, where, "", problems, length_scale)
 
-    lights = []
+    lights, light_index = [], []
     raw_lights = table.get("lights", [])
     if not isinstance(raw_lights, list):
         problems.add(where, "lights", ": must be an array of tables ([[lights]])")
@@ -451,13 +609,27 @@ def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | No
         light = _build(LightConfig, lt, where, f"lights[{i}].", problems, length_scale)
         if light is not None:
             lights.append(light)
-    for i, light in enumerate(lights):  # map paths are relative to the scene file
+            light_index.append(i)
+    for k, light in enumerate(lights):  # map paths are relative to the scene file
+        i = light_index[k]
+        why = _not_plain_name(light.name, extra="+")
+        if why:
+            problems.add(where, f"lights[{i}].name", f" = {_fmt(light.name)}: {why} (light "
+                         "names become parts of output file names; '+' joins lights in "
+                         "render.lights)")
+        if light.type in ("directional", "disc") and not any(light.direction):
+            problems.add(where, f"lights[{i}].direction", f" = {_fmt(light.direction)}: must "
+                         f"not be zero (the {light.type} light's "
+                         + ("direction towards the light)" if light.type == "directional"
+                            else "disc normal)"))
         if light.type == "environment" and light.map != "procedural_sunset":
             p = _resolve(light.map, where)
             if not p.is_file():
                 problems.add(where, f"lights[{i}].map", f" = {_fmt(light.map)}: file not found "
                              f'({p}); use "procedural_sunset" for the embedded sky')
-            lights[i] = replace(light, map=str(p.resolve()))
+            else:
+                problems += _check_environment_file(p, where, f"lights[{i}].map", light.map)
+            lights[k] = replace(light, map=str(p.resolve()))
     names = [l.name for l in lights]
     for n in {n for n in names if names.count(n) > 1}:
         problems.add(where, "lights", f": name {_fmt(n)} is used twice; names must be unique")
@@ -486,15 +658,34 @@ def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | No
     if scene is not None:
         render = scene.render
         for label in render.lights:
-            for n in label.split("+"):
+            parts = label.split("+")
+            for n in parts:
                 if n not in names:
                     problems.add(where, "render.lights", f": {_fmt(n)} (in {_fmt(label)}) names "
+        why = _not_plain_name(scene.scene.name)
+        if why:
+            problems.add(where, "scene.name", f" = {_fmt(scene.scene.name)}: {why} (outputs go "
+                         "to output_dir/<scene.name>/)")
                                  "no [[lights]] entry; defined: "
                                  + (", ".join(_fmt(x) for x in names) or "none"))
         if scene.mesh.source != "procedural":
             p = _resolve(scene.mesh.source, where)
             if not p.is_file():
                 problems.add(where, "mesh.source", f" = {_fmt(scene.mesh.source)}: file not found "
+            for n in sorted({n for n in parts if parts.count(n) > 1}):
+                problems.add(where, "render.lights", f": {_fmt(label)} names light {_fmt(n)} "
+                             f"{parts.count(n)} times; each light may appear once in a lighting "
+                             "condition (raise its intensity to brighten it)")
+        for key in ("lights", "models", "geometries"):
+            values = getattr(render, key)
+            for v in sorted({v for v in values if values.count(v) > 1}):
+                problems.add(where, f"render.{key}", f": {_fmt(v)} is listed twice; list each "
+                             "once")
+        if render.models and not raw_lights:
+            problems.add(where, "lights", f": no [[lights]] defined, but render.models = "
+                         f"{_fmt(list(render.models))} need at least one light (or set "
+                         "render.models = [] to prepare the meshes only)")
+        problems += _check_camera(scene.camera, where)
                              f"({p}); use \"procedural\" for the embedded head")
         for key in ("texture", "displacement"):
             val = getattr(scene.mesh, key)
@@ -506,5 +697,9 @@ def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | No
                          f"< mesh.high_triangles ({scene.mesh.high_triangles})")
     if problems:
         raise ConfigError("\n".join(problems))
-    return Scene(**{**{f.name: getattr(scene, f.name) for f in fields(Scene)},
-                    "lights": tuple(lights), "optics": stack, "path": where})
+    out = Scene(**{**{f.name: getattr(scene, f.name) for f in fields(Scene)},
+                   "lights": tuple(lights), "optics": stack, "path": where})
+    problems += [f"{where}: {p}" for p in resource_problems(out)]
+    if problems:
+        raise ConfigError("\n".join(problems))
+    return out

@@ -24,14 +24,20 @@ def read_image(path: str | Path, *, channels: int | None = None, what: str = "im
         raise DermisError(f"{what} {path} does not exist")
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
-        raise DermisError(f"{what} {path} cannot be read: {oiio.geterror()}")
+        raise DermisError(f"{what} {path} cannot be read: "
+                          f"{oiio.geterror().strip() or 'not an image format OpenImageIO reads'}")
     try:  # every channel of the first subimage (OIIO 3 reads one channel for chend = -1)
-        nchannels = inp.spec().nchannels
+        spec = inp.spec()
+        nchannels = spec.nchannels
         pixels = inp.read_image("float")
+        reason = inp.geterror().strip() if hasattr(inp, "geterror") else ""
     finally:
         inp.close()
     if pixels is None or not isinstance(pixels, np.ndarray):
-        raise DermisError(f"{what} {path} cannot be decoded: {oiio.geterror()}")
+        reason = (reason or oiio.geterror().strip() or "no pixels") + (
+            f" (the header declares {spec.width} x {spec.height} pixels; the pixel data is "
+            f"missing or truncated: the file has {path.stat().st_size} bytes)")
+        raise DermisError(f"{what} {path} cannot be decoded: {reason}")
     img = np.asarray(pixels, dtype=np.float32)
     if img.ndim == 2:
         img = img[..., None]

@@ -134,7 +134,8 @@ def lambert_render(mesh: Mesh, *, size: int = 800, maps: BakedMaps | None = None
 
 def save_shaded_comparison(high: Mesh, low: Mesh, maps: BakedMaps, out_path, *,
                            size: int = 800) -> Path:
-    """Side-by-side Lambert renders: high mesh | low + bump | low + blurred bump | low alone.
+    """Side-by-side Lambert renders: high mesh | low + bump | low + blurred bump | low alone
+    (the high panel alone when ``low`` is None).
 
     Parameters
     ----------
@@ -150,10 +151,11 @@ def save_shaded_comparison(high: Mesh, low: Mesh, maps: BakedMaps, out_path, *,
     Shading uses a constant grey albedo so that only geometry differs between panels.
     """
     rays = _camera_rays(high, size)
-    panels = [lambert_render(high, rays=rays),
-              lambert_render(low, maps=maps, rays=rays),
-              lambert_render(low, maps=maps, blurred=True, rays=rays),
-              lambert_render(low, rays=rays)]
+    panels = [lambert_render(high, rays=rays)]
+    if low is not None:  # no low mesh (render.geometries = ["high"] or []): the high panel only
+        panels += [lambert_render(low, maps=maps, rays=rays),
+                   lambert_render(low, maps=maps, blurred=True, rays=rays),
+                   lambert_render(low, rays=rays)]
     gap = np.full((size, 4, 3), 255, np.uint8)
     row = np.concatenate([x for p in panels for x in (p, gap)][:-1], axis=1)
     return _write_png(Path(out_path), row)

@@ -77,7 +77,7 @@ def load_scan(path, *, units: str = "mm", texture=None, flip_v: bool | None = No
     if units not in UNITS_MM:
         raise DermisError(f"load_scan: units = {units!r} for {path}: must be one of {sorted(UNITS_MM)}")
     if not path.is_file():
-        raise DermisError(f"mesh file not found: {path} (scene key mesh.path)")
+        raise DermisError(f"mesh file not found: {path} (scene key mesh.source)")
     ext = path.suffix.lower()
     try:
         if ext == ".obj":
@@ -94,6 +94,11 @@ def load_scan(path, *, units: str = "mm", texture=None, flip_v: bool | None = No
         raise DermisError(f"mesh file {path} could not be read: {type(exc).__name__}: {exc}") from exc
 
     positions, faces, uv, uv_faces, tex_path, tex_bytes = raw
+    _check_indices(path, faces, len(positions), "vertex", ext)
+    if uv is not None and uv_faces is not None:
+        _check_indices(path, uv_faces, len(uv), "texture coordinate", ext)
+    tex_from = "scene key mesh.texture" if texture is not None else (
+        f"named by the material of {path.name}")
     info: dict = {"source": str(path), "format": ext.lstrip("."), "units": units,
                   "mm_per_unit": UNITS_MM[units]}
 
@@ -139,22 +144,42 @@ def load_scan(path, *, units: str = "mm", texture=None, flip_v: bool | None = No
         texture_srgb = _read_image_bytes(tex_bytes, f"{path} (embedded baseColorTexture)")
         info["texture"] = f"{path}#embedded"
     elif tex_path is not None:
-        texture_srgb = _read_texture(Path(tex_path))
+        texture_srgb = _read_texture(Path(tex_path), what=tex_from)
         info["texture"] = str(tex_path)
 
     return Mesh(vertices=vertices, faces=faces.astype(np.int32), normals=None, uv=uv,
                 uv_faces=uv_faces, texture_srgb=texture_srgb, info=info)
 
 
-def _read_texture(path: Path) -> np.ndarray:
-    """Read an albedo image as (H, W, 3) uint8 sRGB with OpenImageIO."""
+def _check_indices(path: Path, idx, count: int, what: str, ext: str) -> None:
+    """Refuse faces that name a vertex (or texture coordinate) the file does not have."""
+    idx = np.asarray(idx).reshape(-1, 3)
+    bad = ((idx < 0) | (idx >= count)).any(axis=1)
+    if not bad.any():
+        return
+    face = int(np.flatnonzero(bad)[0])
+    value = int(next(v for v in idx[face] if not 0 <= v < count))
+    one = ext == ".obj"   # OBJ counts from 1 (negative: relative to the end)
+    raise DermisError(
+        f"mesh file {path}: {int(bad.sum())} faces use {what} indices out of range, e.g. "
+        f"triangle {face} uses {what} {(value + 1 if value >= 0 else value - count) if one else value}"
+        f"{' (1-based, as in the file)' if one else ''}, but the file has {count} "
+        f"(allowed: {'1' if one else '0'}..{count if one else count - 1}); fix the export")
+
+
+def _read_texture(path: Path, what: str = "scene key mesh.texture") -> np.ndarray:
+    """Read an albedo image as (H, W, 3) uint8 sRGB with OpenImageIO (``what``: where the
+    path came from, for messages)."""
     import OpenImageIO as oiio
 
     if not path.is_file():
-        raise DermisError(f"texture file not found: {path} (scene key mesh.texture)")
+        hint = "" if what.startswith("scene key") else (
+            "; fix the material file or set scene key mesh.texture")
+        raise DermisError(f"texture file not found: {path} ({what}){hint}")
     buf = oiio.ImageBuf(str(path))
-    if buf.has_error:
-        raise DermisError(f"texture file {path} could not be read: {buf.geterror()}")
+    if buf.has_error or buf.spec().width < 1:
+        raise DermisError(f"texture file {path} ({what}) could not be read: "
+                          f"{buf.geterror() or 'no pixel data'}")
     spec = buf.spec()
     linear = spec.format.basetype in (oiio.FLOAT, oiio.HALF, oiio.DOUBLE) and \
         "linear" in spec.get_string_attribute("oiio:ColorSpace", "linear").lower()
@@ -225,6 +250,10 @@ def _read_obj(path: Path):
                 usemtl.append(line.split(None, 1)[1].strip())
     if not v_lines or not f_lines:
         raise DermisError(f"mesh file {path}: no vertices or faces (found {len(v_lines)} v, {len(f_lines)} f)")
+    short = next((i for i, ln in enumerate(v_lines) if len(ln.split()) < 3), None)
+    if short is not None:
+        raise DermisError(f"mesh file {path}: vertex {short + 1} ('v {v_lines[short].strip()}') "
+                          "has fewer than 3 coordinates")
     positions = np.array([ln.split()[:3] for ln in v_lines], dtype=np.float64)
     uv = np.array([ln.split()[:2] for ln in vt_lines], dtype=np.float64) if vt_lines else None
     nv, nvt = len(positions), (0 if uv is None else len(uv))
@@ -236,6 +265,9 @@ def _read_obj(path: Path):
         for tok in toks:
             parts = tok.split("/")
             a = int(parts[0])
+            if a == 0:
+                raise DermisError(f"mesh file {path}: face 'f {' '.join(toks)}' uses index 0; "
+                                  "OBJ indices start at 1 (negative: from the end)")
             vi.append(a - 1 if a > 0 else nv + a)
             if len(parts) > 1 and parts[1]:
                 b = int(parts[1])
@@ -310,6 +342,10 @@ def _read_ply(path: Path):
         elif toks[0] == "element":
             elements.append((toks[1], int(toks[2]), []))
         elif toks[0] == "property":
+            bad = [t for t in (toks[2:4] if toks[1] == "list" else toks[1:2]) if t not in _PLY_TYPES]
+            if bad or not elements or len(toks) < (5 if toks[1] == "list" else 3):
+                raise DermisError(f"mesh file {path}: PLY header line {line.strip()!r} is not a "
+                                  "valid property (types: " + ", ".join(sorted(_PLY_TYPES)) + ")")
             if toks[1] == "list":
                 elements[-1][2].append((toks[4], ("list", _PLY_TYPES[toks[2]], _PLY_TYPES[toks[3]])))
             else:
@@ -323,13 +359,22 @@ def _read_ply(path: Path):
         lines = data[body_start:].decode("ascii", errors="replace").split("\n")
         pos = 0
         for name, count, props in elements:
+            if pos + count > len(lines):
+                raise DermisError(f"mesh file {path}: truncated: the header declares {count} "
+                                  f"'{name}' rows but the file ends {pos + count - len(lines)} "
+                                  "rows short")
             rows = [lines[pos + i].split() for i in range(count)]
             pos += count
             values[name] = _ply_ascii_element(rows, props)
     else:
         offset = body_start
         for name, count, props in elements:
-            values[name], offset = _ply_binary_element(data, offset, count, props, endian)
+            try:
+                values[name], offset = _ply_binary_element(data, offset, count, props, endian)
+            except (ValueError, IndexError):
+                raise DermisError(f"mesh file {path}: truncated: the header declares {count} "
+                                  f"'{name}' elements but the file ends at byte {len(data)} "
+                                  "before them") from None
 
     vert = values.get("vertex", {})
     face = values.get("face", {})
