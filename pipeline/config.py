@@ -422,10 +422,6 @@ def load_scene(path: str | Path | None = None, *, overrides: dict | None = None)
     return scene_from_dict(table, where=where, overrides=overrides)
 
 
-def _merge(base: dict, over: dict) -> dict:
-    out = dict(base)
-    for k, v in over.items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
 def _not_plain_name(value: str, extra: str = "") -> str | None:
     """Why ``value`` cannot be used as one file-name component (None if it can)."""
     if not value.strip():
@@ -587,6 +583,27 @@ def scene_warnings(scene: Scene) -> list[str]:
 
 
 def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | None = None) -> Scene:
+def _sections(body: dict, where: str, length_scale: float):
+    """The scene's tables that validate on their own (None for the others): the cross-field
+    checks then still run when some other table has a problem (all problems listed at once)."""
+    from types import SimpleNamespace
+    hints = get_type_hints(Scene)
+    out = {}
+    for f in fields(Scene):
+        if not is_dataclass(hints.get(f.name)):
+            continue
+        cls, table = hints[f.name], body.get(f.name, {})
+        if isinstance(table, dict):  # keep the keys that validate on their own (others: default)
+            table = {k: v for k, v in table.items() if _build(
+                cls, {k: v}, where, f.name + ".", _Problems(), length_scale) is not None}
+        out[f.name] = _build(cls, table, where, f.name + ".", _Problems(), length_scale)
+    return SimpleNamespace(**out)
+
+
+def _merge(base: dict, over: dict) -> dict:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
     """Validate an already-parsed scene table (see :func:`load_scene`)."""
     from dermis.physics.layers import parse_layer_stack, PRESETS  # layer optics own their validation
 
@@ -655,23 +672,21 @@ def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | No
         except ConfigError as exc:
             problems.append(str(exc))
 
-    if scene is not None:
-        render = scene.render
+    # cross-field checks run on every table that validated, even when another did not
+    sc = scene if scene is not None else _sections(body, where, length_scale)
+    why = _not_plain_name(sc.scene.name) if sc.scene is not None else None
+    if why:
+        problems.add(where, "scene.name", f" = {_fmt(sc.scene.name)}: {why} (outputs go "
+                     "to output_dir/<scene.name>/)")
+    render = sc.render
+    if render is not None:
         for label in render.lights:
             parts = label.split("+")
             for n in parts:
                 if n not in names:
                     problems.add(where, "render.lights", f": {_fmt(n)} (in {_fmt(label)}) names "
-        why = _not_plain_name(scene.scene.name)
-        if why:
-            problems.add(where, "scene.name", f" = {_fmt(scene.scene.name)}: {why} (outputs go "
-                         "to output_dir/<scene.name>/)")
                                  "no [[lights]] entry; defined: "
                                  + (", ".join(_fmt(x) for x in names) or "none"))
-        if scene.mesh.source != "procedural":
-            p = _resolve(scene.mesh.source, where)
-            if not p.is_file():
-                problems.add(where, "mesh.source", f" = {_fmt(scene.mesh.source)}: file not found "
             for n in sorted({n for n in parts if parts.count(n) > 1}):
                 problems.add(where, "render.lights", f": {_fmt(label)} names light {_fmt(n)} "
                              f"{parts.count(n)} times; each light may appear once in a lighting "
@@ -685,16 +700,22 @@ def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | No
             problems.add(where, "lights", f": no [[lights]] defined, but render.models = "
                          f"{_fmt(list(render.models))} need at least one light (or set "
                          "render.models = [] to prepare the meshes only)")
-        problems += _check_camera(scene.camera, where)
+    if sc.camera is not None:
+        problems += _check_camera(sc.camera, where)
+    if sc.mesh is not None:
+        if sc.mesh.source != "procedural":
+            p = _resolve(sc.mesh.source, where)
+            if not p.is_file():
+                problems.add(where, "mesh.source", f" = {_fmt(sc.mesh.source)}: file not found "
                              f"({p}); use \"procedural\" for the embedded head")
         for key in ("texture", "displacement"):
-            val = getattr(scene.mesh, key)
+            val = getattr(sc.mesh, key)
             if val and not _resolve(val, where).is_file():
                 problems.add(where, f"mesh.{key}", f" = {_fmt(val)}: file not found "
                              f"({_resolve(val, where)})")
-        if scene.mesh.low_triangles >= scene.mesh.high_triangles:
-            problems.add(where, "mesh.low_triangles", f" = {scene.mesh.low_triangles}: must be "
-                         f"< mesh.high_triangles ({scene.mesh.high_triangles})")
+        if sc.mesh.low_triangles >= sc.mesh.high_triangles:
+            problems.add(where, "mesh.low_triangles", f" = {sc.mesh.low_triangles}: must be "
+                         f"< mesh.high_triangles ({sc.mesh.high_triangles})")
     if problems:
         raise ConfigError("\n".join(problems))
     out = Scene(**{**{f.name: getattr(scene, f.name) for f in fields(Scene)},

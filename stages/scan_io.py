@@ -98,7 +98,7 @@ def load_scan(path, *, units: str = "mm", texture=None, flip_v: bool | None = No
     if uv is not None and uv_faces is not None:
         _check_indices(path, uv_faces, len(uv), "texture coordinate", ext)
     tex_from = "scene key mesh.texture" if texture is not None else (
-        f"named by the material of {path.name}")
+        f"named by the material of {path}")
     info: dict = {"source": str(path), "format": ext.lstrip("."), "units": units,
                   "mm_per_unit": UNITS_MM[units]}
 
