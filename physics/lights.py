@@ -597,7 +597,10 @@ def environment_map(light, *, rotation_deg: float = 0.0) -> EnvironmentMap:
     if not (scale >= 0 and math.isfinite(scale)):
         raise ConfigError(f"lights.{light.name}.scale = {scale}: must be finite and >= 0")
     rotation_deg = rotation_deg or float(getattr(light, "rotation_deg", 0.0))
-    return _cached_map(source, mtime, scale, float(rotation_deg))
+    try:
+        return _cached_map(source, mtime, scale, float(rotation_deg))
+    except DermisError as exc:  # name the scene key as well as the file
+        raise type(exc)(f"lights.{light.name}.map = {source!r}: {exc}") from None
 
 
 def light_params(lights) -> dict:
