@@ -17,12 +17,20 @@
  * (K-P use 1).
  * This is a term ADDED on top of a skin model (the base is the renderer's choice; the default
  * is documented with stages/brdf_models.py AsperityParams), never a material on its own.
+ * The base lies under the layer, so its light crosses the layer twice: asperity_transmit is
+ * the layer's transmittance exp(-tau (1/max(mu_i, tau) + 1/max(mu_o, tau))) (same clamp),
+ * which cl/shade.cl multiplies the base by (flag [5]; the layering of Hanrahan-Krueger 1993,
+ * docs/physics.md §5).  With it the directional albedo of term + base is at most
+ * x/2 + e^{-x} <= 1 (x = tau / max(mu, tau) <= 1) for any base of albedo <= 1
+ * (tests/test_energy.py); without it a Lambert base above albedo ~0.51 exceeds 1 near
+ * grazing.
  *
  * Conventions: local frame, z = shading normal; wo, wi unit, pointing away from the surface;
  * f excludes the cosine; float32; Delta and lambda in mm (only their ratio enters f).
  * f = 0 when wo or wi is on or below the horizon.  Symmetric, hence reciprocal.
  * Parameter block (ASPERITY_NPARAMS floats, __constant; packed by stages/brdf_models.py):
- *   [0] tau = Delta/lambda  [1] f_max  [2..4] albedo (R,G,B)  [5..7] unused (0)
+ *   [0] tau = Delta/lambda  [1] f_max  [2..4] albedo (R,G,B)  [5] attenuate the base
+ *   (1) or not (0)  [6..7] unused (0)
  * Guarded by tests/test_asperity.py (float64 reference, closed forms, reciprocity, albedo,
  * grazing/back-facing finiteness).
  */
@@ -42,6 +50,14 @@ inline float3 asperity_f(float3 wo, float3 wi, __constant const float *p) {
     float3 f = fmin(albedo * (tau * DERMIS_INV_4PI / (mo * mi)), (float3)(f_max));
     /* back-facing or horizon: no reflection */
     return (wo.z > 0.0f && wi.z > 0.0f) ? f : (float3)(0.0f);
+}
+
+/* Transmittance of the layer seen by a base model below it, both ways (header comment);
+ * 1 where the flag is off. */
+inline float asperity_transmit(float3 wo, float3 wi, __constant const float *p) {
+    float tau = p[0];
+    float t = exp(-tau * (1.0f / fmax(wo.z, tau) + 1.0f / fmax(wi.z, tau)));
+    return p[5] != 0.0f ? t : 1.0f;
 }
 
 #ifndef DERMIS_NO_EVAL_KERNELS

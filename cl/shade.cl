@@ -13,7 +13,8 @@
  *   (cl/brdf_lafortune.cl, albedo texture replaces rho_d as in the thesis), 2 hk93
  *   (cl/brdf_hk93.cl), -1 none (asperity term alone, for adding to a BSSRDF image).
  * -D DERMIS_ASPERITY=1 adds the Koenderink-Pont term (cl/asperity.cl) on top of the base:
- * "a term added on top of a skin model" (docs/physics.md §5).
+ * "a term added on top of a skin model" (docs/physics.md §5); the base is seen through the
+ * asperity layer (asperity_transmit), which keeps the sum's albedo <= 1.
  *
  * Conventions: local shading frame from the (bumped) shading normal with make_frame
  * (common.h); wo, wi unit, pointing away from the surface; f excludes the cosine; cos is
@@ -67,7 +68,7 @@ __kernel void shade_samples(
     float3 f = (float3)(0.0f);
 #endif
 #if DERMIS_ASPERITY
-    f += asperity_f(wo, wi, asperity_params);
+    f = f * asperity_transmit(wo, wi, asperity_params) + asperity_f(wo, wi, asperity_params);
 #endif
 
     vstore3(f * vload3(i, weight) * fmax(wi.z, 0.0f), i, out);

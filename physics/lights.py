@@ -384,7 +384,8 @@ def sample_lights(lights, points: np.ndarray, normals: np.ndarray | None = None,
 def irradiance(points: np.ndarray, normals: np.ndarray, light,
                occlusion_fn: Callable | None, *, samples: int | None = None,
                seed: int = 0, env: "EnvironmentMap | None" = None,
-               chunk: int = 65536, env_strategy: str = ENV_STRATEGIES[0]) -> np.ndarray:
+               chunk: int = 65536, env_strategy: str = ENV_STRATEGIES[0],
+               transmittance: Callable | None = None) -> np.ndarray:
     """Irradiance E at surface points from one light (or a list of lights), with shadows.
 
     Parameters
@@ -403,12 +404,17 @@ def irradiance(points: np.ndarray, normals: np.ndarray, light,
         Points per batch (bounds memory to ~chunk x samples rays).
     env_strategy : {"mis", "luminance"}
         Environment sampling strategy (:func:`sample_lights`).
+    transmittance : callable, optional
+        ``transmittance(cos) -> (..., 3)``: the fraction of each light sample that enters
+        the surface at its cosine (e.g. Fresnel transmittance, ``stages/brdf_models.py
+        Transmittance``), applied per sample; None counts all of it (plain irradiance).
 
     Returns
     -------
     (N, 3) float32 irradiance E = integral of L cos(theta) over the hemisphere (units of the
     light's intensity / mm^2 for point and disc lights, of ``intensity`` for directional
-    lights, of radiance x sr for environment maps).
+    lights, of radiance x sr for environment maps); with ``transmittance``, the entering
+    part integral of T L cos(theta).
     """
     p, n = _check_points(points, normals)
     if n is None:
@@ -420,6 +426,9 @@ def irradiance(points: np.ndarray, normals: np.ndarray, light,
                            env_strategy=env_strategy)
         cos = np.einsum("nsk,nk->ns", ls.directions, n[sl])
         contrib = ls.weights * np.maximum(cos, 0.0)[..., None]
+        if transmittance is not None:
+            contrib = (contrib * np.asarray(transmittance(np.maximum(cos, 0.0)))).astype(
+                np.float32)
         live = np.any(ls.weights > 0, axis=2)
         if occlusion_fn is not None and live.any():
             idx_p, idx_s = np.nonzero(live)

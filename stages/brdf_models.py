@@ -28,13 +28,14 @@ from typing import Any, Sequence
 import numpy as np
 
 from dermis.pipeline.config import ASPERITY_BASES
+from dermis.physics.fresnel import fresnel_transmittance
 from dermis.pipeline.errors import ConfigError
-from dermis.physics.fresnel import dipole_Rd
 
 __all__ = [
     "VERSION", "KERNELS", "MODELS", "LafortuneParams", "HK93Params", "HK93Layer",
     "AsperityParams", "hk93_params_from_layers", "evaluate", "hk93_single_scattering_albedo",
-    "LAFORTUNE_NPARAMS", "HK93_NPARAMS", "ASPERITY_NPARAMS",
+    "lafortune_lobe_albedo", "LAFORTUNE_NPARAMS", "HK93_NPARAMS", "ASPERITY_NPARAMS",
+    "LAFORTUNE_ALBEDO_NODES", "Transmittance",
 ]
 
 VERSION = 1
@@ -43,7 +44,10 @@ MODELS = ("lafortune", "hk93", "asperity")
 KERNEL_FILES = dict(zip(MODELS, KERNELS))
 
 # Parameter-block sizes; must equal the #defines in the .cl files (checked by the tests).
-LAFORTUNE_NPARAMS = 27
+# Lafortune: 27 lobe coefficients, the coupling block (flag, 1 / (1 - mean lobe albedo) RGB)
+# and the lobes' directional albedo at LAFORTUNE_ALBEDO_NODES cosines (cl/brdf_lafortune.cl).
+LAFORTUNE_ALBEDO_NODES = 64
+LAFORTUNE_NPARAMS = 27 + 4 + 3 * LAFORTUNE_ALBEDO_NODES
 HK93_NPARAMS = 20
 ASPERITY_NPARAMS = 8
 
@@ -113,12 +117,21 @@ class LafortuneParams:
         Lobe exponents.
     rho_d : (3,) floats in [0, 1]
         Diffuse albedo used when no per-point albedo (texture) is given.
+    coupled : bool
+        Energy coupling of the diffuse term to the lobes (default True; docs/physics.md §1):
+        f_d = albedo (1 - L(mu_i)) (1 - L(mu_o)) / (pi (1 - L_mean)), L the lobes'
+        directional albedo (:func:`lafortune_lobe_albedo`) and L_mean its cosine-weighted
+        mean (Kelemen & Szirmay-Kalos 2001's coupled matte term).  The directional albedo
+        is then L(mu_o) + albedo (1 - L(mu_o)) <= 1 for every albedo <= 1, and f stays
+        reciprocal.  False: the fit as pbrt-v1 and the thesis used it, f_d = albedo / pi,
+        whose albedo exceeds 1 above albedo 1 - L (~0.74 at 89 deg).
     """
 
     cxy: Any = _SKIN_CXY
     cz: Any = _SKIN_CZ
     n: Any = _SKIN_N
     rho_d: Any = _SKIN_RHO_D
+    coupled: bool = True
 
     def __post_init__(self):
         for name in ("cxy", "cz", "n"):
@@ -128,15 +141,143 @@ class LafortuneParams:
         _check(self.n > 0, "lafortune.n", self.n, "", "every lobe exponent must be > 0")
         _check((rho_d >= 0) & (rho_d <= 1), "lafortune.rho_d", rho_d, "",
                "must be in [0, 1] (linear RGB albedo)")
+        object.__setattr__(self, "coupled", bool(self.coupled))
 
     def pack(self) -> np.ndarray:
-        """(27,) float32: per lobe k at 9k: Cxy RGB, Cz RGB, n RGB (cl/brdf_lafortune.cl)."""
-        return np.stack([self.cxy, self.cz, self.n], axis=1).astype(np.float32).ravel()
+        """(LAFORTUNE_NPARAMS,) float32 (cl/brdf_lafortune.cl): per lobe k at 9k: Cxy RGB,
+        Cz RGB, n RGB; [27] coupling flag, [28..30] 1 / (1 - L_mean) RGB; from [31] the
+        lobes' directional albedo L(mu) RGB at mu = j / (LAFORTUNE_ALBEDO_NODES - 1)."""
+        out = np.zeros(LAFORTUNE_NPARAMS, dtype=np.float64)
+        out[:27] = np.stack([self.cxy, self.cz, self.n], axis=1).ravel()
+        if self.coupled:
+            table, mean = _lobe_albedo_table(self)
+            out[27] = 1.0
+            out[28:31] = 1.0 / np.maximum(1.0 - mean, 1e-6)
+            out[31:] = table.ravel()
+        return out.astype(np.float32)
+
+    def lobe_albedo(self, mu) -> np.ndarray:
+        """Directional albedo (len(mu), 3) of the lobes alone at cosines ``mu``
+        (:func:`lafortune_lobe_albedo`)."""
+        return lafortune_lobe_albedo(mu, self)
 
     def lobes_off(self) -> "LafortuneParams":
         """The same BRDF with every lobe coefficient 0: f = albedo / pi."""
         z = np.zeros((3, 3))
-        return LafortuneParams(z, z, self.n, self.rho_d)
+        return LafortuneParams(z, z, self.n, self.rho_d, self.coupled)
+
+
+# Quadrature of the lobes' directional albedo: Gauss-Legendre in cos theta_i x midpoints in
+# phi over [0, pi] (the lobes are even in phi about the plane of wo).  48 x 96 agrees with
+# 192 x 384 to 1e-9 at every cosine in [0, 1] and with the 1500 x 1500 midpoint grid of
+# tests/test_brdf_lafortune.py (LOBE_ALBEDO) to 1e-5.
+_LOBE_QUAD = (48, 96)
+
+
+def lafortune_lobe_albedo(mu, params: "LafortuneParams | None" = None) -> np.ndarray:
+    """Directional albedo int lobes(wo, wi) cos_i dw_i of the Lafortune lobes alone, float64.
+
+    Parameters
+    ----------
+    mu : float or (M,) floats in [0, 1], the outgoing (or, by reciprocity, incoming) cosine
+    params : LafortuneParams, optional (default pbrt-v1's skin fit); rho_d is ignored
+
+    Returns
+    -------
+    (M, 3) float64 ndarray.  For the skin fit: (0.031, 0.022, 0.022) at normal incidence,
+    (0.264, 0.261, 0.241) at 89 deg, (0.278, 0.272, 0.249) at the horizon.
+    """
+    params = params or LafortuneParams()
+    nmu, nphi = _LOBE_QUAD
+    x, w = np.polynomial.legendre.leggauss(nmu)
+    mu_i, w_mu = 0.5 * (x + 1.0), 0.5 * w
+    phi = (np.arange(nphi) + 0.5) / nphi * np.pi
+    m, p = np.meshgrid(mu_i, phi, indexing="ij")
+    weight = (m * w_mu[:, None]) * (2.0 * np.pi / nphi)
+    horiz = np.sqrt(1.0 - m * m) * np.cos(p)
+    out = []
+    for c in np.atleast_1d(np.asarray(mu, np.float64)):
+        c = min(max(float(c), 0.0), 1.0)
+        xy = math.sqrt(1.0 - c * c) * horiz       # wo = (sin theta_o, 0, cos theta_o)
+        zz = c * m
+        tot = np.zeros(3)
+        for k in range(3):
+            base = params.cxy[k] * xy[..., None] + params.cz[k] * zz[..., None]
+            val = np.where(base > 0, np.abs(base) ** params.n[k], 0.0)
+            tot += (val * weight[..., None]).sum(axis=(0, 1))
+        out.append(tot)
+    return np.array(out)
+
+
+_LOBE_TABLES: dict = {}
+
+
+def _lobe_albedo_table(params: "LafortuneParams") -> tuple[np.ndarray, np.ndarray]:
+    """(LAFORTUNE_ALBEDO_NODES, 3) lobe albedo at mu = j / (nodes - 1) and its cosine-
+    weighted mean int L(mu) 2 mu dmu (Gauss-Legendre, 64 nodes), cached per lobe set."""
+    key = (params.cxy.tobytes(), params.cz.tobytes(), params.n.tobytes())
+    if key not in _LOBE_TABLES:
+        nodes = np.linspace(0.0, 1.0, LAFORTUNE_ALBEDO_NODES)
+        x, w = np.polynomial.legendre.leggauss(64)
+        mu = 0.5 * (x + 1.0)
+        mean = (lafortune_lobe_albedo(mu, params) * (mu * w)[:, None]).sum(axis=0)
+        _LOBE_TABLES[key] = (lafortune_lobe_albedo(nodes, params), mean)
+    return _LOBE_TABLES[key]
+
+
+# --------------------------------------------------------------------------------------
+# The surface of the BSSRDF: what the surface term does not reflect enters (docs/physics.md §4)
+# --------------------------------------------------------------------------------------
+
+class Transmittance:
+    """The fraction of light that crosses the skin's surface at cosine mu, per channel:
+    entering (the irradiance stage applies it per light sample) and, by reciprocity,
+    leaving (the BSSRDF's exit weight, ``stages/gather.py exitance_to_radiance``).
+
+    T(mu) = Ft(mu; eta), the smooth-dielectric Fresnel transmittance, or with the BSSRDF's
+    surface term (``surface_reflection = "lafortune_lobes"``) min(Ft(mu), 1 - L(mu)), L the
+    lobes' directional albedo (:func:`lafortune_lobe_albedo`): light the surface term
+    already reflects cannot also enter, so surface + subsurface reflect L(mu) + a T(mu) <= 1
+    for any albedo a <= 1.  The skin fit's lobes reflect more than a smooth surface below
+    ~55 deg (eta 1.4) or ~62 deg (eta 1.3): L = 0.031 at normal incidence against
+    F = 0.028 / 0.017, so the cap lowers T_mean by 0.3 % / 1.5 %.  ``mean`` =
+    int T 2 mu dmu normalises the exit (docs/physics.md §4).
+    """
+
+    _TABLES: dict = {}
+    N = 2049
+
+    def __init__(self, eta: float, surface_reflection: str = "none"):
+        if surface_reflection not in ("none", "lafortune_lobes"):
+            raise ConfigError(f"surface_reflection = {surface_reflection!r}: must be "
+                              "'none' or 'lafortune_lobes'")
+        self.eta = float(eta)
+        self.surface_reflection = surface_reflection
+        key = (self.eta, surface_reflection)
+        if key not in self._TABLES:
+            mu = np.linspace(0.0, 1.0, self.N)
+            t = np.repeat(fresnel_transmittance(mu, self.eta)[:, None], 3, axis=1)
+            if surface_reflection == "lafortune_lobes":
+                lob, _ = _lobe_albedo_table(LafortuneParams())
+                nodes = np.linspace(0.0, 1.0, LAFORTUNE_ALBEDO_NODES)
+                lob = np.stack([np.interp(mu, nodes, lob[:, c]) for c in range(3)], axis=1)
+                t = np.minimum(t, 1.0 - lob)
+            mid = (np.arange(4096) + 0.5) / 4096
+            tm = np.stack([np.interp(mid, mu, t[:, c]) for c in range(3)], axis=1)
+            self._TABLES[key] = (mu, t, (tm * 2.0 * mid[:, None]).sum(axis=0) / 4096)
+        self._mu, self._t, self.mean = self._TABLES[key]
+
+    def __call__(self, cos) -> np.ndarray:
+        """(..., 3) float64 T at cosines ``cos`` (0 where cos <= 0)."""
+        c = np.asarray(cos, np.float64)
+        flat = c.ravel()
+        out = np.stack([np.interp(flat, self._mu, self._t[:, k], left=0.0) for k in range(3)],
+                       axis=1)
+        out[flat <= 0] = 0.0
+        return out.reshape(c.shape + (3,))
+
+    def __repr__(self) -> str:
+        return f"Transmittance(eta={self.eta}, surface_reflection={self.surface_reflection!r})"
 
 
 # --------------------------------------------------------------------------------------
@@ -196,24 +337,29 @@ def _as_hk93_layer(layer, i: int, last: bool) -> HK93Layer:
     return HK93Layer(d, eta, tuple(sa), tuple(ssp), g)
 
 
-def _diffuse_reflectance(layers: Sequence[HK93Layer]) -> np.ndarray:
-    """Total diffuse reflectance of the stack from diffusion theory (float64, RGB).
+_PROFILE_RD: dict = {}
+# Radial grid (spacing, half-width; mm) of the layer file built for its Rd alone: the layer
+# file's totals are closed-form / plane-parallel transport values that do not depend on the
+# radial grid (stages/profiles.py), so a coarse grid gives the profiles stage's Rd exactly
+# (measured equal to 1e-15 on two_layer and a two-index stack) in a fraction of the time
+# (two_layer 3.2 s against 11.7 s; tests/test_energy.py checks the equality).
+RD_GRID = (0.5, 32.0)
 
-    Rd_k = Jensen 2001 dipole reflectance of layer k as if semi-infinite (boundary index of the
-    top layer).  For two layers the top layer's diffuse two-way transmittance
-    t = exp(-2 sigma_tr,1 d_1) blends the limits: Rd = (1 - t) Rd_1 + t Rd_2, so a thin
-    epidermis shows the dermis and a thick one hides it.  A convex combination of values in
-    [0, 1], so 0 <= Rd <= 1.
-    """
-    eta = layers[0].eta
-    rd = [dipole_Rd(l.sigma_a, l.sigma_s_prime, eta) for l in layers]
-    if len(layers) == 1:
-        return rd[0]
-    top = layers[0]
-    sa = np.asarray(top.sigma_a)
-    sigma_tr = np.sqrt(3.0 * sa * (sa + np.asarray(top.sigma_s_prime)))
-    t = np.exp(-2.0 * sigma_tr * top.thickness_mm)
-    return (1.0 - t) * rd[0] + t * rd[1]
+
+def _profile_rd(layers: Sequence[HK93Layer], eta_below: float = 1.0) -> np.ndarray:
+    """Total diffuse reflectance Rd (RGB, per entering photon) of the layers' profile: the
+    BSSRDF's own layer file, ``stages/profiles.py build_profiles`` of the same stack
+    (air above, grid ``RD_GRID``), cached per stack in the process."""
+    import json
+    from dermis.physics.layers import Layer, LayerStack
+    from dermis.stages.profiles import build_profiles
+    stack = LayerStack(tuple(Layer(l.thickness_mm, l.eta, tuple(float(v) for v in l.sigma_a),
+                                   tuple(float(v) for v in l.sigma_s_prime), l.g)
+                             for l in layers), 1.0, float(eta_below))
+    key = json.dumps(stack.to_dict(), sort_keys=True)
+    if key not in _PROFILE_RD:
+        _PROFILE_RD[key] = np.asarray(build_profiles(stack, grid=RD_GRID).Rd, np.float64)
+    return _PROFILE_RD[key]
 
 
 # Outgoing cosines at which the single-scattering albedo's maximum is sought (it peaks at
@@ -251,12 +397,28 @@ def _max_single_scattering_albedo(layers) -> np.ndarray:
     return hk93_single_scattering_albedo(layers, _SS_COS_GRID).max(axis=0)
 
 
-def _default_multiple_scattering(layers: Sequence[HK93Layer], ss_max) -> np.ndarray:
-    """rho_ms = max(0, Rd - max_theta rho_ss(theta)): diffusion total reflectance of the same
-    layers minus the largest single-scattering albedo, so rho_ss(theta) + rho_ms <= Rd <= 1 at
-    every angle (a white semi-infinite medium has Rd = 1: adding single scattering on top of
-    the dipole, as Jensen 2001 does for its BSSRDF, would then create energy)."""
-    return np.maximum(0.0, _diffuse_reflectance(layers) - ss_max)
+# Outgoing-cosine nodes of the hemispherical single-scattering albedo (Gauss-Legendre on
+# [0, 1]): 12 nodes agree with 48 to < 1e-4 on the skin presets.
+_SS_HEMI_NODES = 12
+
+
+def _single_scattering_hemispherical(layers) -> np.ndarray:
+    """int rho_ss(mu) 2 mu dmu: the single-scattering part's reflectance under uniform light."""
+    x, w = np.polynomial.legendre.leggauss(_SS_HEMI_NODES)
+    mu = 0.5 * (x + 1.0)
+    return (hk93_single_scattering_albedo(layers, mu) * (mu * w)[:, None]).sum(axis=0)
+
+
+def _default_multiple_scattering(layers: Sequence[HK93Layer], ss_max, rd) -> np.ndarray:
+    """rho_ms so that HK93 and the BSSRDF reflect the same under uniform light (the thesis's
+    constant term, made consistent; docs/physics.md §2): the BSSRDF's uniform-light
+    reflectance is (1 - Fdr_ext(eta)) Rd (entry Fresnel averaged over the cosine-weighted
+    hemisphere, times the profile's Rd per entering photon), and HK93's is
+    int rho_ss 2 mu dmu + rho_ms.  Clamped to [0, 1 - max rho_ss] so the directional albedo
+    never exceeds 1 (a white medium with strong single scattering would ask for more)."""
+    from dermis.physics.fresnel import diffuse_fresnel_external
+    target = (1.0 - diffuse_fresnel_external(layers[0].eta)) * np.asarray(rd, np.float64)
+    return np.clip(target - _single_scattering_hemispherical(layers), 0.0, 1.0 - ss_max)
 
 
 def _default_hk93_layers() -> tuple:
@@ -280,17 +442,23 @@ class HK93Params:
         ``two_layer`` skin preset of :mod:`pipeline.layers`.
     multiple_scattering : (3,) floats in [0, 1) or None
         rho_ms, the albedo of the constant (Lambertian) multiple-scattering term
-        f_ms = rho_ms / pi.  None derives it from the same layers: diffusion total
-        reflectance Rd minus the largest single-scattering directional albedo (see
+        f_ms = rho_ms / pi.  None derives it from the same layers as the BSSRDF: under
+        uniform light HK93 then reflects what the BSSRDF does, (1 - Fdr_ext) Rd (see
         ``_default_multiple_scattering``).  Must not push the directional albedo above 1.
+    diffuse_reflectance : (3,) floats or None
+        Rd of the layers per entering photon; None: the layer profile's
+        (``stages/profiles.py build_profiles`` of the same stack, cached per process).
     """
 
     layers: Any = field(default_factory=_default_hk93_layers)
     multiple_scattering: Any = None
+    diffuse_reflectance: Any = None
 
     def __post_init__(self):
         layers = self.layers
+        eta_below = 1.0
         if hasattr(layers, "layers") and not isinstance(layers, dict):  # a LayerStack
+            eta_below = float(getattr(layers, "eta_below", 1.0))
             layers = layers.layers
         try:
             layers = list(layers)
@@ -304,8 +472,14 @@ class HK93Params:
         object.__setattr__(self, "layers", tuple(checked))
         ss_max = _max_single_scattering_albedo(checked)
         ms = self.multiple_scattering
+        rd = self.diffuse_reflectance
+        if rd is not None:
+            rd = _array(rd, "hk93.diffuse_reflectance", (3,))
+            _check((rd >= 0) & (rd <= 1), "hk93.diffuse_reflectance", rd, "", "must be in [0, 1]")
+        elif ms is None:
+            rd = _profile_rd(checked, eta_below)
         if ms is None:
-            ms = _default_multiple_scattering(checked, ss_max)
+            ms = _default_multiple_scattering(checked, ss_max, rd)
         ms = _array(ms, "hk93.multiple_scattering", (3,))
         _check((ms >= 0) & (ms < 1), "hk93.multiple_scattering", ms, "",
                "must be in [0, 1) (albedo of the constant multiple-scattering term)")
@@ -314,14 +488,21 @@ class HK93Params:
                f"must be <= 1 - max single-scattering albedo of these layers = "
                f"{_fmt(np.round(limit, 4))} (else the directional albedo exceeds 1)")
         object.__setattr__(self, "multiple_scattering", ms)
+        object.__setattr__(self, "diffuse_reflectance", rd)
+        object.__setattr__(self, "_ss_max", ss_max)
 
     def texture_reference(self) -> np.ndarray:
-        """(3,) diffusion total reflectance Rd of the layers: the albedo at which a texture
-        leaves rho_ms unchanged.  The renderer tints the multiple-scattering term per pixel as
-        rho_ms * albedo / Rd (the texture is read as total diffuse reflectance, as for the
-        BSSRDF's "replace" mode); with albedo <= 1 the directional albedo stays <= 1 because
-        rho_ms = Rd - max rho_ss."""
-        return np.asarray(_diffuse_reflectance(self.layers), dtype=np.float64)
+        """(3,) the albedo at which a texture leaves rho_ms unchanged: the layers' Rd (the
+        texture is read as total diffuse reflectance, as the BSSRDF's "replace" mode reads
+        it), raised where needed to rho_ms / (1 - max rho_ss).  The renderer tints the
+        multiple-scattering term per pixel as rho_ms * albedo / reference, so with any
+        albedo <= 1 the directional albedo stays <= max rho_ss + rho_ms / reference <= 1."""
+        rd = self.diffuse_reflectance
+        if rd is None:
+            rd = _profile_rd(self.layers)
+        ms = np.asarray(self.multiple_scattering, np.float64)
+        cap = ms / np.maximum(1.0 - np.asarray(self._ss_max, np.float64), 1e-12)
+        return np.maximum(np.asarray(rd, np.float64), cap)
 
     @classmethod
     def from_layers(cls, layers, *, multiple_scattering=None) -> "HK93Params":
@@ -406,6 +587,15 @@ class AsperityParams:
         ones in every light (e.g. 19:45 vs 28:56 for the area light), so its base cannot
         have been Lafortune or HK93 plus an extra term; a Lambertian albedo base is the
         cheaper candidate.  "lafortune" and "hk93" are accepted.
+    attenuate_base : bool
+        The base is seen through the asperity layer (default True; docs/physics.md §5): its
+        BRDF is multiplied by the layer's transmittance both ways,
+        exp(-tau (1 / max(mu_i, tau) + 1 / max(mu_o, tau))) (the same cosine clamp as the
+        term), as Hanrahan-Krueger attenuate a lower layer by the one above it.  Then the
+        directional albedo of term + base is <= tau / (2 mu) + exp(-tau / mu) <= 1 for
+        any base whose own albedo is <= 1.  False adds the term on top of the full base
+        (the thesis's sum), which exceeds albedo 1 for a Lambert base above ~0.51 near
+        grazing.
     """
 
     delta_mm: float = 1.0
@@ -413,6 +603,7 @@ class AsperityParams:
     albedo: Any = (1.0, 1.0, 1.0)
     f_max: float = math.inf
     base: str = "lambert"
+    attenuate_base: bool = True
 
     def __post_init__(self):
         d = float(_array(self.delta_mm, "asperity.delta_mm", ()))
@@ -434,6 +625,7 @@ class AsperityParams:
         object.__setattr__(self, "lambda_mm", lam)
         object.__setattr__(self, "albedo", albedo)
         object.__setattr__(self, "f_max", f_max)
+        object.__setattr__(self, "attenuate_base", bool(self.attenuate_base))
 
     @property
     def tau(self) -> float:
@@ -441,11 +633,13 @@ class AsperityParams:
         return self.delta_mm / self.lambda_mm
 
     def pack(self) -> np.ndarray:
-        """(8,) float32 block of cl/asperity.cl: tau, f_max, albedo RGB, 3 unused."""
+        """(8,) float32 block of cl/asperity.cl: tau, f_max, albedo RGB, attenuate-base
+        flag, 2 unused."""
         out = np.zeros(ASPERITY_NPARAMS, dtype=np.float64)
         out[0] = self.tau
         out[1] = min(self.f_max, _F32_MAX)
         out[2:5] = self.albedo
+        out[5] = float(self.attenuate_base)
         return out.astype(np.float32)
 
 

@@ -2,7 +2,11 @@
 
 Jensen-Buhler pass 1: each point's irradiance with shadows, from
 :func:`dermis.physics.lights.irradiance` (thesis: 64 shadow samples for area and environment
-lights).  One node per mesh and lighting condition.
+lights).  One node per mesh and lighting condition.  The irradiance stored is the part that
+enters the skin: each light sample is weighted by the entry transmittance
+:class:`dermis.stages.brdf_models.Transmittance` at its cosine (Fresnel, and with the BSSRDF's
+surface term min(Fresnel, 1 - the lobes' albedo); docs/physics.md §4), because the
+profile's Rd is per entering photon.
 """
 from __future__ import annotations
 
@@ -15,13 +19,15 @@ from dermis.physics.lights import light_params
 from dermis.physics.visibility import shared as shared_visibility
 
 NAME = "irradiance"
-VERSION = 1
+VERSION = 2   # 2: entering irradiance (entry transmittance per light sample)
 KERNELS = ()
 
 
 def node(scene, mesh_node: str, label: str, lights: tuple) -> Node:
     params = {**light_params(lights), "samples": scene.bssrdf.irradiance_samples,
-              "seed": scene.mesh.seed}
+              "seed": scene.mesh.seed,
+              "entry": {"eta": scene.optics.layers[0].eta / scene.optics.eta_above,
+                        "surface_reflection": scene.bssrdf.surface_reflection}}
     return Node(f"irradiance-{mesh_node}-{label}", NAME, __name__, params,
                 {"points": f"samples-{mesh_node}", "mesh": mesh_node}, label=f"irradiance {label}",
                 locations=("lights[].map",))
@@ -29,12 +35,15 @@ def node(scene, mesh_node: str, label: str, lights: tuple) -> Node:
 
 def run(params: dict, inputs: dict, ctx) -> StageResult:
     from dermis.physics.lights import irradiance
+    from dermis.stages.brdf_models import Transmittance
     pts, mesh = inputs["points"], inputs["mesh"]
     t0 = time.perf_counter()
     vis = shared_visibility(mesh, ctx.memo)
     lights = [LightConfig(**d) for d in params["lights"]]
+    entry = params["entry"]
+    transmit = Transmittance(entry["eta"], entry["surface_reflection"])
     E = irradiance(pts.positions, pts.normals, lights, vis.occluded, samples=params["samples"],
-                   seed=params["seed"])
+                   seed=params["seed"], transmittance=transmit)
     info = {"seconds": time.perf_counter() - t0, "points": int(len(E)),
-            "samples": params["samples"]}
+            "samples": params["samples"], "entry_transmittance": repr(transmit)}
     return StageResult(PointIrradiance(E, info), info=info)

@@ -55,7 +55,15 @@ Choices made here (and why):
   (n_p . n_q <= 0: the two sides of an ear or a lip) are not neighbours.
 * **Density rule** (:func:`spacing_from_mfp`): one point per pi l^2 / multiplier, where l is
   the smallest reduced mean free path 1/sigma_t' of the layer stack (docs/physics.md §4,
-  following the thesis); ``spacing_mm`` means "each point covers spacing_mm^2 of surface".
+  following the thesis), but at most ``MFP_CAP_MM`` = 0.1 mm; ``spacing_mm`` means "each
+  point covers spacing_mm^2 of surface".  The cap: since the BSSRDF evaluates the
+  profile's near part at each shading point (``stages/gather.py`` "near field"), the
+  spacing no longer has to resolve the profile; it sets how much of the profile comes from
+  the points (the far part, beyond 1.5-3 sigma) and the blur of area and environment light
+  (sigma).  Without the cap the mfp rule spreads skin1's points 8.4 mm apart at the default
+  density (blurring area-light shading by 8.4 mm); with it every preset gets the two-layer
+  skin's ~1.25 mm (~250k points on a head, the irradiance pass's budget at 64 shadow
+  samples).  Knife-edge error at 1.25 mm (bench/bench_bssrdf.py): <= 1.4 % of Rd.
 """
 from __future__ import annotations
 
@@ -70,7 +78,7 @@ from dermis.pipeline.errors import DermisError
 
 __all__ = ["VERSION", "KERNELS", "NAME", "node", "run", "sample_points", "spacing_from_mfp", "mesh_area",
            "nearest_neighbour_spread", "density_spread", "pou_areas", "MAX_POINTS",
-           "KERNEL_SIGMA_FACTOR", "DEFAULT_RELAX_ITERATIONS"]
+           "KERNEL_SIGMA_FACTOR", "DEFAULT_RELAX_ITERATIONS", "MFP_CAP_MM"]
 
 VERSION = 3
 KERNELS = ()
@@ -96,6 +104,9 @@ LLOYD_SAMPLES = 16
 KERNEL_SIGMA_FACTOR = 1.0
 # Lloyd steps by default (see the module docstring's measurements).
 DEFAULT_RELAX_ITERATIONS = 2
+# Largest mean free path the density rule uses, mm (module docstring, "Density rule"): the
+# two-layer skin's own (0.099 mm), so skin1 and skin2 get its spacing at equal density.
+MFP_CAP_MM = 0.1
 # Fixed-point steps for the partition-of-unity areas.  Measured (plane, sigma = spacing,
 # relaxed points): max deviation 1.5 % after 10, 0.7 % after 30, 0.45 % after 60, 0.37 %
 # after 200 (where rim weights start to collapse to 0); 40 costs ~2 s for 250k points.
@@ -133,12 +144,13 @@ def spacing_from_mfp(profile_or_stack, multiplier: float = 1.0) -> float:
     -------
     float
         spacing_mm such that each point covers spacing_mm^2 = pi l^2 / multiplier, with
-        l = min over layers and channels of 1 / (sigma_a + sigma_s').
+        l = min(MFP_CAP_MM, min over layers and channels of 1 / (sigma_a + sigma_s')).
 
     Notes
     -----
     docs/physics.md §4: "density about one point per pi l^2 for the smallest mean free
-    path l, or finer" (Jensen & Buhler 2002, sec. 4.1, and the thesis).
+    path l, or finer" (Jensen & Buhler 2002, sec. 4.1, and the thesis); the cap: module
+    docstring.
     """
     if not (multiplier > 0 and math.isfinite(multiplier)):
         raise DermisError(f"samples: point density multiplier = {multiplier}: must be > 0")
@@ -153,7 +165,7 @@ def spacing_from_mfp(profile_or_stack, multiplier: float = 1.0) -> float:
                  if l["thickness_mm"] == "inf" or float(l["thickness_mm"]) > 0]
     else:
         pairs = [(l.sigma_a, l.sigma_s_prime) for l in layers if l.thickness_mm > 0]
-    mfp = min(1.0 / (a + s) for sa, ss in pairs for a, s in zip(sa, ss))
+    mfp = min([MFP_CAP_MM] + [1.0 / (a + s) for sa, ss in pairs for a, s in zip(sa, ss)])
     return math.sqrt(math.pi * mfp * mfp / multiplier)
 
 

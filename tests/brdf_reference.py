@@ -19,7 +19,10 @@ __all__ = ["lafortune_f_np", "hk93_f_np", "asperity_f_np"]
 
 def lafortune_f_np(wo, wi, params: LafortuneParams | None = None, albedo=None) -> np.ndarray:
     """Float64 Lafortune BRDF (N, 3): rho/pi + sum_k max(0, Cxy sin sin cos(dphi) + Cz cos cos)^n
-    (docs/physics.md §1)."""
+    (docs/physics.md §1); with ``params.coupled`` the diffuse term is
+    rho (1 - L(cos_i)) (1 - L(cos_o)) / (pi (1 - L_mean)), L read from the packed table
+    and interpolated linearly as the kernel does (the table itself is checked against the
+    quadrature in tests/test_energy.py)."""
     params = params or LafortuneParams()
     co, so, po = _angles(wo)
     ci, si, pi_ = _angles(wi)
@@ -29,6 +32,15 @@ def lafortune_f_np(wo, wi, params: LafortuneParams | None = None, albedo=None) -
     horizontal = (so * si * np.cos(po - pi_))[:, None]
     vertical = (co * ci)[:, None]
     f = rho / np.pi
+    if params.coupled:
+        packed = params.pack().astype(np.float64)
+        table = packed[31:].reshape(-1, 3)
+        nodes = np.linspace(0.0, 1.0, len(table))
+
+        def unreflected(mu):
+            m = np.clip(mu, 0.0, 1.0)
+            return 1.0 - np.stack([np.interp(m, nodes, table[:, c]) for c in range(3)], 1)
+        f = f * unreflected(ci) * unreflected(co) * packed[28:31]
     for k in range(3):
         base = params.cxy[k] * horizontal + params.cz[k] * vertical
         f = f + np.where(base > 0, np.abs(base) ** params.n[k], 0.0)

@@ -40,7 +40,8 @@ def test01_pack_and_evaluate_contract(cl_env):
     src = (CL_DIR / "asperity.cl").read_text()
     assert int(re.search(r"#define ASPERITY_NPARAMS (\d+)", src).group(1)) == ASPERITY_NPARAMS
     p = AsperityParams(delta_mm=0.5, lambda_mm=10.0, albedo=(0.9, 0.8, 0.7), f_max=2.0)
-    np.testing.assert_allclose(p.pack(), [0.05, 2.0, 0.9, 0.8, 0.7, 0, 0, 0], rtol=1e-7)
+    np.testing.assert_allclose(p.pack(), [0.05, 2.0, 0.9, 0.8, 0.7, 1, 0, 0], rtol=1e-7)
+    assert AsperityParams(attenuate_base=False).pack()[5] == 0.0
     assert AsperityParams().pack()[1] == np.finfo(np.float32).max, "no cap: FLT_MAX"
     n = np.array([[0.0, 0.0, 1.0]])
     with pytest.raises(ConfigError, match=r"albedo is a Lafortune parameter"):

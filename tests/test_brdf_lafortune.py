@@ -29,9 +29,10 @@ THETA_GRID = [0, 15, 30, 45, 60, 70, 75, 80, 85, 87, 89]
 # Directional albedo of the three fitted lobes alone (albedo texture = 0), per RGB, from a
 # 1500 x 1500 midpoint quadrature of the float64 reference over (cos theta_i, phi) at the
 # THETA_GRID angles; a 750 x 750 grid agrees to 1e-5, so QUADRATURE_TOL = 1e-4 is generous.
-# The full BRDF's directional albedo is  albedo + LOBE_ALBEDO(theta_o): it exceeds 1 wherever
-# the albedo texture is above 1 - LOBE_ALBEDO, i.e. above ~0.97 at normal incidence and
-# above ~0.74 (R), 0.74 (G), 0.76 (B) at 89 deg.  With pbrt-v1's rho_d it stays <= 0.70.
+# The uncoupled fit (coupled=False, the thesis's) reflects albedo + LOBE_ALBEDO(theta_o): it
+# exceeds 1 wherever the albedo texture is above 1 - LOBE_ALBEDO, i.e. above ~0.97 at normal
+# incidence and above ~0.74 (R), 0.74 (G), 0.76 (B) at 89 deg.  The default couples the
+# diffuse term (Kelemen & Szirmay-Kalos 2001): LOBE_ALBEDO + albedo (1 - LOBE_ALBEDO) <= 1.
 LOBE_ALBEDO = np.array([
     [0.03130, 0.02247, 0.02250],   # 0 deg
     [0.03318, 0.02528, 0.02475],   # 15
@@ -111,15 +112,20 @@ def test02_closed_form_lobes_off(cl_env, rng):
 
 
 def test02_closed_form_normal_incidence(cl_env):
-    """wo = wi = normal: only the Cz terms remain; lobe 0 (Cz < 0) vanishes."""
+    """wo = wi = normal: only the Cz terms remain; lobe 0 (Cz < 0) vanishes (the uncoupled
+    fit; coupled, the diffuse part is scaled by (1 - L(1))^2 / (1 - L_mean))."""
     n = np.array([[0.0, 0.0, 1.0]], np.float32)
-    got = evaluate("lafortune", n, n, env=cl_env)[0]
+    got = evaluate("lafortune", n, n, LafortuneParams(coupled=False), env=cl_env)[0]
     rho = np.array([0.428425, 0.301341, 0.331054])
-    want = rho / math.pi + np.array([
+    lobes = np.array([
         0.380123 ** 3.685044 + 0.857998 ** 64.208486,
         0.410559 ** 4.266495 + 0.703913 ** 63.919687,
         0.437367 ** 4.539742 + 0.573625 ** 43.809866])
-    np.testing.assert_allclose(got, want, rtol=RTOL_F32)
+    np.testing.assert_allclose(got, rho / math.pi + lobes, rtol=RTOL_F32)
+    coupled = evaluate("lafortune", n, n, env=cl_env)[0]
+    packed = LafortuneParams().pack().astype(np.float64)
+    factor = (1 - LOBE_ALBEDO[0]) ** 2 * packed[28:31]
+    np.testing.assert_allclose(coupled, rho / math.pi * factor + lobes, rtol=1e-4)
 
 
 def test03_reciprocity(cl_env, rng):
@@ -131,24 +137,32 @@ def test03_reciprocity(cl_env, rng):
 
 
 def test04_energy_with_skin_albedo(cl_env, rng):
-    """With pbrt-v1's rho_d the directional albedo stays <= 1 up to 89 deg."""
+    """With pbrt-v1's rho_d the directional albedo stays <= 1 up to 89 deg, and equals
+    L + rho_d (1 - L) with the coupled diffuse term (rho_d + L uncoupled)."""
     mean, err = mc_albedo(_f(), THETA_GRID, rng, N_MC)
     assert np.all(mean - N_SIGMA * err <= 1.0), mean
-    # and equals rho_d + the documented lobe albedo
     rho = LafortuneParams().rho_d
+    want = LOBE_ALBEDO + rho * (1 - LOBE_ALBEDO)
+    assert np.all(np.abs(mean - want) <= N_SIGMA * err + QUADRATURE_TOL), mean - want
+    mean, err = mc_albedo(_f(LafortuneParams(coupled=False)), THETA_GRID, rng, N_MC)
     assert np.all(np.abs(mean - (rho + LOBE_ALBEDO)) <= N_SIGMA * err + QUADRATURE_TOL)
 
 
 def test04_energy_lobe_excess_documented(cl_env, rng):
-    """The fitted lobes add LOBE_ALBEDO(theta_o) on top of the albedo texture: with a white
-    texture the directional albedo exceeds 1 by exactly that much (up to 0.264 at 89 deg)."""
-    mean, err = mc_albedo(_f(albedo=np.ones(3, np.float32)), THETA_GRID, rng, N_MC)
+    """Uncoupled (the thesis's fit as is), the lobes add LOBE_ALBEDO(theta_o) on top of the
+    albedo texture: with a white texture the directional albedo exceeds 1 by exactly that
+    much (up to 0.264 at 89 deg).  Coupled (the default) the white texture reflects 1."""
+    white = np.ones(3, np.float32)
+    mean, err = mc_albedo(_f(LafortuneParams(coupled=False), albedo=white), THETA_GRID, rng,
+                          N_MC)
     excess = mean - 1.0
     assert np.all(excess + N_SIGMA * err > 0), "white texture: albedo > 1 everywhere"
     assert np.all(np.abs(excess - LOBE_ALBEDO) <= N_SIGMA * err + QUADRATURE_TOL), excess
     assert np.all(excess - N_SIGMA * err <= MAX_LOBE_EXCESS)
     # monotone rise toward grazing (lobe 0 switches on past ~46 deg)
     assert np.all(np.diff(LOBE_ALBEDO[:, 0]) > 0)
+    mean, err = mc_albedo(_f(albedo=white), THETA_GRID, rng, N_MC)
+    assert np.all(np.abs(mean - 1.0) <= N_SIGMA * err + QUADRATURE_TOL), mean
 
 
 def test05_grazing_and_backfacing_finite(cl_env, rng):

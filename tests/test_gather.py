@@ -183,21 +183,10 @@ def hex_plane(half, spacing):
 
 @pytest.fixture(scope="module")
 def slab(skin1):
-    spacing = S.spacing_from_mfp(_Stack(), 1.0)
+    spacing = 1.19   # skin1's one point per pi mfp^2 (the density rule before its cap)
     half = 2 * float(skin1.cutoff_mm.max()) + 10.0
     sp = plane_points(half, spacing)
     return sp, half
-
-
-class _Stack:
-    """A stand-in LayerStack (skin1, semi-infinite) for spacing_from_mfp."""
-
-    class _L:
-        thickness_mm = math.inf
-        sigma_a = tuple(SKIN1_SIGMA_A)
-        sigma_s_prime = tuple(SKIN1_SIGMA_SP)
-
-    layers = (_L(),)
 
 
 def test04_flat_slab_energy(cl_env, skin1, rng):
@@ -234,7 +223,7 @@ def test04b_flat_slab_sample_points(cl_env, preset_profiles, preset):
     a large plane, uniform normal irradiance, the presets' layer files: M / E = Rd within
     1 % at every query farther than the kernel's reach from the edges."""
     stack, prof = preset_profiles[preset]
-    spacing = S.spacing_from_mfp(stack, 1.0)
+    spacing = S.spacing_from_mfp(stack, SHIPPED.point_density)
     sigma = S.KERNEL_SIGMA_FACTOR * spacing
     reach = float(prof.cutoff_mm.max()) + G.BLUR_REACH * sigma
     half = reach + 2 * spacing + S.POU_RADIUS * sigma  # interior + the frozen rim band
@@ -268,7 +257,7 @@ def test04c_sphere_uniform_irradiance(cl_env, preset_profiles):
     import open3d as o3d
     stack, prof = preset_profiles["skin1"]
     radius = 20.0
-    spacing = S.spacing_from_mfp(stack, 1.0)
+    spacing = S.spacing_from_mfp(stack, SHIPPED.point_density)
     assert float(prof.cutoff_mm.max()) + G.BLUR_REACH * S.KERNEL_SIGMA_FACTOR * spacing < 2 * radius
     mesh = o3d.geometry.TriangleMesh.create_sphere(radius=radius, resolution=100)
     sp = S.sample_points(np.asarray(mesh.vertices), np.asarray(mesh.triangles), spacing_mm=spacing, seed=3)

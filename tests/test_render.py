@@ -224,14 +224,19 @@ def test07_lafortune_lobes_off_is_lambert_and_asperity_adds(sphere, cl_env):
     a = render(mesh, light, "lafortune", laf, cam, visibility=vis, cl_env=cl_env)
     b = render(mesh, light, "lambert", LambertParams(laf.rho_d), cam, visibility=vis, cl_env=cl_env)
     np.testing.assert_allclose(a.linear, b.linear, rtol=F32_RTOL, atol=1e-9)
-    # asperity = base + term alone (linearity; the BSSRDF stage relies on it)
-    asp = AsperityParams()
+    # asperity without the base's attenuation through the layer = base + term alone
+    # (linearity); with it (the default, docs/physics.md §5) the base loses light
+    asp = AsperityParams(attenuate_base=False)
     full = render(mesh, light, "asperity", asp, cam, visibility=vis, asperity_base="lambert",
                   base_params=LambertParams(laf.rho_d), cl_env=cl_env)
     term = render(mesh, light, "asperity", asp, cam, visibility=vis, asperity_base="none",
                   cl_env=cl_env)
     np.testing.assert_allclose(full.linear, b.linear + term.linear, rtol=1e-5, atol=1e-8)
     assert term.linear.max() > 0
+    att = render(mesh, light, "asperity", AsperityParams(), cam, visibility=vis,
+                 asperity_base="lambert", base_params=LambertParams(laf.rho_d), cl_env=cl_env)
+    assert np.all(att.linear <= full.linear * (1 + 1e-5) + 1e-8)
+    assert att.linear.sum() < full.linear.sum() - term.linear.sum() * 0.5
 
 
 def test08_disc_image_converges_to_cosine_point_light(sphere, cl_env):

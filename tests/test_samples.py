@@ -121,12 +121,19 @@ def test07_partition_of_unity_areas():
 
 
 def test05_spacing_from_mfp():
-    """One point per pi l^2 / multiplier with l the smallest 1 / (sigma_a + sigma_s')."""
+    """One point per pi l^2 / multiplier with l the smallest 1 / (sigma_a + sigma_s'),
+    capped at MFP_CAP_MM: every preset gets the two-layer skin's spacing at equal density."""
     from dermis.physics.layers import PRESETS
+    two = PRESETS["two_layer"]
+    l_min = 1.0 / (0.8926 + 9.209)  # blue channel, two_layer epidermis (docs/physics.md §3)
+    assert l_min < S.MFP_CAP_MM
+    assert S.spacing_from_mfp(two, 1.0) == pytest.approx(math.sqrt(math.pi) * l_min, rel=1e-3)
+    assert S.spacing_from_mfp(two, 4.0) == pytest.approx(math.sqrt(math.pi) * l_min / 2, rel=1e-3)
+    # skin1's smallest mfp (blue, 0.67 mm) is above the cap: the cap sets its spacing
     skin1 = PRESETS["skin1"]
-    l_min = 1.0 / (0.48 + 1.01)  # blue channel, Jensen 2001 skin1
-    assert S.spacing_from_mfp(skin1, 1.0) == pytest.approx(math.sqrt(math.pi) * l_min)
-    assert S.spacing_from_mfp(skin1, 4.0) == pytest.approx(math.sqrt(math.pi) * l_min / 2)
+    assert 1.0 / (0.48 + 1.01) > S.MFP_CAP_MM
+    assert S.spacing_from_mfp(skin1, 1.0) == pytest.approx(math.sqrt(math.pi) * S.MFP_CAP_MM)
+    assert S.spacing_from_mfp(skin1, 0.02) == pytest.approx(S.spacing_from_mfp(PRESETS["skin2"], 0.02))
     with pytest.raises(DermisError, match="multiplier = 0"):
         S.spacing_from_mfp(skin1, 0)
 

@@ -120,10 +120,12 @@ def _stage_of(nid: str) -> str:
 # file -> the stages whose nodes execute it (from what each stage runs, written out by hand)
 PROBE = {
     "cl/surface.cl": {"render", "bssrdf"},             # pixel_surface: BRDF and BSSRDF images
-    "cl/optics.h": {"render", "bssrdf"},               # Fresnel in the BRDFs and surface lobes
+    "cl/optics.h": {"render", "bssrdf", "irradiance"},  # Fresnel in the BRDFs; irradiance
+                                                       # imports brdf_models (entry transmittance)
     "cl/bssrdf_gather.cl": {"bssrdf"},
     "stages/render.py": {"render", "bssrdf"},          # pixel_surface + surface term
-    "stages/brdf_models.py": {"render", "bssrdf"},     # the BSSRDF's Lafortune surface lobes
+    "stages/brdf_models.py": {"render", "bssrdf", "irradiance"},  # the BSSRDF's surface lobes
+                                                       # and the entry transmittance they cap
     "physics/visibility.py": {"render", "bssrdf", "irradiance"},
     "physics/lights.py": {"render", "bssrdf", "irradiance"},
     "pipeline/plan.py": set(),                         # decides which nodes exist, runs in none
