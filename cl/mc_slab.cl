@@ -12,7 +12,7 @@
  * decides reflect or refract (all-or-none, MCML's default); total internal reflection
  * when sin_t >= 1.  At an interaction the weight drops by sigma_a / sigma_t (scored as
  * absorbed), and the direction is drawn from Henyey-Greenstein (MCML's "Spin").  Russian
- * roulette below W_MIN with survival 1/ROULETTE_M (MCML's 1e-4 and 10).  A photon still
+ * roulette below W_MIN (an argument) with survival 1/ROULETTE_M (MCML's 1e-4 and 10).  A photon still
  * alive after MAX_STEPS interactions is scored as "lost" (only sigma_a ~ 0 media do this).
  *
  * SIMD layout (why: PoCL vectorises across work-items only for loop-free kernels, and a
@@ -42,15 +42,32 @@
  * (PoCL's vector log is a 70-instruction call with a division); the direction is
  * renormalised by one Newton step instead of rsqrt (PoCL: sqrt + division).
  *
+ * Radial splitting (variance reduction for the profile tables; docs/profiles.md).  Far
+ * from the source R(r) falls by orders of magnitude, so analog photons leave its rings at
+ * large r nearly empty.  A weight window W = exp(-kappa clamp(rho - rho0, 0, rho1 - rho0) +
+ * lambda z) of the lateral distance rho and the depth z (kappa, rho0, rho1, lambda per channel
+ * from the host; all 0 switch it off; lambda: deep photons matter less; no splitting
+ * beyond rho1, the last ring: else photons that wander off
+ * would be split without end, and kappa must not exceed the decay rate of the light
+ * reaching rho, or the number of copies grows with rho)
+ * keeps the weight of photons at rho near W: after an interaction a photon heavier than
+ * 2 W is split in two halves, and below W_MIN W Russian roulette keeps it with probability
+ * w / W at weight W (W_MIN an argument).  Both are unbiased.  The second half goes
+ * onto a per-work-item stack in global
+ * memory (BANK entries; when full, no split: still unbiased) and is traced later by the
+ * first lane that falls idle, before any new photon is launched.  The log of the weight
+ * is carried along (per-layer log(1 - sigma_a / sigma_t) in the layer table), so the window
+ * test needs no exp or log: ln w > ln 2 - kappa (rho - rho0).
+ *
  * Scoring: per work-item private slices of global memory (no atomics: PoCL's float atomics
- * are compare-exchange loops), radial bins of width 1/inv_dr for escapes through the top
- * (R) and the bottom (T); per-lane totals R, T, absorbed, lost in private float arrays
+ * are compare-exchange loops), radial rings between the given edges (binary search) for
+ * escapes through the top (R) and the bottom (T); per-lane totals R, T, absorbed, lost in private float arrays
  * (absorbed in a vector: it changes every interaction), summed over lanes at the end.
  * The host sums the slices in float64 and groups work-items into batches for standard
  * errors.
  *
  * Layer table (host: stages/mc_slab.py _layer_table), per channel and layer 8 floats:
- * z_top, z_bot, sigma_t, 1/sigma_t, sigma_a/sigma_t, g, eta, 0.
+ * z_top, z_bot, sigma_t, 1/sigma_t, sigma_a/sigma_t, g, eta, log(1 - sigma_a/sigma_t).
  *
  * Conventions: z down into the slab, mm and 1/mm, float32.
  * Guarded by tests/test_mc_slab.py (exact Rd of Chandrasekhar and van de Hulst, ballistic
@@ -59,7 +76,6 @@
  */
 #include "rng.h"
 
-#define W_MIN 1e-4f
 #define ROULETTE_M 10.0f
 #define MAX_STEPS 1000000
 /* per work-item totals: R, T, absorbed, lost, interactions, busy lane-trips, trips (the
@@ -69,6 +85,15 @@
 #ifndef LANES
 #define LANES 16
 #endif
+/* entries of the per-work-item stack of split photons; floats per entry:
+ * x, y, z, ux, uy, uz, w, ln w, remaining path, layer */
+#ifndef BANK
+#define BANK 256
+#endif
+#define BANK_FLOATS 10
+#define MAX_SPLITS_PER_PHOTON 64
+#define LN2_SPLIT 0.69314718055994531f
+#define LN_ROULETTE_M 2.30258509299405f
 
 #define CAT_(a, b) a##b
 #define CAT(a, b) CAT_(a, b)
@@ -154,13 +179,17 @@ inline void azimuth(vf u, vf *cph, vf *sph) {
             z0 = select(z0, (vf)(q_[0]), m_); z1 = select(z1, (vf)(q_[1]), m_);        \
             inv_mut = select(inv_mut, (vf)(q_[3]), m_);                                \
             fa = select(fa, (vf)(q_[4]), m_); g = select(g, (vf)(q_[5]), m_);          \
+            l1a = select(l1a, (vf)(q_[7]), m_);                                        \
         }                                                                              \
     } while (0)
 
 __kernel void mc_slab(__global const float *layers, const int n_layers,
                       const float eta_above, const float eta_below,
                       const uint seed, const int photons_per_item,
-                      const int n_bins, const float inv_dr,
+                      const int n_bins, __global const float *edges, /* [n_bins + 1] */
+                      const float ln_w_min,   /* roulette below W_MIN W: ln W_MIN */
+                      __global const float *window,  /* [3][4]: kappa, rho0, rho1, lambda */
+                      __global float *bank,   /* [3][items][BANK][BANK_FLOATS] */
                       __global float *hist,   /* [3][items][2][n_bins] */
                       __global float *totals) /* [3][items][N_TOTALS] */
 {
@@ -170,6 +199,16 @@ __kernel void mc_slab(__global const float *layers, const int n_layers,
     __global const float *L = layers + ch * n_layers * 8;
     __global float *hR = hist + ((size_t)(ch * items + item) * 2) * n_bins;
     __global float *hT = hR + n_bins;
+    __global float *B = bank + (size_t)(ch * items + item) * BANK * BANK_FLOATS;
+    const float kappa = window[4 * ch], rho0 = window[4 * ch + 1];
+    const float span = fmax(window[4 * ch + 2] - rho0, 0.0f), lambda = window[4 * ch + 3];
+    const int windowed = kappa > 0.0f || lambda > 0.0f;
+    /* at most MAX_SPLITS_PER_PHOTON splits per launched photon per work-item: bounds the
+     * work if the window falls faster than the light (skipping a split is unbiased) */
+    const long max_splits = (long)MAX_SPLITS_PER_PHOTON * photons_per_item;
+    long splits = 0;
+    const float r_last = edges[n_bins];
+    int bank_n = 0;
     const vi lane = LANE_IDS;
     const vu stream = cvt_u(item * LANES + lane);
     const int budget = photons_per_item;
@@ -178,10 +217,10 @@ __kernel void mc_slab(__global const float *layers, const int n_layers,
     /* all lanes start a photon (lanes beyond the budget start dead) */
     vi alive = lane < budget;
     int launched = min(budget, LANES);
-    vf x = 0.0f, y = 0.0f, z = 0.0f, ux = 0.0f, uy = 0.0f, uz = 1.0f, w = 1.0f;
+    vf x = 0.0f, y = 0.0f, z = 0.0f, ux = 0.0f, uy = 0.0f, uz = 1.0f, w = 1.0f, lw = 0.0f;
     vf srem = 0.0f;    /* remaining free path in the current layer, mm (0: draw one) */
     vi lay = 0, psteps = 0;
-    vf z0 = L[0], z1 = L[1], inv_mut = L[3], fa = L[4], g = L[5];
+    vf z0 = L[0], z1 = L[1], inv_mut = L[3], fa = L[4], g = L[5], l1a = L[7];
     vf sumA = 0.0f;
     /* rarely updated per-lane tallies live in private memory, not in vector registers
      * (the hot loop already needs ~20 of the 32 zmm registers) */
@@ -192,7 +231,7 @@ __kernel void mc_slab(__global const float *layers, const int n_layers,
         acc_steps[i] = acc_hits[i] = 0u;
     }
 
-    while (any_lane(alive)) {
+    while (any_lane(alive) || bank_n > 0) {
         vu c0 = (vu)(trip), c1 = stream, c2 = (vu)((uint)ch), c3 = (vu)(trip_hi);
         PHILOX4X32_10(vu, MULHILO, c0, c1, c2, c3, seed, 0x6d635f73u);
         if (++trip == 0u) ++trip_hi;
@@ -216,6 +255,7 @@ __kernel void mc_slab(__global const float *layers, const int n_layers,
         vf dw = w * fa;
         sumA += select((vf)(0.0f), dw, inter);
         w = select(w, w - dw, inter);
+        lw = select(lw, lw + l1a, inter);
         /* HG inversion (MCML Spin): t = (1 - g^2) / (1 - g + 2 g u), cos = (1 + g^2 - t^2)
          * / (2 g), written over one common denominator: one division instead of two */
         vf g2 = g * g, hA = 1.0f - g2, hB = mad(2.0f * g, u1, 1.0f - g), hB2 = hB * hB;
@@ -242,11 +282,49 @@ __kernel void mc_slab(__global const float *layers, const int n_layers,
         ux = select(ux, nx * inv, inter);
         uy = select(uy, ny * inv, inter);
         uz = select(uz, nz * inv, inter);
-        /* Russian roulette (u3: an interaction event draws no Fresnel number) */
-        vi low = inter & (w < W_MIN);
-        vi win = u3 * ROULETTE_M <= 1.0f;
-        w = select(w, w * ROULETTE_M, low & win);
-        alive &= ~(low & ~win);
+        /* weight window: ln W = -kappa clamp(rho - rho0, 0, rho1 - rho0) + lambda z (0 when
+         * off) */
+        vf lnW = (vf)(0.0f);
+        if (windowed)
+            lnW = mad((vf)(lambda), z, -kappa * clamp(sqrt(x * x + y * y) - rho0, 0.0f, span));
+        /* Russian roulette below W_MIN W (u3: an interaction event draws no Fresnel number):
+         * MCML's (survive 1 in ROULETTE_M, weight x ROULETTE_M) without a window, else to the
+         * window (survive with probability w / W, weight W) */
+        vi low = inter & (lw < lnW + ln_w_min);
+        if (!windowed) {
+            vi win = u3 * ROULETTE_M <= 1.0f;
+            w = select(w, w * ROULETTE_M, low & win);
+            lw = select(lw, lw + LN_ROULETTE_M, low & win);
+            alive &= ~(low & ~win);
+        } else if (any_lane(low)) {
+            vi win = u3 <= exp(lw - lnW);
+            w = select(w, exp(lnW), low & win);
+            lw = select(lw, lnW, low & win);
+            alive &= ~(low & ~win);
+        }
+        /* split above 2 W: the second half onto the stack (none when it is full) */
+        vi heavy = inter & alive & (lw > lnW + LN2_SPLIT);
+        if (windowed && splits < max_splits && any_lane(heavy)) {
+            float sx[LANES], sy[LANES], sz[LANES], sux[LANES], suy[LANES], suz[LANES];
+            float sw[LANES], slw[LANES], ss[LANES];
+            int sl[LANES], sh[LANES];
+            VSTORE(x, 0, sx); VSTORE(y, 0, sy); VSTORE(z, 0, sz);
+            VSTORE(ux, 0, sux); VSTORE(uy, 0, suy); VSTORE(uz, 0, suz);
+            VSTORE(w, 0, sw); VSTORE(lw, 0, slw); VSTORE(srem, 0, ss);
+            VSTORE(lay, 0, sl); VSTORE(heavy, 0, sh);
+            for (int i = 0; i < LANES; ++i) {
+                if (sh[i] == 0 || bank_n >= BANK || splits >= max_splits) { sh[i] = 0; continue; }
+                __global float *e = B + bank_n * BANK_FLOATS;
+                e[0] = sx[i]; e[1] = sy[i]; e[2] = sz[i]; e[3] = sux[i]; e[4] = suy[i];
+                e[5] = suz[i]; e[6] = 0.5f * sw[i]; e[7] = slw[i] - LN2_SPLIT; e[8] = ss[i];
+                e[9] = (float)sl[i];
+                ++bank_n;
+                ++splits;
+            }
+            vi done = VLOAD(0, sh);
+            w = select(w, 0.5f * w, done);
+            lw = select(lw, lw - LN2_SPLIT, done);
+        }
         psteps -= inter;                           /* inter is -1 where true */
         vi cap = alive & (psteps >= MAX_STEPS);
         if (any_lane(cap)) {
@@ -296,23 +374,60 @@ __kernel void mc_slab(__global const float *layers, const int n_layers,
             }
             vi esc = top | bot;
             if (any_lane(esc)) {
-                vi b = cvt_i(fmin(sqrt(x * x + y * y) * inv_dr, (float)n_bins));
-                int eb[LANES], ee[LANES];
-                float ew[LANES];
-                VSTORE(b, 0, eb);
+                vf rr = sqrt(x * x + y * y);
+                int ee[LANES];
+                float ew[LANES], er[LANES];
+                VSTORE(rr, 0, er);
                 VSTORE(top - bot, 0, ee);          /* -1 top, +1 bottom, 0 neither */
                 VSTORE(w, 0, ew);
                 for (int i = 0; i < LANES; ++i) {
+                    if (ee[i] == 0) continue;
                     if (ee[i] < 0) accR[i] += ew[i];
-                    if (ee[i] > 0) accT[i] += ew[i];
-                    if (ee[i] != 0 && eb[i] < n_bins) (ee[i] < 0 ? hR : hT)[eb[i]] += ew[i];
+                    else accT[i] += ew[i];
+                    if (er[i] >= r_last) continue;
+                    int lo = 0, hi = n_bins;       /* edges[lo] <= r < edges[hi] */
+                    while (hi - lo > 1) {
+                        int mid = (lo + hi) >> 1;
+                        if (er[i] >= edges[mid]) lo = mid; else hi = mid;
+                    }
+                    (ee[i] < 0 ? hR : hT)[lo] += ew[i];
                 }
                 alive &= ~esc;
             }
         }
 
-        /* refill dead lanes with new photons while the budget lasts; the k-th dead lane
-         * (in lane order) gets photon launched + k, so the assignment is deterministic */
+        /* refill dead lanes: split photons from the stack first (last in, first out), in
+         * lane order */
+        if (bank_n > 0 && any_lane(~alive)) {
+            float sx[LANES], sy[LANES], sz[LANES], sux[LANES], suy[LANES], suz[LANES];
+            float sw[LANES], slw[LANES], ss[LANES];
+            int sl[LANES], sa_[LANES];
+            VSTORE(x, 0, sx); VSTORE(y, 0, sy); VSTORE(z, 0, sz);
+            VSTORE(ux, 0, sux); VSTORE(uy, 0, suy); VSTORE(uz, 0, suz);
+            VSTORE(w, 0, sw); VSTORE(lw, 0, slw); VSTORE(srem, 0, ss);
+            VSTORE(lay, 0, sl); VSTORE(alive, 0, sa_);
+            int got[LANES];
+            for (int i = 0; i < LANES; ++i) {
+                got[i] = 0;
+                if (sa_[i] != 0 || bank_n == 0) continue;
+                --bank_n;
+                __global const float *e = B + bank_n * BANK_FLOATS;
+                sx[i] = e[0]; sy[i] = e[1]; sz[i] = e[2]; sux[i] = e[3]; suy[i] = e[4];
+                suz[i] = e[5]; sw[i] = e[6]; slw[i] = e[7]; ss[i] = e[8]; sl[i] = (int)e[9];
+                got[i] = -1;
+            }
+            vi popped = VLOAD(0, got);
+            VSTORE(VLOAD(0, acc_steps) + select((vu)(0u), as_vu(psteps), popped), 0, acc_steps);
+            x = VLOAD(0, sx); y = VLOAD(0, sy); z = VLOAD(0, sz);
+            ux = VLOAD(0, sux); uy = VLOAD(0, suy); uz = VLOAD(0, suz);
+            w = VLOAD(0, sw); lw = VLOAD(0, slw); srem = VLOAD(0, ss);
+            lay = VLOAD(0, sl);
+            psteps = select(psteps, (vi)(0), popped);
+            alive |= popped;
+            LOAD_LAYER(popped, lay);
+        }
+        /* then new photons while the budget lasts; the k-th dead lane (in lane order) gets
+         * photon launched + k, so the assignment is deterministic */
         if (launched < budget) {
             vi need = ~alive;
             if (any_lane(need)) {
@@ -333,6 +448,7 @@ __kernel void mc_slab(__global const float *layers, const int n_layers,
                 uy = select(uy, (vf)(0.0f), start);
                 uz = select(uz, (vf)(1.0f), start);
                 w = select(w, (vf)(1.0f), start);
+                lw = select(lw, (vf)(0.0f), start);
                 srem = select(srem, (vf)(0.0f), start);
                 psteps = select(psteps, (vi)(0), start);
                 lay = select(lay, (vi)(0), start);

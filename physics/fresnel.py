@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["fresnel_diffuse_reflectance", "diffusion_A", "dipole_Rd", "fresnel_transmittance",
-           "diffuse_fresnel_external"]
+           "diffuse_fresnel_external", "fresnel_normal", "fresnel_moments", "diffusion_boundary"]
 
 
 def fresnel_diffuse_reflectance(eta: float) -> float:
@@ -58,3 +58,36 @@ def diffuse_fresnel_external(eta: float, n: int = 4096) -> float:
     int F(mu) 2 mu dmu (midpoint rule; 4096 steps is exact to < 1e-6)."""
     mu = (np.arange(n) + 0.5) / n
     return float(np.sum((1.0 - fresnel_transmittance(mu, eta)) * 2 * mu) / n)
+
+
+def fresnel_normal(eta: float) -> float:
+    """Fresnel reflectance at normal incidence, ((eta - 1) / (eta + 1))^2 (either side)."""
+    return ((eta - 1.0) / (eta + 1.0)) ** 2
+
+
+def fresnel_moments(eta: float, n: int = 20000) -> tuple[float, float]:
+    """Fresnel moments seen from inside, C1 = int_0^1 F(mu) mu dmu and C2 = int_0^1 F(mu) mu^2 dmu.
+
+    ``eta`` = n_inside / n_outside and mu is the cosine inside; F = 1 beyond the critical
+    angle.  2 C1 is the diffuse Fresnel reflectance from inside (the quantity Fdr fits).
+    Midpoint rule: the integrand has one kink (the critical angle), so 20000 steps are
+    exact to ~1e-8.  (d'Eon 2012, "A better dipole", eqs. 4-6; docs/profiles.md.)
+    """
+    if eta == 1.0:
+        return 0.0, 0.0
+    mu = (np.arange(n) + 0.5) / n
+    # light going out: the outside medium has relative index 1/eta seen from inside
+    F = 1.0 - fresnel_transmittance(mu, 1.0 / eta)
+    return float(np.sum(F * mu) / n), float(np.sum(F * mu * mu) / n)
+
+
+def diffusion_boundary(eta: float) -> tuple[float, float, float]:
+    """(A, C_phi, C_E) of the partial-current boundary from the Fresnel moments (d'Eon 2012).
+
+    A = (1 + 3 C2) / (1 - 2 C1) sets the extrapolation distance z_b = 2 A D; the radiant
+    exitance through the boundary is C_phi phi + C_E J_n with C_phi = (1 - 2 C1) / 4 and
+    C_E = (1 - 3 C2) / 2 (phi the fluence, J_n the diffusive flux along the outward normal).
+    At eta = 1: A = 1, C_phi = 1/4, C_E = 1/2 (the outgoing partial current).
+    """
+    c1, c2 = fresnel_moments(eta)
+    return (1.0 + 3.0 * c2) / (1.0 - 2.0 * c1), 0.25 * (1.0 - 2.0 * c1), 0.5 * (1.0 - 3.0 * c2)

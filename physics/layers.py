@@ -29,7 +29,9 @@ from typing import Any
 
 from dermis.pipeline.errors import ConfigError
 
-__all__ = ["Layer", "LayerStack", "parse_layer_stack", "load_layers_toml", "PRESETS"]
+__all__ = ["Layer", "LayerStack", "Optics", "parse_layer_stack", "load_layers_toml", "PRESETS",
+           "PROFILE_MODELS", "PROFILE_KEYS", "DEFAULT_PROFILE_MODEL", "DEFAULT_MC_PHOTONS",
+           "DEFAULT_MC_SEED", "split_profile_options", "with_profile"]
 
 Vec3 = tuple[float, float, float]
 
@@ -93,6 +95,71 @@ class LayerStack:
         """The same stack without zero-thickness layers (they are the identity)."""
         return LayerStack(tuple(l for l in self.layers if l.thickness_mm > 0),
                           self.eta_above, self.eta_below)
+
+
+# ---------------------------------------------------------------------------------------
+# The profile model the BSSRDF renders with: [optics] profile / photons / seed
+# (docs/profiles.md).
+
+PROFILE_MODELS = ("multipole", "monte_carlo")
+PROFILE_KEYS = ("profile", "photons", "seed")
+# Diffusion stays the default: it needs no OpenCL device and takes ~1-3 s; the Monte Carlo
+# table is the reference (docs/profiles.md: where diffusion is still off, and by how much).
+DEFAULT_PROFILE_MODEL = "multipole"
+# Photons per channel of the Monte Carlo table: bench/bench_profile_table.py measured
+# <= 1 % relative noise per ring over [0.05, 5] mm on two_layer (all channels) with this many
+# (bench/results/profiles_table.json), in <= 15 s on a 2-core PoCL CPU.
+DEFAULT_MC_PHOTONS = 2_000_000
+DEFAULT_MC_SEED = 0
+MAX_MC_PHOTONS = 2_000_000_000
+
+
+@dataclass(frozen=True)
+class Optics(LayerStack):
+    """The scene's ``[optics]``: a layer stack plus the profile model the BSSRDF uses.
+
+    ``to_dict`` (inherited) is the stack alone, so nodes that read only the layers (sample
+    spacing, HK93) do not change key when the profile model does.
+    """
+
+    profile: str = DEFAULT_PROFILE_MODEL
+    photons: int = DEFAULT_MC_PHOTONS
+    seed: int = DEFAULT_MC_SEED
+
+
+def with_profile(stack: LayerStack, profile: str = DEFAULT_PROFILE_MODEL,
+                 photons: int = DEFAULT_MC_PHOTONS, seed: int = DEFAULT_MC_SEED) -> Optics:
+    """``stack`` as :class:`Optics` with the given profile model."""
+    return Optics(stack.layers, stack.eta_above, stack.eta_below, profile, int(photons), int(seed))
+
+
+def split_profile_options(table: dict, *, where: str) -> tuple[dict, dict, list[str]]:
+    """Take the profile-model keys out of an ``[optics]`` table.
+
+    Returns (the table without them, {profile, photons, seed} as given and validated, the
+    problems found).  ``profile`` is one of ``PROFILE_MODELS``; ``photons`` (per channel of
+    the Monte Carlo table) an integer in 1 .. 2e9; ``seed`` an integer in 0 .. 2**32 - 1.
+    """
+    rest = {k: v for k, v in table.items() if k not in PROFILE_KEYS}
+    opts: dict = {}
+    problems: list[str] = []
+    if "profile" in table:
+        v = table["profile"]
+        if v not in PROFILE_MODELS:
+            close = difflib.get_close_matches(str(v), PROFILE_MODELS, n=1)
+            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            problems.append(f"{where}.profile = {v!r}: must be one of "
+                            + ", ".join(f'"{m}"' for m in PROFILE_MODELS) + hint)
+        else:
+            opts["profile"] = v
+    for key, lo, hi in (("photons", 1, MAX_MC_PHOTONS), ("seed", 0, 2**32 - 1)):
+        if key in table:
+            v = table[key]
+            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+                problems.append(f"{where}.{key} = {v!r}: must be an integer in {lo} .. {hi}")
+            else:
+                opts[key] = v
+    return rest, opts, problems
 
 
 _LAYER_KEYS = ("thickness_mm", "eta", "sigma_a", "sigma_s_prime", "sigma_s", "g")

@@ -21,7 +21,7 @@ from dermis.physics.layers import LayerStack
 
 __all__ = ["VERSION", "KERNELS", "McResult", "simulate"]
 
-VERSION = 2   # 2: SIMD kernel (16 photons per work-item), new random streams
+VERSION = 3   # 3: ring edges of any spacing, radial splitting (weight window), log weights
 KERNELS = ("mc_slab.cl",)
 
 # Photons in flight per work-item (float16 lanes: one AVX-512 register; see cl/mc_slab.cl).
@@ -35,6 +35,14 @@ MAX_ITEMS_PER_BATCH = 4
 # Per work-item totals written by the kernel (cl/mc_slab.cl N_TOTALS): R, T, absorbed, lost,
 # interactions, busy lane-trips, trips.
 N_TOTALS = 7
+# Entries of the per-work-item stack of split photons (cl/mc_slab.cl BANK); 10 floats each.
+# Splitting halves a photon at most once per interaction and the stack is last in, first
+# out, so it holds about (splits along one photon's path) x LANES entries: measured < 100
+# on two_layer; a full stack only stops splitting (unbiased).
+BANK = 256
+BANK_FLOATS = 10
+# Russian roulette threshold (MCML's 1e-4), survival 1/10 (cl/mc_slab.cl ROULETTE_M).
+W_MIN = 1e-4
 
 
 @dataclass
@@ -72,7 +80,7 @@ class McResult:
 
 def _layer_table(stack: LayerStack) -> np.ndarray:
     """(3, L, 8) float32 per channel and layer: z_top, z_bot, sigma_t, 1/sigma_t,
-    sigma_a/sigma_t, g, eta, 0 (ratios in float64, then rounded once)."""
+    sigma_a/sigma_t, g, eta, log(1 - sigma_a/sigma_t) (ratios in float64, rounded once)."""
     lays = stack.layers
     tab = np.zeros((3, len(lays), 8), np.float32)
     z = 0.0
@@ -80,13 +88,16 @@ def _layer_table(stack: LayerStack) -> np.ndarray:
         z1 = z + lay.thickness_mm
         for c in range(3):
             mut = float(lay.sigma_a[c]) + float(lay.sigma_s[c])
-            tab[c, k] = (z, z1, mut, 1.0 / mut, lay.sigma_a[c] / mut, lay.g, lay.eta, 0)
+            fa = lay.sigma_a[c] / mut
+            l1a = math.log1p(-fa) if fa < 1.0 else -1e30
+            tab[c, k] = (z, z1, mut, 1.0 / mut, fa, lay.g, lay.eta, l1a)
         z = z1
     return tab
 
 
-def simulate(stack: LayerStack, *, photons: int, r_max_mm: float, bins: int, seed: int = 0,
-        batches: int = 16, env=None) -> McResult:
+def simulate(stack: LayerStack, *, photons: int, r_max_mm: float | None = None,
+        bins: int | None = None, seed: int = 0, batches: int = 16, env=None,
+        edges: np.ndarray | None = None, window=None, w_min: float = W_MIN) -> McResult:
     """Trace ``photons`` photons per RGB channel through ``stack`` on OpenCL.
 
     Parameters
@@ -97,12 +108,23 @@ def simulate(stack: LayerStack, *, photons: int, r_max_mm: float, bins: int, see
         Photons per channel (rounded up to a multiple of the work-item count).
     r_max_mm, bins : float, int
         Radial histogram: ``bins`` rings of equal width over [0, r_max_mm).
+    edges : (B+1,) array_like, optional
+        Ring edges in mm instead (increasing, edges[0] = 0): any spacing.
     seed : int
         Random seed (0 .. 2**32 - 1); the same seed gives the same result on the same device.
     batches : int
         Number of independent batches for standard errors (>= 2).
     env : pipeline.cl.ClEnv, optional
         OpenCL environment; default ``pipeline.cl.get_env()`` (PoCL CPU).
+    window : (3, 4) array_like, optional
+        Radial splitting per channel: (kappa 1/mm, rho0 mm, rho1 mm, lambda 1/mm) of the
+        weight window W = exp(-kappa clamp(rho - rho0, 0, rho1 - rho0) + lambda z)
+        (cl/mc_slab.cl); None or all 0: off (the analog tracer with MCML's roulette).  kappa must not exceed
+        the decay rate of the light reaching rho (else the copies multiply without bound);
+        :func:`stages.profiles.monte_carlo_profiles` caps it at 0.9 sigma_tr of the least
+        absorbing layer.
+    w_min : float
+        Russian roulette below w_min x W(rho), survival 1/10 (MCML: 1e-4).
     Returns
     -------
     McResult
@@ -112,8 +134,23 @@ def simulate(stack: LayerStack, *, photons: int, r_max_mm: float, bins: int, see
 
     if photons < 1:
         raise DermisError(f"mc_slab: photons = {photons}: must be >= 1")
-    if not (r_max_mm > 0 and math.isfinite(r_max_mm)) or bins < 1:
-        raise DermisError(f"mc_slab: r_max_mm = {r_max_mm}, bins = {bins}: need > 0")
+    if edges is None:
+        if r_max_mm is None or bins is None or not (r_max_mm > 0 and math.isfinite(r_max_mm)) \
+                or bins < 1:
+            raise DermisError(f"mc_slab: r_max_mm = {r_max_mm}, bins = {bins}: need > 0 "
+                              "(or give edges)")
+        edges = np.linspace(0.0, r_max_mm, bins + 1)
+    edges = np.asarray(edges, np.float64)
+    if edges.ndim != 1 or len(edges) < 2 or edges[0] != 0.0 or not np.all(np.diff(edges) > 0) \
+            or not np.isfinite(edges[-1]):
+        raise DermisError("mc_slab: edges must be finite, increasing and start at 0")
+    bins = len(edges) - 1
+    win = np.zeros((3, 4), np.float32)
+    if window is not None:
+        win[:] = np.asarray(window, np.float64).reshape(3, 4)
+        if not (np.all(np.isfinite(win)) and np.all(win >= 0)):
+            raise DermisError(f"mc_slab: window = {win.tolist()}: need finite kappa, rho0, "
+                              "rho1, lambda >= 0")
     if batches < 2:
         raise DermisError(f"mc_slab: batches = {batches}: must be >= 2 for standard errors")
     if not 0 <= seed < 2**32:
@@ -126,18 +163,22 @@ def simulate(stack: LayerStack, *, photons: int, r_max_mm: float, bins: int, see
     n_total = per_item * items
     tab = _layer_table(stack)
     # a fresh Kernel object: no pyopencl retrieval warning
-    knl = cl.Kernel(env.program("mc_slab.cl", {"LANES": LANES}), "mc_slab")
+    knl = cl.Kernel(env.program("mc_slab.cl", {"LANES": LANES, "BANK": BANK}), "mc_slab")
     mf = cl.mem_flags
     d_tab = cl.Buffer(env.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=tab)
+    d_edges = cl.Buffer(env.context, mf.READ_ONLY | mf.COPY_HOST_PTR,
+                        hostbuf=edges.astype(np.float32))
+    d_win = cl.Buffer(env.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=win)
+    d_bank = cl.Buffer(env.context, mf.READ_WRITE, 3 * items * BANK * BANK_FLOATS * 4)
     hist = np.zeros((3, items, 2, bins), np.float32)
     tots = np.zeros((3, items, N_TOTALS), np.float32)
     d_hist = cl.Buffer(env.context, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=hist)
     d_tots = cl.Buffer(env.context, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=tots)
-    dr = r_max_mm / bins
     t0 = time.perf_counter()
     ev = knl(env.queue, (items, 3), (1, 1), d_tab, np.int32(len(stack.layers)),
              np.float32(stack.eta_above), np.float32(stack.eta_below), np.uint32(seed),
-             np.int32(per_item), np.int32(bins), np.float32(1.0 / dr), d_hist, d_tots)
+             np.int32(per_item), np.int32(bins), d_edges, np.float32(math.log(w_min)), d_win,
+             d_bank, d_hist, d_tots)
     ev.wait()
     wall = time.perf_counter() - t0
     seconds = dcl.event_seconds(ev) or wall
@@ -150,7 +191,6 @@ def simulate(stack: LayerStack, *, photons: int, r_max_mm: float, bins: int, see
     tb = tots[..., :4].astype(np.float64).reshape(3, items // batches, batches, 4).sum(1)
     hb /= per_batch
     tb /= per_batch
-    edges = np.linspace(0.0, r_max_mm, bins + 1)
     area = np.pi * np.diff(edges**2)
 
     def mean_err(a, axis=1):
@@ -172,7 +212,7 @@ def simulate(stack: LayerStack, *, photons: int, r_max_mm: float, bins: int, see
         lost=t_mean[:, 3], Rd_err=t_err[:, 0], Tt_err=t_err[:, 1], absorbed_err=t_err[:, 2],
         photons=n_total, seconds=seconds, photons_per_second=3 * n_total / seconds,
         info={"device": env.description, "items": items, "lanes": LANES, "batches": batches,
-              "seed": seed, "wall_seconds": wall,
+              "seed": seed, "wall_seconds": wall, "window": win.tolist(),
               "interactions_per_second": float(counts[0] / seconds),
               # fraction of lane-trips that carried a live photon (the rest is the idle tail)
               "lane_occupancy": float(counts[1] / max(counts[2] * LANES, 1.0)),
