@@ -20,6 +20,7 @@ STAGES = (
     ("profiles", "dermis.stages.profiles"),
     ("samples", "dermis.stages.samples"),
     ("irradiance", "dermis.stages.irradiance"),
+    ("visibility", "dermis.stages.visibility"),
     ("render", "dermis.stages.render"),
     ("bssrdf", "dermis.stages.bssrdf"),
     ("reference", "dermis.stages.reference"),

@@ -77,7 +77,7 @@ from dermis.physics.color import LUMINANCE
 __all__ = [
     "LightSamples", "EnvironmentMap", "sample_lights", "irradiance", "environment_map",
     "procedural_sunset", "light_params", "concentric_disc", "cosine_hemisphere", "LUMINANCE",
-    "SUNSET_SUN_ELEVATION_DEG", "ENV_STRATEGIES",
+    "SUNSET_SUN_ELEVATION_DEG", "ENV_STRATEGIES", "stratified_2d",
 ]
 
 # Environment-light sampling strategies (module docstring); the first is the default.
@@ -191,7 +191,7 @@ def concentric_disc(u: np.ndarray) -> np.ndarray:
     return np.stack([r * np.cos(phi), r * np.sin(phi)], axis=-1)
 
 
-def _stratified_2d(rng: np.random.Generator, n: int, s: int) -> np.ndarray:
+def stratified_2d(rng: np.random.Generator, n: int, s: int) -> np.ndarray:
     """(n, s, 2) points in [0, 1)^2: a jittered grid if s is a square, else Latin hypercube."""
     m = int(round(math.sqrt(s)))
     jitter = rng.random((n, s, 2))
@@ -260,7 +260,7 @@ def _disc(light, p: np.ndarray, rng, samples: int) -> tuple:
     if not radius > 0:
         raise ConfigError(f"lights.{light.name}.radius = {radius} (mm): must be > 0")
     t, b = _frame(axis)
-    xy = concentric_disc(_stratified_2d(rng, len(p), samples)).astype(np.float32) * radius
+    xy = concentric_disc(stratified_2d(rng, len(p), samples)).astype(np.float32) * radius
     q = (centre.astype(np.float32)[None, None, :]
          + xy[..., :1] * t.astype(np.float32) + xy[..., 1:] * b.astype(np.float32))
     d = q - p[:, None, :]
@@ -302,9 +302,10 @@ def _environment(light, p: np.ndarray, rng, samples: int, env, normals, strategy
     cos_env = np.einsum("nsk,nk->ns", d_env, nrm) / np.maximum(
         np.linalg.norm(nrm, axis=1), 1e-30)[:, None]
     den_env = n_env * pdf_env.reshape(n, n_env) + n_cos * np.maximum(cos_env, 0.0) / math.pi
-    d_cos, cos_cos = cosine_hemisphere(_stratified_2d(rng, n, n_cos), nrm)
-    den_cos = n_env * env.pdf(d_cos) + n_cos * cos_cos / math.pi
-    rad_cos = env.lookup(d_cos).astype(np.float64)
+    d_cos, cos_cos = cosine_hemisphere(stratified_2d(rng, n, n_cos), nrm)
+    pdf_cos_env, rad_cos = env.pdf_radiance(d_cos)
+    den_cos = n_env * pdf_cos_env + n_cos * cos_cos / math.pi
+    rad_cos = rad_cos.astype(np.float64)
     w_env = rad_env.reshape(n, n_env, 3) / np.where(den_env > 0, den_env, np.inf)[..., None]
     w_cos = rad_cos / np.where(den_cos > 0, den_cos, np.inf)[..., None]
     wi = np.concatenate([d_env, d_cos], axis=1).astype(np.float32)
@@ -317,7 +318,7 @@ def _environment(light, p: np.ndarray, rng, samples: int, env, normals, strategy
 def sample_lights(lights, points: np.ndarray, normals: np.ndarray | None = None, *,
                   samples: int | None = None, seed: int | Sequence[int] = 0,
                   env: "EnvironmentMap | None" = None,
-                  env_strategy: str = ENV_STRATEGIES[0]) -> LightSamples:
+                  env_strategy: str = ENV_STRATEGIES[0], share: int = 1) -> LightSamples:
     """Sample one light or several (summed) for N surface points.
 
     Parameters
@@ -340,6 +341,11 @@ def sample_lights(lights, points: np.ndarray, normals: np.ndarray | None = None,
         luminance and cosine-hemisphere samples about ``normals`` (3/8 of them) with the
         balance heuristic; "luminance" is pure luminance importance sampling.  "mis" falls back to
         "luminance" when ``normals`` is None or S = 1.
+    share : int
+        Points that share one pixel's samples (the renderer's sub-pixel samples): each point
+        draws ceil(S / share) samples of a disc or environment light, so a pixel of ``share``
+        sub-pixel samples still averages about S light samples (point and directional
+        lights: one each).
 
     Returns
     -------
@@ -359,6 +365,7 @@ def sample_lights(lights, points: np.ndarray, normals: np.ndarray | None = None,
         s = int(samples if samples is not None else getattr(light, "samples", 16))
         if s < 1:
             raise ConfigError(f"lights.{light.name}.samples = {s}: must be >= 1")
+        s = -(-s // max(int(share), 1))
         kind = light.type
         if kind == "point":
             parts.append(_point(light, p, rng))
@@ -500,6 +507,15 @@ class EnvironmentMap:
         sin_t = np.sqrt(np.maximum(1.0 - d[..., 1] ** 2, 0.0))
         p = self.pmf[row * self.width + col] * (self.height * self.width)
         return np.where(sin_t > 0, p / (2.0 * math.pi * math.pi * np.maximum(sin_t, 1e-30)), 0.0)
+
+    def pdf_radiance(self, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`pdf` and :meth:`lookup` of the same directions, sharing one pixel lookup."""
+        d = np.asarray(directions)
+        row, col = self.pixel_of(d)
+        sin_t = np.sqrt(np.maximum(1.0 - d[..., 1].astype(np.float64) ** 2, 0.0))
+        p = self.pmf[row * self.width + col] * (self.height * self.width)
+        pdf = np.where(sin_t > 0, p / (2.0 * math.pi * math.pi * np.maximum(sin_t, 1e-30)), 0.0)
+        return pdf, self.radiance[row, col]
 
     def sample_pdf(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Directions, radiance and solid-angle pdf for uniform numbers ``u`` (M, 3) in [0, 1).

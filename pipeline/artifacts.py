@@ -23,8 +23,8 @@ import numpy as np
 from dermis.pipeline.errors import ConfigError, DermisError
 
 __all__ = ["Mesh", "BakedMaps", "LayerProfile", "RenderedImage", "SurfacePoints",
-           "PointIrradiance", "angle_weighted_normals", "renormalise_f64", "save", "load",
-           "ARTIFACT_TYPES"]
+           "PointIrradiance", "PixelSamples", "angle_weighted_normals", "renormalise_f64", "save",
+           "load", "ARTIFACT_TYPES"]
 
 
 @dataclass
@@ -205,8 +205,35 @@ class PointIrradiance:
     info: dict = field(default_factory=dict)
 
 
+@dataclass
+class PixelSamples:
+    """What the camera sees of one mesh under one lighting condition, shared by every model
+    (the ``visibility`` stage): sub-pixel camera hits and their unoccluded light samples.
+
+    width, height, spp : image size and camera samples per pixel
+    pixel : (M,) int32 flat pixel index (row-major from the top-left) of each sample that hit
+    tri : (M,) int32 triangle hit; bary : (M, 2) float32 barycentrics (b1, b2), Embree's
+    counts : (M,) int32 unoccluded light samples of each hit; their rows in ``directions`` and
+        ``weights`` are consecutive, in hit order
+    directions : (K, 3) float32 unit, towards the light; weights : (K, 3) float32 RGB, so a
+        hit's radiance is sum f(wo, wi) weight cos(theta_i) (physics/lights.py)
+    info : dict (rays traced, samples per hit, light names)
+    """
+
+    width: int
+    height: int
+    spp: int
+    pixel: np.ndarray
+    tri: np.ndarray
+    bary: np.ndarray
+    counts: np.ndarray
+    directions: np.ndarray
+    weights: np.ndarray
+    info: dict = field(default_factory=dict)
+
+
 ARTIFACT_TYPES = {cls.__name__: cls for cls in (Mesh, BakedMaps, LayerProfile, RenderedImage,
-                                                SurfacePoints, PointIrradiance)}
+                                                SurfacePoints, PointIrradiance, PixelSamples)}
 
 
 def nonfinite_fields(artifact: Any) -> list[str]:

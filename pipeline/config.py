@@ -120,6 +120,10 @@ class RenderConfig:
     # (docs/physics.md §7), so its base cannot have been a costlier model (an inference; see asperity.cl)
     asperity_base: str = spec("lambert", choices=ASPERITY_BASES,
                               doc="model under the asperity term")
+    # Default from bench/bench_render.py --spp (bench/results/render_spp.json): see README
+    spp: int = spec(4, lo=1, hi=256,
+                    doc="camera samples per pixel, stratified (anti-aliasing); a pixel's disc "
+                        "and environment light samples are spread over them")
 
 
 @dataclass(frozen=True)

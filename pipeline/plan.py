@@ -54,8 +54,10 @@ def build_graph(scene: Scene) -> tuple[dict[str, Node], list[str]]:
     for model in models:
         for label, lights in scene.light_groups():
             for geometry in scene.render.geometries:
+                mesh_node = stage("render").GEOMETRY[geometry][0]
+                # camera and shadow rays: once per mesh x lighting, shared by every model
+                add(stage("visibility").node(scene, mesh_node, label, lights))
                 if model == REFERENCE_MODEL:
-                    mesh_node = stage("render").GEOMETRY[geometry][0]
                     add(stage("samples").node(scene, mesh_node))
                     add(stage("irradiance").node(scene, mesh_node, label, lights))
                     node = stage("bssrdf").node(scene, label, lights, geometry)

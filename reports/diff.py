@@ -12,6 +12,7 @@ a camera hit (``RenderedImage.mask``), intersected with an optional caller mask.
 """
 from __future__ import annotations
 
+import functools
 import json
 import math
 from dataclasses import dataclass, field
@@ -22,7 +23,8 @@ import numpy as np
 from dermis.pipeline.errors import DermisError
 from dermis.physics.color import LUMINANCE
 
-__all__ = ["DiffResult", "difference", "difference_image", "diverging_lut", "diverging_colormap",
+__all__ = ["DiffResult", "difference", "difference_image", "difference_indices",
+           "difference_palette", "DIFF_LEVELS", "diverging_lut", "diverging_colormap",
            "write_differences", "image_labels", "REL_FLOOR_FRACTION", "SSIM_SIGMA_PX",
            "DIFF_SCALE_PERCENTILE"]
 
@@ -42,6 +44,10 @@ SSIM_K1, SSIM_K2 = 0.01, 0.03
 # by this percentile of the reference's luminance over the mask and L = 1 (the render
 # stage's tone mapping also maps a high percentile to white).
 SSIM_RANGE_PERCENTILE = 99.0
+
+# Colours of a difference image: an even number (symmetric about 0) that leaves one entry
+# of a 256-colour PNG palette for black outside the mask.
+DIFF_LEVELS = 254
 
 # Default symmetric scale of a difference image: this percentile of |luminance difference|
 # over the mask, so a few outlier pixels (silhouette edges) do not wash out the rest.
@@ -66,46 +72,78 @@ class DiffResult:
 
 
 def _as_arrays(obj, what: str) -> tuple[np.ndarray, np.ndarray | None]:
-    """(linear (H,W,3) float64, mask or None) from a RenderedImage or an array."""
+    """(linear (H,W,3) float32, mask or None) from a RenderedImage or an array."""
     lin = getattr(obj, "linear", obj)
-    arr = np.asarray(lin, dtype=np.float64)
+    arr = np.asarray(lin, dtype=np.float32)
     if arr.ndim != 3 or arr.shape[2] != 3:
         raise DermisError(f"{what}: shape {arr.shape}; expected (H, W, 3) linear RGB")
     mask = getattr(obj, "mask", None)
     return arr, (None if mask is None else np.asarray(mask, dtype=bool))
 
 
-def _ssim_luminance(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
-    """Mean SSIM over ``mask`` of two (H, W) luminance images, both zeroed outside the mask."""
-    from scipy.ndimage import gaussian_filter
+def _percentile(values: np.ndarray, q: float) -> float:
+    """``np.percentile(values, q)`` (linear interpolation) through one partition."""
+    n = len(values)
+    pos = (n - 1) * q / 100.0
+    lo = int(math.floor(pos))
+    hi = min(lo + 1, n - 1)
+    part = np.partition(values, [lo, hi])
+    return float(part[lo] + (pos - lo) * (float(part[hi]) - float(part[lo])))
 
+
+def _blur(v: np.ndarray) -> np.ndarray:
+    from scipy.ndimage import gaussian_filter
+    return gaussian_filter(v, SSIM_SIGMA_PX, truncate=3.5, mode="constant")  # 11x11 window
+
+
+def _ssim_reference(b: np.ndarray, mask: np.ndarray) -> dict:
+    """The reference's part of SSIM over ``mask``: its bounding box, scale and local moments
+    (computed once per reference and mask, reused by every image compared with it)."""
     ref_vals = b[mask]
     top = float(np.percentile(ref_vals, SSIM_RANGE_PERCENTILE)) if ref_vals.size else 0.0
-    if not top > 0:
-        top = float(max(np.abs(a[mask]).max(initial=0.0), 1.0))
     # Work on the mask's bounding box plus the window radius: identical result, faster
     # (a face fills ~40 % of the frame).
     rows, cols = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
     pad = 6
     sl = (slice(max(rows[0] - pad, 0), rows[-1] + pad + 1),
           slice(max(cols[0] - pad, 0), cols[-1] + pad + 1))
-    a, b, mask = a[sl], b[sl], mask[sl]
-    x = np.where(mask, a, 0.0) / top
-    y = np.where(mask, b, 0.0) / top
+    m = mask[sl]
+    out = {"top": top, "sl": sl, "mask": m}
+    if top > 0:
+        y = np.where(m, b[sl], 0.0).astype(np.float32) / np.float32(top)
+        my = _blur(y)
+        out.update(y=y, my=my, syy=_blur(y * y) - my * my)
+    return out
+
+
+def _ssim_luminance(a: np.ndarray, b: np.ndarray, mask: np.ndarray, *,
+                    ref_stats: dict | None = None) -> float:
+    """Mean SSIM over ``mask`` of two (H, W) luminance images, both zeroed outside the mask.
+
+    ``ref_stats`` : :func:`_ssim_reference` of ``b`` and ``mask`` when already computed.
+    Computed in float32 (SSIM is reported to 3 decimals; float32 moments of values normalised
+    to ~1 are good to ~1e-4).
+    """
+    st = ref_stats if ref_stats is not None else _ssim_reference(b, mask)
+    sl, m, top = st["sl"], st["mask"], st["top"]
+    if not top > 0:
+        top = float(max(np.abs(a[mask]).max(initial=0.0), 1.0))
+        st = {**st, "top": top}
+        y = np.where(m, b[sl], 0.0).astype(np.float32) / np.float32(top)
+        my = _blur(y)
+        st.update(y=y, my=my, syy=_blur(y * y) - my * my)
+    y, my, syy = st["y"], st["my"], st["syy"]
+    x = np.where(m, a[sl], 0.0).astype(np.float32) / np.float32(top)
     c1, c2 = SSIM_K1 ** 2, SSIM_K2 ** 2  # L = 1 after the normalisation above
-
-    def blur(v):
-        return gaussian_filter(v, SSIM_SIGMA_PX, truncate=3.5, mode="constant")  # 11x11 window
-
-    mx, my = blur(x), blur(y)
-    sxx = blur(x * x) - mx * mx
-    syy = blur(y * y) - my * my
-    sxy = blur(x * y) - mx * my
+    mx = _blur(x)
+    sxx = _blur(x * x) - mx * mx
+    sxy = _blur(x * y) - mx * my
     s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
-    return float(s[mask].mean())
+    return float(s[m].mean(dtype=np.float64))
 
 
-def difference(image, reference, *, mask: np.ndarray | None = None) -> DiffResult:
+def difference(image, reference, *, mask: np.ndarray | None = None,
+               cache: dict | None = None, relative: bool = True) -> DiffResult:
     """Signed difference of ``image`` against ``reference`` and error metrics over a mask.
 
     Parameters
@@ -114,6 +152,11 @@ def difference(image, reference, *, mask: np.ndarray | None = None) -> DiffResul
         Linear RGB radiance.  For RenderedImages, only pixels both masks cover count.
     mask : (H, W) bool array, optional
         Further restricts the pixels that count (intersected with the images' masks).
+    cache : dict, optional
+        Scratch space shared by calls against the same reference (its luminance and SSIM
+        moments are computed once); results are the same with or without it.
+    relative : bool
+        False leaves ``DiffResult.relative`` None (the metrics are the same; saves an image).
 
     Returns
     -------
@@ -147,46 +190,90 @@ def difference(image, reference, *, mask: np.ndarray | None = None) -> DiffResul
             raise DermisError(f"difference: {what} shape {m.shape}; expected {valid.shape}")
         valid &= m
     # Non-finite pixels (should not happen) are excluded rather than poisoning every metric.
-    valid &= np.isfinite(img).all(axis=2) & np.isfinite(ref).all(axis=2)
-
-    diff = np.where(valid[..., None], img - ref, 0.0)
-    n = int(valid.sum())
-    d, r, i = diff[valid], ref[valid], img[valid]  # (n, 3)
-    mean_ref = r.mean(axis=0) if n else np.zeros(3)
+    # float32 per pixel, float64 sums (the metrics are exact to ~1e-7 relative).
+    idx = np.flatnonzero(valid)
+    i = img.reshape(-1, 3)[idx]
+    r = ref.reshape(-1, 3)[idx]
+    if not (np.isfinite(i.sum(dtype=np.float64)) and np.isfinite(r.sum(dtype=np.float64))):
+        finite = np.isfinite(i).all(axis=1) & np.isfinite(r).all(axis=1)
+        valid.ravel()[idx[~finite]] = False
+        idx, i, r = idx[finite], i[finite], r[finite]
+    d = i - r
+    n = len(idx)
+    sum_ref = r.sum(axis=0, dtype=np.float64) if n else np.zeros(3)
+    mean_ref = sum_ref / max(n, 1)
     floor = REL_FLOOR_FRACTION * mean_ref
     if not np.all(floor > 0):
         # A black reference channel: fall back to 5 % of the mean of either image over all
         # channels, then to 1 (both black: the relative error is 0 anyway).
-        alt = REL_FLOOR_FRACTION * float(np.maximum(r, i).mean()) if n else 0.0
+        alt = REL_FLOOR_FRACTION * float(np.maximum(r, i).mean(dtype=np.float64)) if n else 0.0
         floor = np.where(floor > 0, floor, alt if alt > 0 else 1.0)
-    rel = np.zeros_like(diff)
-    rel[valid] = d / np.maximum(r, floor)
+    relv = d / np.maximum(r, floor.astype(np.float32))
+    diff = np.zeros((valid.size, 3), np.float32)
+    diff[idx] = d
+    rel = None
+    if relative:
+        rel = np.zeros((valid.size, 3), np.float32)
+        rel[idx] = relv
 
     if n:
-        rms_ref = math.sqrt(float((r * r).mean()))
-        rmse = math.sqrt(float((d * d).mean()))
-        sum_ref = r.sum(axis=0)
-        flux = np.where(sum_ref > 0, i.sum(axis=0) / np.where(sum_ref > 0, sum_ref, 1.0) - 1.0, 0.0)
+        rms_ref = math.sqrt(float(np.einsum("ij,ij->", r, r, dtype=np.float64)) / (3 * n))
+        rmse = math.sqrt(float(np.einsum("ij,ij->", d, d, dtype=np.float64)) / (3 * n))
+        sum_img = i.sum(axis=0, dtype=np.float64)
+        flux = np.where(sum_ref > 0, sum_img / np.where(sum_ref > 0, sum_ref, 1.0) - 1.0, 0.0)
+        lum = LUMINANCE.astype(np.float32)
+        cache = {} if cache is None else cache
+        key = (id(ref), hash(valid.tobytes()))
+        if key not in cache:   # the reference's luminance and SSIM moments, once per mask
+            ref_lum = ref @ lum
+            cache.clear()      # one reference at a time: memory stays bounded
+            cache[key] = (ref, ref_lum, _ssim_reference(ref_lum, valid))
+        _, ref_lum, stats = cache[key]
         metrics = {
             "rmse": rmse,
             "rel_rmse": rmse / rms_ref if rms_ref > 0 else (0.0 if rmse == 0 else float("inf")),
-            "bias_rgb": [float(v) for v in rel[valid].mean(axis=0)],
+            "bias_rgb": [float(v) for v in relv.sum(axis=0, dtype=np.float64) / n],
             "flux_ratio_rgb": [float(v) for v in flux],
-            "max_abs": float(np.abs(d).max()),
-            "rel_p95": float(np.percentile(np.abs(rel[valid]), 95.0)),
-            "ssim": _ssim_luminance(img @ LUMINANCE, ref @ LUMINANCE, valid),
+            "max_abs": float(max(d.max(), -d.min())),
+            "rel_p95": _percentile(np.abs(relv).ravel(), 95.0),
+            "ssim": _ssim_luminance(_CropLum(img, lum, stats["sl"]), ref_lum, valid,
+                                    ref_stats=stats),
         }
         if not math.isfinite(metrics["rel_rmse"]):
             # Reference black over the whole mask but the image is not: report the RMSE
             # relative to the image instead of infinity (documented, never NaN).
-            metrics["rel_rmse"] = rmse / math.sqrt(float((i * i).mean()))
+            metrics["rel_rmse"] = rmse / math.sqrt(
+                float(np.einsum("ij,ij->", i, i, dtype=np.float64)) / (3 * n))
     else:
         metrics = {"rmse": 0.0, "rel_rmse": 0.0, "bias_rgb": [0.0] * 3,
                    "flux_ratio_rgb": [0.0] * 3, "max_abs": 0.0, "rel_p95": 0.0, "ssim": 1.0}
     metrics["pixels"] = n
     metrics["rel_floor_rgb"] = [float(v) for v in floor]
-    return DiffResult(diff=diff.astype(np.float32), relative=rel.astype(np.float32),
+    return DiffResult(diff=diff.reshape(img.shape),
+                      relative=None if rel is None else rel.reshape(img.shape),
                       mask=valid, metrics=metrics)
+
+
+class _CropLum:
+    """Luminance of an RGB image computed only on the crop ``sl`` SSIM works on (indexing
+    with ``sl`` gives it; any other index computes the full luminance first)."""
+
+    def __init__(self, rgb: np.ndarray, lum: np.ndarray, sl):
+        self.rgb, self.lum, self.sl = rgb, lum, sl
+
+    def __getitem__(self, key):
+        if key is self.sl:
+            return self.rgb[self.sl] @ self.lum
+        return (self.rgb @ self.lum)[key]
+
+
+@functools.lru_cache(maxsize=4)
+def _diverging_lut(n: int) -> np.ndarray:
+    from matplotlib import colormaps
+
+    red = colormaps["RdBu_r"](np.linspace(0.5, 1.0, n // 2))[:, :3]  # grey -> red
+    blue = red[::-1, ::-1]  # reversed order, R and B swapped: blue -> grey
+    return np.concatenate([blue, red])
 
 
 def diverging_lut(n: int = 256) -> np.ndarray:
@@ -197,14 +284,9 @@ def diverging_lut(n: int = 256) -> np.ndarray:
     colours (``lut[n-1-k] == lut[k][::-1]``) -- ColorBrewer's RdBu is close to, but not
     exactly, symmetric.
     """
-    from matplotlib import colormaps
-
     if n < 2 or n % 2:
         raise DermisError(f"diverging_lut: n = {n}; must be an even number >= 2")
-    red = colormaps["RdBu_r"](np.linspace(0.5, 1.0, n // 2))[:, :3]  # grey -> red
-    blue = red[::-1, ::-1]  # reversed order, R and B swapped: blue -> grey
-    lut = np.concatenate([blue, red])
-    return lut
+    return _diverging_lut(n).copy()
 
 
 def diverging_colormap():
@@ -216,10 +298,10 @@ def diverging_colormap():
 
 def _luminance_diff(diff) -> tuple[np.ndarray, np.ndarray]:
     """(luminance difference (H, W), mask) from a DiffResult or an (H, W, 3) array."""
-    d = np.asarray(getattr(diff, "diff", diff), dtype=np.float64)
+    d = np.asarray(getattr(diff, "diff", diff), dtype=np.float32)
     mask = getattr(diff, "mask", None)
     mask = np.ones(d.shape[:2], bool) if mask is None else np.asarray(mask, bool)
-    return d @ LUMINANCE, mask
+    return d @ LUMINANCE.astype(np.float32), mask
 
 
 def default_scale(diffs) -> float:
@@ -233,6 +315,36 @@ def default_scale(diffs) -> float:
     vals = vals[np.isfinite(vals)]
     s = float(np.percentile(vals, DIFF_SCALE_PERCENTILE)) if vals.size else 0.0
     return s if s > 0 else 1.0
+
+
+def difference_indices(diff, *, scale: float | None = None) -> np.ndarray:
+    """(H, W) uint8 palette indices of :func:`difference_image`: 0 .. DIFF_LEVELS - 1 from
+    full blue to full red, ``DIFF_LEVELS`` (black) outside the mask (:func:`difference_palette`)."""
+    lum, mask = _luminance_diff(diff)
+    if scale is None:
+        scale = default_scale([diff])
+    if not (math.isfinite(scale) and scale > 0):
+        raise DermisError(f"difference_image: scale = {scale}; must be finite and > 0")
+    n = DIFF_LEVELS
+    t = np.nan_to_num(lum[mask]) * np.float32((n / 2) / scale)
+    # Symmetric binning: |t| picks a bin counted outward from the centre, the sign picks
+    # the half, so +t and -t land on mirrored entries k and n-1-k.
+    k = np.minimum(np.abs(t), np.float32(n // 2 - 1)).astype(np.int32)
+    out = np.full(mask.shape, n, np.uint8)
+    out[mask] = np.where(t >= 0, n // 2 + k, n // 2 - 1 - k)
+    return out
+
+
+@functools.lru_cache(maxsize=1)
+def _palette() -> np.ndarray:
+    pal = np.zeros((DIFF_LEVELS + 1, 3), np.uint8)
+    pal[:DIFF_LEVELS] = np.round(_diverging_lut(DIFF_LEVELS) * 255.0).astype(np.uint8)
+    return pal
+
+
+def difference_palette() -> np.ndarray:
+    """(DIFF_LEVELS + 1, 3) uint8: the diverging colours, then black (outside the mask)."""
+    return _palette().copy()
 
 
 def difference_image(diff, *, scale: float | None = None) -> np.ndarray:
@@ -249,21 +361,7 @@ def difference_image(diff, *, scale: float | None = None) -> np.ndarray:
     -------
     (H, W, 3) uint8 RGB; black outside the mask, neutral grey where the difference is 0.
     """
-    lum, mask = _luminance_diff(diff)
-    if scale is None:
-        scale = default_scale([diff])
-    if not (math.isfinite(scale) and scale > 0):
-        raise DermisError(f"difference_image: scale = {scale}; must be finite and > 0")
-    lut = np.round(diverging_lut() * 255.0).astype(np.uint8)
-    n = len(lut)
-    t = np.clip(np.nan_to_num(lum) / scale, -1.0, 1.0)
-    # Symmetric binning: |t| picks a bin counted outward from the centre, the sign picks
-    # the half, so +t and -t land on mirrored entries k and n-1-k.
-    k = np.minimum((np.abs(t) * (n / 2)).astype(np.int64), n // 2 - 1)
-    idx = np.where(t >= 0, n // 2 + k, n // 2 - 1 - k)
-    out = lut[idx]
-    out[~mask] = 0
-    return out
+    return _palette()[difference_indices(diff, scale=scale)]
 
 
 def image_labels(image) -> tuple[str, str, str]:
@@ -282,34 +380,38 @@ GEOMETRY_REFERENCE = "high"
 GEOMETRY_COMPARED = ("low_bump", "low_bump_blur")
 
 
-def _grid_png(tiles: dict, rows: list, cols: list, scales: dict, path: Path, *,
-              title: str, captions: dict) -> Path:
-    """A labelled grid of difference images (rows x cols) with one colour bar per column."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.cm import ScalarMappable
-    from matplotlib.colors import Normalize
+def _grid_image(tiles: dict, rows: list, cols: list, scales: dict, *, title: str,
+                captions: dict) -> np.ndarray:
+    """A labelled grid of difference images (rows x cols) with one colour bar per column
+    (:mod:`dermis.reports.sheets`)."""
+    from dermis.reports.sheets import TILE_PX, colorbar, grid, hstack
 
-    fig, axes = plt.subplots(len(rows), len(cols), squeeze=False,
-                             figsize=(2.6 * len(cols), 2.6 * len(rows) + 1.0))
-    for ax in axes.flat:
-        ax.axis("off")
-    for (r, c), tile in tiles.items():
-        ax = axes[rows.index(r), cols.index(c)]
-        ax.imshow(tile)
-        ax.set_title(f"{r} / {c}\n{captions.get((r, c), '')}", fontsize=7)
-    cmap = diverging_colormap()
-    for j, c in enumerate(cols):
-        s = scales.get(c, 1.0)
-        cb = fig.colorbar(ScalarMappable(Normalize(-s, s), cmap), ax=list(axes[:, j]),
-                          orientation="horizontal", fraction=0.04, pad=0.02)
-        cb.ax.tick_params(labelsize=7)
-        cb.set_label("luminance difference", fontsize=7)
-    fig.suptitle(title, fontsize=10)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    lut = diverging_lut()
+    bars = [colorbar(lut, -scales.get(c, 1.0), scales.get(c, 1.0), f"{c}: luminance difference",
+                     width=TILE_PX - 56) for c in cols]
+    return grid(tiles, rows, cols, captions={k: f"{k[0]} / {k[1]}\n{v}" for k, v in captions.items()},
+                title=title, footer=hstack(bars, gap=56 + 8))
+
+
+def _pairs(pairs_in: dict, cache_key) -> dict:
+    """DiffResults of (image, reference) pairs, computed on two threads (numpy and scipy
+    release the GIL); pairs sharing a reference share its luminance and SSIM moments."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    groups: dict = {}
+    for k, (im, ref) in pairs_in.items():
+        groups.setdefault(cache_key(k), []).append((k, im, ref))
+
+    def run(group):
+        cache: dict = {}
+        out = []
+        for k, im, ref in group:
+            res = difference(im, ref, cache=cache, relative=False)   # not drawn
+            out.append((k, res))
+        return out
+
+    with ThreadPoolExecutor(2) as pool:
+        return dict(kv for part in pool.map(run, groups.values()) for kv in part)
 
 
 def _record(res: DiffResult, image, ref_image, fname: str, against: dict) -> dict:
@@ -322,33 +424,39 @@ def _record(res: DiffResult, image, ref_image, fname: str, against: dict) -> dic
 
 def _write_set(pairs: dict, refs: dict, by_key: dict, metrics: dict, scale_kind: str,
                section: str, prefix: str, grid_prefix: str, out_dir: Path, extra: dict,
-               title) -> list[Path]:
+               title, tiles_out: dict | None = None) -> list[Path]:
     """One comparison set: a shared scale per light, a PNG and a metrics record per pair, and
     a labelled grid per geometry (models x lights)."""
-    from dermis.pipeline.imageio import write_png
+    from concurrent.futures import ThreadPoolExecutor
 
-    files = []
+    from dermis.reports.sheets import save_png
+
     for light in sorted({l for _, l, _ in pairs}):
         metrics["scales"][scale_kind][light] = default_scale(
             [d for (m, l, g), d in pairs.items() if l == light])
-    tiles = {}
+    tiles, jobs, pal = {}, [], _palette()
     for (m, l, g), res in sorted(pairs.items()):
         fname = f"{prefix}-{m}-{l}-{g}.png"
-        tiles[(m, l, g)] = difference_image(res, scale=metrics["scales"][scale_kind][l])
-        files.append(write_png(out_dir / fname, tiles[(m, l, g)]))
+        idx = difference_indices(res, scale=metrics["scales"][scale_kind][l])
+        tiles[(m, l, g)] = pal[idx]
+        jobs.append((out_dir / fname, idx, pal))     # palette PNG: 1 byte a pixel
         metrics[section][f"{m}-{l}-{g}"] = _record(res, by_key[(m, l, g)], refs[(m, l, g)],
                                                     fname, extra)
     for geom in sorted({g for _, _, g in pairs}):
         sel = {(m, l): t for (m, l, g), t in tiles.items() if g == geom}
         caps = {(m, l): _caption(metrics[section][f"{m}-{l}-{geom}"]) for (m, l) in sel}
-        files.append(_grid_png(sel, sorted({m for m, _ in sel}), sorted({l for _, l in sel}),
-                               metrics["scales"][scale_kind], out_dir / f"{grid_prefix}-{geom}.png",
-                               title=title(geom), captions=caps))
-    return files
+        jobs.append((out_dir / f"{grid_prefix}-{geom}.png",
+                     _grid_image(sel, sorted({m for m, _ in sel}), sorted({l for _, l in sel}),
+                                 metrics["scales"][scale_kind], title=title(geom),
+                                 captions=caps), None))
+    if tiles_out is not None:
+        tiles_out.update(tiles)
+    with ThreadPoolExecutor(2) as pool:
+        return list(pool.map(lambda job: save_png(job[0], job[1], palette=job[2]), jobs))
 
 
-def write_differences(images: dict, out_dir, *, reference_model: str = "bssrdf"
-                      ) -> tuple[list[Path], dict]:
+def write_differences(images: dict, out_dir, *, reference_model: str = "bssrdf",
+                      tiles_out: dict | None = None) -> tuple[list[Path], dict]:
     """Difference images and metrics of every model against the reference, and of the low
     geometries against the high mesh.
 
@@ -358,6 +466,9 @@ def write_differences(images: dict, out_dir, *, reference_model: str = "bssrdf"
         ``info`` must carry "model", "light" and "geometry".
     out_dir : directory to write into (created)
     reference_model : model every other model is compared with (default the BSSRDF)
+    tiles_out : dict, optional
+        Filled with the colour-coded difference images, ``{"model": {(model, light, geom):
+        uint8 image}, "geometry": {...}}``, so the PDF reuses them instead of recomputing
 
     Returns
     -------
@@ -398,29 +509,34 @@ def write_differences(images: dict, out_dir, *, reference_model: str = "bssrdf"
                      "model_vs_reference": {}, "geometry_vs_high": {}}
 
     # --- models vs the reference, per (light, geometry) where the reference exists --------
-    pairs = {}  # (model, light, geom) -> DiffResult
+    todo = {}  # (model, light, geom) -> (image, reference)
     for (m, l, g), im in by_key.items():
         ref = by_key.get((reference_model, l, g))
         if m == reference_model or ref is None:
             continue
-        pairs[(m, l, g)] = difference(im, ref)
+        todo[(m, l, g)] = (im, ref)
+    pairs = _pairs(todo, lambda k: (k[1], k[2]))        # DiffResults, grouped by reference
+    tiles = tiles_out.setdefault("model", {}) if tiles_out is not None else None
     files += _write_set(pairs, {k: by_key[(reference_model, k[1], k[2])] for k in pairs},
                         by_key, metrics, "model", "model_vs_reference", "diff", "diffgrid",
                         out_dir, {"reference": reference_model},
                         lambda geom: f"difference vs {reference_model}, geometry {geom} "
-                                     "(red = brighter, blue = darker)")
+                                     "(red = brighter, blue = darker)", tiles)
+    del pairs
 
     # --- geometries vs the high mesh, same model and light --------------------------------
-    gpairs = {}
+    todo = {}
     for (m, l, g), im in by_key.items():
         hi = by_key.get((m, l, GEOMETRY_REFERENCE))
         if g in GEOMETRY_COMPARED and hi is not None:
-            gpairs[(m, l, g)] = difference(im, hi)
+            todo[(m, l, g)] = (im, hi)
+    gpairs = _pairs(todo, lambda k: (k[0], k[1]))
+    tiles = tiles_out.setdefault("geometry", {}) if tiles_out is not None else None
     files += _write_set(gpairs, {k: by_key[(k[0], k[1], GEOMETRY_REFERENCE)] for k in gpairs},
                         by_key, metrics, "geometry", "geometry_vs_high", "geomdiff", "geomgrid",
                         out_dir, {"reference_geometry": GEOMETRY_REFERENCE},
                         lambda geom: f"{geom} vs {GEOMETRY_REFERENCE} mesh, same model and "
-                                     "light (red = brighter, blue = darker)")
+                                     "light (red = brighter, blue = darker)", tiles)
 
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=1, sort_keys=True))
     files.append(out_dir / "metrics.json")

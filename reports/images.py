@@ -13,10 +13,10 @@ from pathlib import Path
 
 from dermis.pipeline.graph import Node, StageResult
 
-__all__ = ["write_pngs", "contact_sheet", "NAME", "node", "run"]
+__all__ = ["write_pngs", "contact_sheet", "contact_sheet_image", "NAME", "node", "run"]
 
 NAME = "images"
-VERSION = 1
+VERSION = 2
 KERNELS = ()
 
 
@@ -36,56 +36,60 @@ def write_pngs(images: dict, out_dir: Path) -> list[Path]:
     Returns
     -------
     list of written paths (PNGs and ``exposure.json``)
+
+    Each image is tone-mapped once (:func:`dermis.reports.tonemap.encode_srgb8`); the sheets
+    paste thumbnails of those PNGs (:mod:`dermis.reports.sheets`), and the PNGs are encoded
+    on two threads (zlib releases the GIL).
     """
-    from dermis.pipeline.imageio import write_png
-    from dermis.reports.tonemap import shared_exposure, tonemap
+    from concurrent.futures import ThreadPoolExecutor
+
+    from dermis.reports.sheets import save_png
+    from dermis.reports.tonemap import encode_srgb8, shared_exposure
 
     out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
     ids = sorted(images)
     exposures, mapped = {}, {}
     for light in sorted({_label(images[i])[1] for i in ids}):
         group = [i for i in ids if _label(images[i])[1] == light]
         exposures[light] = shared_exposure([images[i].linear for i in group])
-        mapped.update(zip(group, tonemap([images[i].linear for i in group],
-                                         exposure=exposures[light])))
-    files = []
-    for nid in ids:
-        model, light, geom = _label(images[nid])
-        files.append(write_png(out_dir / f"{model}-{light}-{geom}.png", mapped[nid]))
+        for i in group:
+            mapped[i] = encode_srgb8(images[i].linear, exposures[light])
+    jobs = [(out_dir / ("%s-%s-%s.png" % _label(images[nid])), mapped[nid]) for nid in ids]
     for geom in sorted({_label(images[i])[2] for i in ids}):
         sel = {i: mapped[i] for i in ids if _label(images[i])[2] == geom}
-        files.append(contact_sheet({i: images[i] for i in sel}, sel,
-                                   out_dir / f"sheet-{geom}.png", title=f"geometry: {geom}"))
+        jobs.append((out_dir / f"sheet-{geom}.png",
+                     contact_sheet_image({i: images[i] for i in sel}, sel,
+                                         title=f"geometry: {geom}")))
+    with ThreadPoolExecutor(2) as pool:
+        files = list(pool.map(lambda job: save_png(*job), jobs))
     (out_dir / "exposure.json").write_text(json.dumps({"exposure_per_light": exposures, "images": ids},
                                                      indent=1))
     files.append(out_dir / "exposure.json")
     return files
 
 
-def contact_sheet(images: dict, mapped: dict, path: Path, *, title: str = "") -> Path:
-    """A labelled grid: rows are models, columns are lights (matplotlib)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+def contact_sheet_image(images: dict, mapped: dict, *, title: str = "") -> "np.ndarray":
+    """A labelled grid (uint8 RGB): rows are models, columns are lights, seconds per image
+    under each label (the render node's own time; the shared visibility node is timed on
+    its own)."""
+    from dermis.reports.sheets import grid
 
     labels = {i: _label(images[i]) for i in images}
     models = sorted({m for m, _, _ in labels.values()})
     lights = sorted({l for _, l, _ in labels.values()})
-    fig, axes = plt.subplots(len(models), len(lights), squeeze=False,
-                             figsize=(2.6 * len(lights), 2.6 * len(models) + 0.4))
-    for ax in axes.flat:
-        ax.axis("off")
+    tiles, caps = {}, {}
     for i, (m, l, _) in labels.items():
-        ax = axes[models.index(m), lights.index(l)]
-        ax.imshow(mapped[i])
+        tiles[(m, l)] = mapped[i]
         t = images[i].timings.get("total")
-        ax.set_title(f"{m} / {l}" + (f"\n{t:.1f} s" if t else ""), fontsize=8)
-    if title:
-        fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+        caps[(m, l)] = f"{m} / {l}" + (f"\n{t:.1f} s" if t else "")
+    return grid(tiles, models, lights, captions=caps, title=title)
+
+
+def contact_sheet(images: dict, mapped: dict, path: Path, *, title: str = "") -> Path:
+    """:func:`contact_sheet_image` written to ``path`` (PNG)."""
+    from dermis.reports.sheets import save_png
+    return save_png(path, contact_sheet_image(images, mapped, title=title))
 
 
 # --------------------------------------------------------------------------- stage

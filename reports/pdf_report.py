@@ -25,7 +25,7 @@ import numpy as np
 from dermis.pipeline.config import MODELS
 from dermis.pipeline.errors import DermisError
 from dermis.reports.diff import (GEOMETRY_COMPARED, GEOMETRY_REFERENCE, difference, difference_image,
-                          diverging_colormap, image_labels)
+                          image_labels)
 
 __all__ = ["write_report", "THESIS_TIMES", "report_page_count", "summary_text"]
 
@@ -217,8 +217,33 @@ def _title_page(plt, images, metrics, *, scene_name, device, timings_extra, cred
     return fig
 
 
+def _mosaic_page(plt, title: str, mosaic: np.ndarray, *, bottom: float = 0.01):
+    """A page showing one labelled grid image (:mod:`dermis.reports.sheets`) at its native
+    resolution: one axes, no resampling, so a page costs milliseconds, not seconds."""
+    fig = _new_page(plt, title)
+    ax = fig.add_axes([0.01, bottom, 0.98, 0.94 - bottom])
+    ax.imshow(mosaic, interpolation="none")
+    ax.axis("off")
+    return fig
+
+
+def _downsample(linear: np.ndarray, px: int) -> np.ndarray:
+    """Block mean of a linear image down to about ``px`` on its longer side (radiance is
+    averaged before tone mapping, as a camera would)."""
+    k = max(1, int(round(max(linear.shape[:2]) / px)))
+    if k == 1:
+        return linear
+    h, w = (linear.shape[0] // k) * k, (linear.shape[1] // k) * k
+    out = np.zeros((h // k, w // k, 3), np.float32)
+    for a in range(k):          # k^2 strided adds: much faster than a reshaped mean
+        for b in range(k):
+            out += linear[a:h:k, b:w:k]
+    return out / np.float32(k * k)
+
+
 def _image_pages(plt, images):
-    from dermis.reports.tonemap import shared_exposure, tonemap
+    from dermis.reports.sheets import TILE_PX, grid
+    from dermis.reports.tonemap import encode_srgb8, shared_exposure
 
     idx = _index(images)
     lights = sorted({l for _, l, _ in idx})
@@ -226,21 +251,18 @@ def _image_pages(plt, images):
     exposure = {l: shared_exposure([im.linear for (_, ll, _), im in idx.items() if ll == l])
                 for l in lights}
     for geom in _ordered_geoms(g for _, _, g in idx):
-        fig = _new_page(plt, f"Images, geometry {geom}  (one exposure per light, shared by all "
-                             "models and geometries)")
-        axes = _grid_axes(fig, len(models), len(lights))
+        tiles, caps = {}, {}
         for (m, l, g), im in idx.items():
-            if g != geom:
-                continue
-            ax = axes[models.index(m), lights.index(l)]
-            ax.imshow(tonemap([im.linear], exposure=exposure[l])[0])
-            ax.set_title(f"{m} / {l}\n{_fmt_s(_seconds(im))}", fontsize=MIN_FONT_PT + 0.5)
-        yield fig
+            if g == geom:
+                tiles[(m, l)] = encode_srgb8(_downsample(im.linear, TILE_PX), exposure[l])
+                caps[(m, l)] = f"{m} / {l}\n{_fmt_s(_seconds(im))}"
+        yield _mosaic_page(plt, f"Images, geometry {geom}  (one exposure per light, shared by "
+                                "all models and geometries)",
+                           grid(tiles, models, lights, captions=caps))
 
 
-def _diff_pages(plt, images, metrics):
-    from matplotlib.cm import ScalarMappable
-    from matplotlib.colors import Normalize
+def _diff_pages(plt, images, metrics, tiles=None):
+    from dermis.reports.diff import _grid_image
 
     idx = _index(images)
     ref = metrics.get("reference_model", "bssrdf")
@@ -248,29 +270,21 @@ def _diff_pages(plt, images, metrics):
     scales = metrics.get("scales", {}).get("model", {})
     lights = sorted({r["light"] for r in mvr.values()})
     models = _ordered_models(r["model"] for r in mvr.values())
-    cmap = diverging_colormap()
     for geom in _ordered_geoms(r["geometry"] for r in mvr.values()):
-        fig = _new_page(plt, f"Difference vs {ref}, geometry {geom}  (red = brighter, blue = "
-                             "darker than the reference)")
-        axes = _grid_axes(fig, len(models), len(lights), bottom=0.11)
-        for key, rec in mvr.items():
+        sel, caps = {}, {}
+        for rec in mvr.values():
             if rec["geometry"] != geom:
                 continue
             m, l = rec["model"], rec["light"]
-            res = difference(idx[(m, l, geom)], idx[(ref, l, geom)])
-            ax = axes[models.index(m), lights.index(l)]
-            ax.imshow(difference_image(res, scale=scales.get(l)))
-            ax.set_title(f"{m} / {l}\nrel RMSE {rec['rel_rmse']:.3f}  SSIM {rec['ssim']:.3f}",
-                         fontsize=MIN_FONT_PT + 0.5)
-        for j, l in enumerate(lights):
-            s = float(scales.get(l, 1.0))
-            pos = axes[-1, j].get_position()
-            cax = fig.add_axes([pos.x0 + 0.1 * pos.width, 0.06, 0.8 * pos.width, 0.015])
-            cb = fig.colorbar(ScalarMappable(Normalize(-s, s), cmap), cax=cax,
-                              orientation="horizontal")
-            cb.ax.tick_params(labelsize=MIN_FONT_PT)
-            cb.set_label(f"{l}: luminance difference", fontsize=MIN_FONT_PT)
-        yield fig
+            tile = (tiles or {}).get((m, l, geom))
+            if tile is None:   # not handed over by write_differences: recompute
+                tile = difference_image(difference(idx[(m, l, geom)], idx[(ref, l, geom)]),
+                                        scale=scales.get(l))
+            sel[(m, l)] = tile
+            caps[(m, l)] = f"rel RMSE {rec['rel_rmse']:.3f}  SSIM {rec['ssim']:.3f}"
+        yield _mosaic_page(plt, f"Difference vs {ref}, geometry {geom}  (red = brighter, blue "
+                                "= darker than the reference)",
+                           _grid_image(sel, models, lights, scales, title="", captions=caps))
 
 
 def _table(ax, cells: list[list[str]], header: list[str]) -> None:
@@ -435,7 +449,7 @@ def _geometry_page(plt, metrics):
 
 
 def write_report(images: dict, metrics: dict, out_pdf, *, scene_name: str, device: str,
-                 timings_extra: dict | None = None, credits=()) -> Path:
+                 timings_extra: dict | None = None, credits=(), tiles: dict | None = None) -> Path:
     """Write the multi-page comparison PDF.
 
     Parameters
@@ -448,6 +462,8 @@ def write_report(images: dict, metrics: dict, out_pdf, *, scene_name: str, devic
     scene_name : shown on the title page
     device : OpenCL device description, shown on the title and timing pages
     credits : attribution lines of the scene's assets, printed on the title page
+    tiles : the ``tiles_out`` of :func:`reports.diff.write_differences`, optional: its
+        difference images are placed as they are (else recomputed)
     timings_extra : dict (light, mesh) -> seconds, optional
         The BSSRDF's irradiance pass per lighting condition and mesh ("mesh_high"/"mesh_low",
         or "high"/"low"); added to the BSSRDF's time in the table, summary and scatter plot.
@@ -466,12 +482,18 @@ def write_report(images: dict, metrics: dict, out_pdf, *, scene_name: str, devic
                           "and geometries must select at least one image")
     out_pdf = Path(out_pdf)
     out_pdf.parent.mkdir(parents=True, exist_ok=True)
-    with plt.rc_context({"font.size": FONT_PT, "pdf.fonttype": 42}), PdfPages(out_pdf) as pdf:
+    # The PDF's 14 standard fonts (Helvetica, Courier) are referenced, not embedded: embedding
+    # and subsetting DejaVu took ~1 s per font face, most of the report's time (text outside
+    # Latin-1 would print as '?'; the report's own text is ASCII).
+    import logging
+    logging.getLogger("matplotlib.font_manager").setLevel(logging.ERROR)
+    with plt.rc_context({"font.size": FONT_PT, "pdf.use14corefonts": True,
+                         "font.family": "sans-serif"}), PdfPages(out_pdf) as pdf:
         builders = [lambda: [_title_page(plt, images, metrics, scene_name=scene_name,
                                          device=device, timings_extra=timings_extra,
                                          credits=credits)],
                     lambda: _image_pages(plt, images),
-                    lambda: _diff_pages(plt, images, metrics),
+                    lambda: _diff_pages(plt, images, metrics, (tiles or {}).get("model")),
                     lambda: [_timing_page(plt, images, metrics, device=device,
                                           timings_extra=timings_extra)],
                     lambda: [_scatter_page(plt, images, metrics, timings_extra=timings_extra)],

@@ -7,7 +7,7 @@ from pathlib import Path
 from dermis.pipeline.graph import Node, StageResult
 
 NAME = "report"
-VERSION = 1
+VERSION = 2
 KERNELS = ()
 REFERENCE_MODEL = "bssrdf"
 
@@ -22,13 +22,15 @@ def node(scene, render_ids: list[str], irradiance_ids: list[str]) -> Node:
 def run(params: dict, inputs: dict, ctx) -> StageResult:
     from dermis.reports import diff, pdf_report
     images = {nid: inputs[nid] for nid in params["renders"]}
-    files, metrics = diff.write_differences(images, ctx.out_dir, reference_model=REFERENCE_MODEL)
+    tiles: dict = {}   # difference images, computed once for the PNGs and the PDF
+    files, metrics = diff.write_differences(images, ctx.out_dir, reference_model=REFERENCE_MODEL,
+                                            tiles_out=tiles)
     extra = {}
     for nid in params["irradiance"]:  # irradiance-<mesh node>-<lighting label>
         _, mesh_node, label = nid.split("-", 2)
         extra[(label, mesh_node)] = float(inputs[nid].info.get("seconds", 0.0))
     pdf = pdf_report.write_report(images, metrics, ctx.out_dir / "report.pdf",
                                   scene_name=params["scene_name"], device=ctx.cl.description,
-                                  timings_extra=extra, credits=params["credits"])
+                                  timings_extra=extra, credits=params["credits"], tiles=tiles)
     names = [Path(f).name for f in files] + [pdf.name]
     return StageResult(files=names, info={"pages": pdf_report.report_page_count(images, metrics)})

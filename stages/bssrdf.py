@@ -18,19 +18,18 @@ from dermis.pipeline.artifacts import RenderedImage
 from dermis.pipeline.config import CameraConfig, LightConfig
 from dermis.pipeline.graph import Node, StageResult
 from dermis.pipeline.imageio import write_exr
-from dermis.physics.visibility import shared as shared_visibility
 from dermis.stages import gather, render
 from dermis.physics.lights import light_params
 
 NAME = "bssrdf"
-VERSION = 1
+VERSION = 2   # 2: optics-resolved near field, entry/exit transmittance
 KERNELS = ()
 OUTPUT_FOLDER = "render"   # exported beside the BRDF images: render/bssrdf-<light>-<geometry>.exr
 
 
 def node(scene, label: str, lights: tuple, geometry: str) -> Node:
     mesh_node, bump = render.GEOMETRY[geometry]
-    deps = {**render.geometry_inputs(geometry), "points": f"samples-{mesh_node}",
+    deps = {**render.geometry_inputs(geometry, label), "points": f"samples-{mesh_node}",
             "irradiance": f"irradiance-{mesh_node}-{label}", "profile": "profiles"}
     params = {"label": label, "geometry": geometry, "camera": asdict(scene.camera),
               "bump": bump, "bssrdf": asdict(scene.bssrdf), **light_params(lights),
@@ -39,23 +38,13 @@ def node(scene, label: str, lights: tuple, geometry: str) -> Node:
                 label=f"bssrdf / {label} / {geometry}", locations=("lights[].map",))
 
 
-def _octree(inputs: dict, b: dict, memo: dict):
-    """One octree per (points, lighting), shared by the geometries of a mesh in a run."""
-    key = ("octree", id(inputs["irradiance"]))
-    if key not in memo:
-        pts = inputs["points"]
-        memo[key] = (inputs["irradiance"], gather.build_octree(
-            pts.positions, pts.areas, inputs["irradiance"].irradiance, leaf_size=b["leaf_size"],
-            kernel_sigma_mm=pts.info.get("kernel_sigma_mm")))  # the areas' partition of unity
-    return memo[key][1]
-
-
-def _surface_term(mesh, lights, camera, maps, bump, seed, vis, ctx) -> tuple[np.ndarray, dict]:
-    """Lafortune's specular lobes (rho_d = 0): the light reflected at the surface."""
+def _surface_term(mesh, lights, camera, maps, bump, seed, samples, ctx) -> tuple[np.ndarray, dict]:
+    """Lafortune's specular lobes (rho_d = 0): the light reflected at the surface, shaded
+    with the shared visibility (the same rays as the BRDF models)."""
     from dermis.stages.brdf_models import LafortuneParams
     spec = render.render(mesh, lights, "lafortune", LafortuneParams(rho_d=(0.0, 0.0, 0.0)),
-                         camera, maps=maps, bump=bump, seed=seed, visibility=vis, cl_env=ctx.cl,
-                         textured=False)
+                         camera, maps=maps, bump=bump, seed=seed, samples=samples,
+                         cl_env=ctx.cl, textured=False)
     return spec.linear.reshape(-1, 3), spec.timings
 
 
@@ -65,27 +54,32 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     mesh, maps, profile = inputs["mesh"], inputs.get("maps"), inputs["profile"]
     camera = CameraConfig(**params["camera"])
     lights = [LightConfig(**d) for d in params["lights"]]
-    vis = shared_visibility(mesh, ctx.memo)
-    px = render.pixel_surface(mesh, camera, maps=maps, bump=params["bump"], visibility=vis,
+    vis = inputs["visibility"]   # shared camera + shadow rays (stages/visibility.py)
+    px = render.pixel_surface(mesh, camera, samples=vis, maps=maps, bump=params["bump"],
                               cl_env=ctx.cl)
     t_vis = time.perf_counter() - t_start
-    t0 = time.perf_counter()
-    tree = _octree(inputs, b, ctx.memo)
-    t_tree = time.perf_counter() - t0
     front, surf = px.front_idx, px.surf
     t0 = time.perf_counter()
-    M, stats = gather.gather(tree, profile, surf["position"][front], epsilon=b["epsilon"],
-                             normalisation=b["normalisation"], env=ctx.cl,
-                             brute_force=b["brute_force"], progress=ctx.progress)
+    # far part of the profile from the points, near part at each shading point, with the
+    # entry transmittance the irradiance stage applied (stages/gather.py "near field")
+    from dermis.physics.visibility import shared as shared_embree
+    transmit = gather.Transmittance(params["eta"], b["surface_reflection"])
+    M, stats = gather.exitance(inputs["points"], inputs["irradiance"].irradiance, profile,
+                               surf["position"][front], shading_normals=surf["shading_normal"][front],
+                               geo_normals=surf["geo_normal"][front], lights=lights,
+                               visibility=shared_embree(mesh, ctx.memo), epsilon=b["epsilon"],
+                               transmittance=transmit, normalisation=b["normalisation"],
+                               leaf_size=b["leaf_size"], brute_force=b["brute_force"],
+                               env=ctx.cl, memo=ctx.memo, progress=ctx.progress)
     t_gather = time.perf_counter() - t0
     cos_o = np.einsum("ij,ij->i", surf["shading_normal"][front], surf["wo"][front])
     albedo = None if b["albedo_mode"] == "none" else surf["albedo"][front]
     L = gather.exitance_to_radiance(M, cos_o, params["eta"], albedo=albedo,
                                     albedo_mode="replace" if albedo is None else b["albedo_mode"],
-                                    rd=profile.Rd)
-    image = np.zeros((px.height * px.width, 3), np.float32)
-    image[px.hit_idx[front]] = L
-    timings = {"visibility": t_vis, "octree": t_tree, "gather": t_gather,
+                                    rd=profile.Rd, transmittance=transmit)
+    image = px.pixels(L, front)   # box filter over the pixel's camera samples
+    timings = {"visibility": t_vis, "gather": t_gather,
+               **{k: float(stats[k]) for k in ("edges_seconds", "near_seconds") if k in stats},
                "kernel_seconds": float(stats.get("kernel_seconds", 0.0)) + px.kernel_seconds}
     if b["surface_reflection"] == "lafortune_lobes":
         spec, spec_t = _surface_term(mesh, lights, camera, maps, params["bump"], params["seed"],
@@ -96,7 +90,7 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     image = np.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0)
     timings["total"] = time.perf_counter() - t_start
     linear = image.reshape(px.height, px.width, 3)
-    mask = px.hits.hit.reshape(px.height, px.width)
+    mask = px.mask
     name = f"bssrdf-{params['label']}-{params['geometry']}"
     write_exr(ctx.out_dir / f"{name}.exr", linear)
     info = {"model": "bssrdf", "light": params["label"], "geometry": params["geometry"],

@@ -1,61 +1,64 @@
-"""BRDF images: camera rays, Embree visibility, light samples with shadow rays, OpenCL shading.
+"""BRDF images: shared visibility (camera and shadow rays), OpenCL shading, box-filtered pixels.
 
 Pipeline of :func:`render` (docs/architecture.md "Where the work runs"):
 
-1. **visibility** - one pinhole ray per pixel centre through Embree
-   (:class:`physics.visibility.Visibility`); the hits (triangle id + barycentrics) go to
-   ``cl/surface.cl``, which returns position, geometric and shading normal (interpolated,
-   bump-mapped from the baked map for the low-mesh variants), UV and linear albedo.
-2. **shadows** - :func:`physics.lights.sample_lights` draws the light samples (environment
-   lights: MIS of luminance and cosine samples about the geometric normal); samples
-   below the geometric or the shading horizon are dropped before any ray is traced, and the
-   rest go through Embree occlusion queries.  Pixels that miss the mesh or see a back face
-   trace nothing.
-3. **shading** - ``cl/shade.cl`` evaluates f(wo, wi) W cos(theta_i) for every surviving
-   sample (one work-item each, loop-free); the host sums them per pixel.
+1. **visibility** - ``spp`` stratified camera rays per pixel, their light samples and shadow
+   rays (:func:`dermis.stages.visibility.cast`).  In the pipeline this is the ``visibility``
+   node of the mesh and lighting condition, cast once and shared by every model (its
+   :class:`~dermis.pipeline.artifacts.PixelSamples` is an input of this stage); called
+   directly, :func:`render` casts it itself unless ``samples`` is given.
+2. **surface** - ``cl/surface.cl`` at every camera hit: position, two-sided geometric normal,
+   shading normal (interpolated, bump-mapped from the baked map for the low-mesh variants,
+   bent towards the viewer where it faced away), UV and linear albedo.
+3. **shading** - ``cl/shade.cl`` evaluates f(wo, wi) W cos(theta_i) for every unoccluded light
+   sample (one work-item each, loop-free); the host sums them per pixel and divides by spp
+   (a box filter over the stratified sub-pixel samples: anti-aliased silhouettes, shadow
+   edges and lip boundaries).
 
 Decisions touched here (docs/physics.md §6):
 
 * Disc lights emit from both faces (physics/lights.py docstring): only the axis matters.
-* Back faces (geometric normal facing away from the camera, e.g. inside an open neck) are
-  covered (mask true) but black: the BRDF models are one-sided (f = 0 for wo.z <= 0), as in
-  pbrt.  Same for pixels whose shading normal faces away from the camera (silhouettes of
-  a low mesh with smooth or bumped normals).
-* Samples are culled against BOTH horizons: below the geometric one the shadow ray would
-  start inside the surface; below the shading one cos(theta_i) = 0.
-* One camera ray per pixel centre (no anti-aliasing): the thesis images' quality is set by
-  the shading, and 800x800 at one sample per pixel keeps the 2 s budget.
+* Every camera hit is shaded: back faces are two-sided, and shading normals facing away from
+  the camera are bent towards it (cl/surface.cl), so creases at eyelids, lips and nostrils
+  are no longer black outlines.  The BRDF models stay one-sided in their own frame.
+* Samples below the geometric horizon are dropped before any ray is traced (the shadow ray
+  would start inside the surface); below the shading horizon cos(theta_i) = 0 in the kernel.
+* Pixels average ``spp`` camera samples (``[render] spp``); a pixel's light samples
+  (disc, environment) are spread over them, so anti-aliasing adds camera rays and surface
+  work but no light samples (stages/visibility.py).  spp = 1 is one ray through the pixel
+  centre, the pre-anti-aliasing renderer.
 * Asperity is a term added to a base model (docs/physics.md §5); the base is chosen by the
   caller (``RenderConfig.asperity_base``); ``"none"`` renders the term alone so the BSSRDF
   stage can add it to its own image (same light, same exposure: images are linear).
 
-Conventions: mm, linear RGB, camera y-up.  Output pixels that miss the mesh are 0 with
-mask false.  Guarded by tests/test_render.py and tests/test_lights.py.
+Conventions: mm, linear RGB, camera y-up.  A pixel's value is the sum of its hit samples /
+spp (missed samples count 0); ``mask`` is true where any sample hit.  Guarded by
+tests/test_render.py, tests/test_antialias.py and tests/test_lights.py.
 """
 from __future__ import annotations
 
-import math
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from typing import Any, Callable
 
 import numpy as np
 
-from dermis.pipeline.artifacts import RenderedImage
+from dermis.pipeline.artifacts import PixelSamples, RenderedImage
 from dermis.pipeline.config import ASPERITY_BASES as SCENE_ASPERITY_BASES
 from dermis.pipeline.config import MODELS as SCENE_MODELS
-from dermis.pipeline.config import CameraConfig, LightConfig
+from dermis.pipeline.config import CameraConfig
 from dermis.pipeline.errors import ConfigError, DermisError
 from dermis.pipeline.graph import Node, StageResult
 from dermis.pipeline.imageio import write_exr
-from dermis.physics.color import srgb_to_linear
-from dermis.physics.lights import EnvironmentMap, environment_map, sample_lights
-from dermis.physics.visibility import Visibility, shared as shared_visibility
+from dermis.physics.visibility import Visibility, camera_rays, camera_vectors
+from dermis.stages.visibility import (LightSampling, _buf, _global_size, cast,
+                                      surface_attributes)
 
 __all__ = ["VERSION", "KERNELS", "MODELS", "LambertParams", "LightSampling", "RenderResult",
-           "render", "camera_rays", "pixel_surface", "NAME", "node", "run"]
+           "PixelSurface", "render", "shade", "camera_rays", "pixel_surface", "NAME", "node",
+           "run"]
 
-VERSION = 1
+VERSION = 2
 KERNELS = ("surface.cl", "shade.cl")
 # Models this renderer shades ("bssrdf" images come from the BSSRDF stage).
 # lambert: a test material; "none" renders the asperity term alone.
@@ -63,9 +66,11 @@ MODELS = ("lambert",) + tuple(m for m in SCENE_MODELS if m != "bssrdf")
 ASPERITY_BASES = ("none",) + SCENE_ASPERITY_BASES
 _BASE_CODE = {"none": -1, "lambert": 0, "lafortune": 1, "hk93": 2}
 
-# Light samples processed per batch: bounds memory (~60 bytes a sample on the host) while
-# keeping batches large enough that Embree and OpenCL call overheads stay negligible.
-CHUNK_SAMPLES = 1 << 20
+# Light samples shaded per batch: bounds memory (~60 bytes a sample on the host) while
+# keeping batches large enough that OpenCL call overheads stay negligible.
+CHUNK_SAMPLES = 1 << 21
+
+_camera_vectors = camera_vectors   # kept for callers of the old private name
 
 
 @dataclass(frozen=True)
@@ -88,83 +93,25 @@ class LambertParams:
         return np.zeros(4, dtype=np.float32)
 
 
-@dataclass(frozen=True)
-class LightSampling:
-    """Research options of the light sampling (the pipeline uses the defaults).
-
-    shadow_samples : samples per pixel for disc and environment lights (None: each light's
-        ``samples``, 16 in the thesis)
-    env : pre-built EnvironmentMap for an environment light (None: from ``light.map``, cached)
-    env_strategy : "mis" (luminance and cosine samples about the geometric normal) or
-        "luminance" (:func:`physics.lights.sample_lights`)
-    """
-
-    shadow_samples: int | None = None
-    env: EnvironmentMap | None = None
-    env_strategy: str = "mis"
-
-
 @dataclass
 class RenderResult:
     """One rendered image.
 
     linear : (H, W, 3) float32 linear RGB radiance (0 where the mesh is missed)
     mask : (H, W) bool, True where a camera ray hit the mesh
-    timings : dict, seconds: ``visibility`` (camera rays + surface kernel), ``shadows``
-        (light sampling + occlusion rays), ``light_sampling`` (the part of ``shadows`` spent
-        drawing samples), ``shading`` (BRDF kernel + sums), ``kernel_seconds`` (OpenCL
-        profiling time, part of the above), ``total``, ``scene_build`` (Embree scene, 0 when
-        one was passed in)
+    coverage : (H, W) float32, fraction of the pixel's camera samples that hit the mesh
+    timings : dict, seconds: ``visibility`` (camera and shadow rays when cast here, 0 when
+        ``samples`` were given), ``surface`` (cl/surface.cl), ``shading`` (BRDF kernel +
+        sums), ``kernel_seconds`` (OpenCL profiling time, part of the above), ``total``,
+        ``scene_build`` (Embree scene, 0 when one was passed in)
     info : dict of JSON-able facts (model, lights, samples, ray counts, device)
     """
 
     linear: np.ndarray
     mask: np.ndarray
+    coverage: np.ndarray | None = None
     timings: dict = field(default_factory=dict)
     info: dict = field(default_factory=dict)
-
-
-# --------------------------------------------------------------------------- camera
-def _camera_vectors(camera) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Position and orthonormal forward/right/up of a CameraConfig (errors name the key)."""
-    pos = np.asarray(camera.position, dtype=np.float64)
-    look = np.asarray(camera.look_at, dtype=np.float64)
-    up = np.asarray(camera.up, dtype=np.float64)
-    fwd = look - pos
-    if not np.linalg.norm(fwd) > 0:
-        raise ConfigError(f"camera.look_at = {tuple(look)}: must differ from camera.position")
-    fwd /= np.linalg.norm(fwd)
-    right = np.cross(fwd, up)
-    if not np.linalg.norm(right) > 1e-9 * max(np.linalg.norm(up), 1e-300):
-        raise ConfigError(f"camera.up = {tuple(up)}: must not be parallel to the view "
-                          "direction (camera.look_at - camera.position)")
-    right /= np.linalg.norm(right)
-    return pos, fwd, right, np.cross(right, fwd)
-
-
-def camera_rays(camera) -> tuple[np.ndarray, np.ndarray]:
-    """Pinhole camera rays through pixel centres, row-major from the top-left pixel.
-
-    ``camera`` (CameraConfig): ``position``, ``look_at``, ``up`` (mm), ``fov_deg`` (full angle
-    across the SHORTER image side, pbrt's convention), ``width``, ``height``.  Returns origins
-    and unit directions, (H*W, 3) float32 each.
-    """
-    w = int(camera.width)
-    h = int(camera.height)
-    if w < 1 or h < 1:
-        raise ConfigError(f"camera width x height = {w} x {h}: both must be >= 1")
-    fov = float(camera.fov_deg)
-    if not 0 < fov < 180:
-        raise ConfigError(f"camera.fov_deg = {fov}: must be in (0, 180)")
-    pos, fwd, right, up = _camera_vectors(camera)
-    tan = math.tan(math.radians(fov) / 2)
-    short = min(w, h)
-    x = ((np.arange(w) + 0.5) / w * 2.0 - 1.0) * tan * (w / short)
-    y = (1.0 - (np.arange(h) + 0.5) / h * 2.0) * tan * (h / short)
-    d = fwd[None, None, :] + x[None, :, None] * right + y[:, None, None] * up
-    d = (d / np.linalg.norm(d, axis=2, keepdims=True)).reshape(-1, 3).astype(np.float32)
-    o = np.broadcast_to(pos.astype(np.float32), d.shape)
-    return np.ascontiguousarray(o), d
 
 
 # --------------------------------------------------------------------------- helpers
@@ -221,108 +168,82 @@ def _check_bump(mesh, maps, bump) -> None:
                           f"uv {'missing' if mesh.uv is None else 'given'})")
 
 
-def _light_sampling(sampling: LightSampling | None, lights) -> LightSampling:
-    """``sampling`` (defaults when None), checked, with the environment map a light needs."""
-    sampling = sampling if sampling is not None else LightSampling()
-    if sampling.shadow_samples is not None and int(sampling.shadow_samples) < 1:
-        raise ConfigError(f"shadow_samples = {sampling.shadow_samples}: must be >= 1")
-    env = sampling.env
-    for lt in lights:
-        if lt.type == "environment" and env is None:
-            env = environment_map(lt)
-    return replace(sampling, env=env)
-
-
-def _buf(cl, env, array):
-    array = np.ascontiguousarray(array)
-    if array.nbytes == 0:
-        array = np.zeros(4, dtype=array.dtype)
-    return cl.Buffer(env.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
-                     hostbuf=array)
-
-
-def _global_size(n: int) -> tuple[int]:
-    return (max(64, -(-n // 64) * 64),)
+def _check_samples(samples: PixelSamples, camera, mesh) -> None:
+    if (samples.width, samples.height) != (int(camera.width), int(camera.height)):
+        raise DermisError(f"render: visibility samples are {samples.width} x {samples.height}, "
+                          f"the camera {camera.width} x {camera.height}")
+    if len(samples.tri) and int(samples.tri.max()) >= len(mesh.faces):
+        raise DermisError("render: visibility samples name triangles the mesh does not have "
+                          "(cast on another mesh)")
 
 
 # --------------------------------------------------------------------------- surface
-def _surface(env, mesh, hits_tri, hits_bary, camera_pos, *, texture, bump_map, bump_range,
-             albedo_const):
-    """Run cl/surface.cl on the hits; returns dict of per-hit arrays and kernel seconds."""
-    import pyopencl as cl
-
-    m = len(hits_tri)
-    has_uv = mesh.uv is not None
-    defines = {"HAS_UV": int(has_uv), "HAS_TEXTURE": int(texture is not None and has_uv),
-               "HAS_BUMP": int(bump_map is not None and has_uv)}
-    kern = cl.Kernel(env.program("surface.cl", defines), "surface")
-    lut = srgb_to_linear(np.arange(256, dtype=np.float32) / 255.0).astype(np.float32)
-    tex = texture if texture is not None else np.zeros((1, 1, 3), np.uint8)
-    bmp = bump_map if bump_map is not None else np.zeros((1, 1), np.float32)
-    ins = [
-        _buf(cl, env, hits_tri.astype(np.int32)), _buf(cl, env, hits_bary.astype(np.float32)),
-        np.int32(m),
-        _buf(cl, env, np.asarray(mesh.vertices, dtype=np.float32)),
-        _buf(cl, env, np.asarray(mesh.faces, dtype=np.int32)),
-        _buf(cl, env, mesh.vertex_normals()),
-        _buf(cl, env, np.asarray(mesh.uv if has_uv else np.zeros((1, 2)), dtype=np.float32)),
-        _buf(cl, env, np.asarray(mesh.uv_faces if has_uv else np.zeros((1, 3)), dtype=np.int32)),
-        _buf(cl, env, np.ascontiguousarray(tex, dtype=np.uint8)),
-        np.int32(tex.shape[1]), np.int32(tex.shape[0]), _buf(cl, env, lut),
-        _buf(cl, env, np.asarray(bmp, dtype=np.float32)),
-        np.int32(bmp.shape[1]), np.int32(bmp.shape[0]), np.float32(bump_range),
-        *(np.float32(c) for c in camera_pos),
-    ]
-    shapes = {"position": 3, "geo_normal": 3, "shading_normal": 3, "wo": 3, "uv": 2,
-              "albedo": 3}
-    outs = {k: np.empty((max(m, 1), c), dtype=np.float32) for k, c in shapes.items()}
-    bufs = {k: cl.Buffer(env.context, cl.mem_flags.WRITE_ONLY, a.nbytes) for k, a in outs.items()}
-    ev = kern(env.queue, _global_size(m), None, *ins, *bufs.values(),
-              *(np.float32(c) for c in albedo_const))
-    for k in outs:
-        cl.enqueue_copy(env.queue, outs[k], bufs[k], wait_for=[ev])
-    env.queue.finish()
-    from dermis.pipeline.cl import event_seconds
-    return {k: v[:m] for k, v in outs.items()}, event_seconds(ev)
-
-
 @dataclass
 class PixelSurface:
-    """Surface attributes at every pixel whose camera ray hits the mesh.
+    """Surface attributes at every camera sample that hit the mesh.
 
-    hits : Embree hits of all pixels; hit_idx : (M,) flat pixel indices of the hits;
-    surf : dict of (M, k) float32 arrays: position (mm), geo_normal, shading_normal (bump-
-    mapped), wo (unit, towards the eye), uv, albedo (linear); front_idx : indices into the M
-    hits that face the camera (geometric and shading normal); texture : the albedo texture
-    used (None: ``albedo_const``).
+    width, height, spp : image size and camera samples per pixel
+    hit_idx : (M,) flat pixel index of each hit (a pixel appears up to spp times)
+    surf : dict of (M, k) float32 arrays: position (mm), geo_normal (facing the camera),
+        shading_normal (bump-mapped, facing the camera), wo (unit, towards the eye), uv,
+        albedo (linear)
+    front_idx : indices of the hits that are shaded (all of them: cl/surface.cl makes every
+        hit face the camera)
+    samples : the PixelSamples the hits come from (light samples included)
+    texture : the albedo texture used (None: ``albedo_const``)
     """
 
     width: int
     height: int
-    hits: object
+    spp: int
     hit_idx: np.ndarray
     surf: dict
     front_idx: np.ndarray
+    samples: PixelSamples
     texture: object
     kernel_seconds: float
 
+    @property
+    def coverage(self) -> np.ndarray:
+        """(H, W) float32 fraction of each pixel's camera samples that hit."""
+        c = np.bincount(self.hit_idx, minlength=self.width * self.height) / self.spp
+        return c.astype(np.float32).reshape(self.height, self.width)
 
-def pixel_surface(mesh, camera, *, maps=None, bump: str | None = None,
-                  visibility: Visibility | None = None, cl_env=None, textured: bool = True,
-                  albedo_const=(0.5, 0.5, 0.5)) -> PixelSurface:
-    """Camera rays through Embree, then cl/surface.cl: the shading inputs of every pixel.
+    @property
+    def mask(self) -> np.ndarray:
+        """(H, W) bool: some camera sample of the pixel hit."""
+        m = np.zeros(self.width * self.height, bool)
+        m[self.hit_idx] = True
+        return m.reshape(self.height, self.width)
+
+    def pixels(self, values: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
+        """(H*W, 3) float32 image of per-hit values (of hits ``idx``, default all): each
+        pixel is the sum of its hits' values / spp (box filter; misses count 0)."""
+        pix = self.hit_idx if idx is None else self.hit_idx[idx]
+        values = np.asarray(values, dtype=np.float64)
+        out = np.stack([np.bincount(pix, weights=values[:, c], minlength=self.width * self.height)
+                        for c in range(values.shape[1])], axis=1)
+        return (out / self.spp).astype(np.float32)
+
+
+def pixel_surface(mesh, camera, *, samples: PixelSamples | None = None, maps=None,
+                  bump: str | None = None, visibility: Visibility | None = None, cl_env=None,
+                  textured: bool = True, albedo_const=(0.5, 0.5, 0.5), spp: int = 1,
+                  seed: int = 0, lights=None) -> PixelSurface:
+    """cl/surface.cl at the camera hits of ``samples``: the shading inputs of every hit.
 
     Shared by the BRDF renderer and the BSSRDF gather so both see the same surface.
+    ``samples`` : the visibility artifact (stages/visibility.py); None casts camera rays here
+    (``spp``, ``seed``; and light samples of ``lights`` when given).
     ``textured=False`` ignores the albedo texture (``albedo_const`` everywhere).
     """
     from dermis.pipeline.cl import get_env
 
     env_cl = cl_env or get_env()
-    visibility = visibility or Visibility(mesh.vertices, mesh.faces)
-    w, h = int(camera.width), int(camera.height)
-    origins, directions = camera_rays(camera)
-    hits = visibility.intersect(origins, directions)
-    hit_idx = np.flatnonzero(hits.hit)
+    if samples is None:
+        samples = cast(mesh, lights or [], camera, spp=spp, seed=seed, visibility=visibility,
+                       cl_env=env_cl)
+    _check_samples(samples, camera, mesh)
     texture = maps.albedo_srgb if maps is not None else mesh.texture_srgb
     if not textured or (texture is not None and mesh.uv is None):
         texture = None  # no UVs (or asked for none): the constant albedo stands in
@@ -330,14 +251,13 @@ def pixel_surface(mesh, camera, *, maps=None, bump: str | None = None,
     if bump is not None:
         bump_map = maps.bump if bump == "sharp" else maps.bump_blur
     cam_pos = np.asarray(camera.position, dtype=np.float64)
-    surf, ks = _surface(env_cl, mesh, hits.tri[hit_idx], hits.bary[hit_idx], cam_pos,
-                        texture=texture, bump_map=bump_map,
-                        bump_range=float(maps.bump_range_mm) if maps is not None else 0.0,
-                        albedo_const=np.asarray(albedo_const, dtype=np.float32))
-    ng, ns, wo = surf["geo_normal"], surf["shading_normal"], surf["wo"]
-    # back faces and views below the shading horizon stay black (module docstring)
-    front = (np.einsum("ij,ij->i", ng, wo) > 0) & (np.einsum("ij,ij->i", ns, wo) > 0)
-    return PixelSurface(w, h, hits, hit_idx, surf, np.flatnonzero(front), texture, ks)
+    surf, ks = surface_attributes(env_cl, mesh, samples.tri, samples.bary, cam_pos,
+                                  texture=texture, bump_map=bump_map,
+                                  bump_range=float(maps.bump_range_mm) if maps is not None else 0.0,
+                                  albedo_const=np.asarray(albedo_const, dtype=np.float32))
+    m = len(samples.tri)
+    return PixelSurface(samples.width, samples.height, samples.spp,
+                        samples.pixel.astype(np.int64), surf, np.arange(m), samples, texture, ks)
 
 
 # --------------------------------------------------------------------------- render
@@ -376,65 +296,33 @@ class _Shader:
         return out, event_seconds(ev)
 
 
-def _unshadowed_samples(lights, visibility: Visibility, surf: dict, pts: np.ndarray,
-                        sampling: LightSampling, seed):
-    """Light samples of hits ``pts`` above both horizons that reach the light.
+def shade(px: PixelSurface, shader, progress=None) -> tuple[np.ndarray, dict]:
+    """Sum f W cos over every unoccluded light sample into its pixel, / spp.
 
-    Returns (index into ``pts``, directions, weights, shadow rays traced, sampling seconds).
+    Returns (H*W, 3) float64 radiance and a dict of seconds and counts.
     """
-    pos, ng, ns = surf["position"], surf["geo_normal"], surf["shading_normal"]
-    t0 = time.perf_counter()
-    ls = sample_lights(lights, pos[pts], ng[pts], samples=sampling.shadow_samples, seed=seed,
-                       env=sampling.env, env_strategy=sampling.env_strategy)
-    t_sampling = time.perf_counter() - t0
-    cos_s = np.einsum("nsk,nk->ns", ls.directions, ns[pts])
-    live = (cos_s > 0) & np.any(ls.weights > 0, axis=2)
-    ip, isamp = np.nonzero(live)
-    dirs = ls.directions[ip, isamp]
-    blocked = visibility.occluded(pos[pts][ip], ng[pts][ip], dirs, ls.distance[ip, isamp])
-    keep = ~blocked
-    ip, isamp, dirs = ip[keep], isamp[keep], dirs[keep]
-    return ip, dirs, ls.weights[ip, isamp], len(keep), t_sampling
-
-
-def _shade_hits(px: PixelSurface, lights, visibility: Visibility, shader: _Shader,
-                sampling: LightSampling, seed: int, per_point: int, progress):
-    """Shadows and shading of the front-facing hits in batches of ``CHUNK_SAMPLES`` samples.
-
-    Returns (M, 3) float64 radiance per hit and a dict of seconds and ray counts.
-    """
-    shade_idx, n_hits = px.front_idx, len(px.hit_idx)
-    chunk = max(1, CHUNK_SAMPLES // per_point)
-    radiance = np.zeros((n_hits, 3), dtype=np.float64)
-    stats = dict.fromkeys(("shadows", "shading", "light_sampling", "kernel_seconds"), 0.0)
-    stats.update(shadow_rays=0, shaded_samples=0)
-    for c, start in enumerate(range(0, len(shade_idx), chunk)):
-        pts = shade_idx[start:start + chunk]
-        t0 = time.perf_counter()
-        ip, dirs, wts, n_traced, t_sampling = _unshadowed_samples(lights, visibility, px.surf, pts,
-                                                                  sampling, (seed, c))
-        stats["light_sampling"] += t_sampling
-        stats["shadow_rays"] += n_traced
-        stats["shadows"] += time.perf_counter() - t0
-
-        t0 = time.perf_counter()
-        if len(ip):
-            gidx = pts[ip].astype(np.int32)
-            out, seconds = shader(gidx, dirs, wts)
-            stats["kernel_seconds"] += seconds
-            for ch in range(3):
-                radiance[:, ch] += np.bincount(gidx, weights=out[:, ch], minlength=n_hits)
-            stats["shaded_samples"] += len(ip)
-        stats["shading"] += time.perf_counter() - t0
+    samples = px.samples
+    n_pix = px.width * px.height
+    owner = np.repeat(np.arange(len(samples.counts), dtype=np.int32), samples.counts)
+    k_total = len(owner)
+    radiance = np.zeros((n_pix, 3), dtype=np.float64)
+    stats = {"kernel_seconds": 0.0, "shaded_samples": int(k_total)}
+    for start in range(0, k_total, CHUNK_SAMPLES):
+        sl = slice(start, min(k_total, start + CHUNK_SAMPLES))
+        gidx = owner[sl]
+        out, seconds = shader(gidx, samples.directions[sl], samples.weights[sl])
+        stats["kernel_seconds"] += seconds
+        pix = px.hit_idx[gidx]
+        for ch in range(3):
+            radiance[:, ch] += np.bincount(pix, weights=out[:, ch], minlength=n_pix)
         if progress is not None:
-            progress(min(1.0, (start + len(pts)) / max(len(shade_idx), 1)))
-    return radiance, stats
+            progress(min(1.0, sl.stop / max(k_total, 1)))
+    return radiance / px.spp, stats
 
 
 def _image(radiance: np.ndarray, px: PixelSurface) -> tuple[np.ndarray, int]:
-    """(H, W, 3) float32 image of the hits' radiance; non-finite values zeroed, pixels counted."""
-    image = np.zeros((px.height * px.width, 3), dtype=np.float32)
-    image[px.hit_idx] = radiance.astype(np.float32)
+    """(H, W, 3) float32 image of per-pixel radiance; non-finite values zeroed, pixels counted."""
+    image = radiance.astype(np.float32)
     bad = ~np.isfinite(image)
     nonfinite = int(bad.any(axis=1).sum())
     if nonfinite:  # never hand a NaN on; the count is recorded (tests require 0)
@@ -445,8 +333,8 @@ def _image(radiance: np.ndarray, px: PixelSurface) -> tuple[np.ndarray, int]:
 def render(mesh, light, model: str, params, camera, *, maps=None, bump: str | None = None,
            seed: int = 0, visibility: Visibility | None = None, asperity_base: str | None = None,
            base_params=None, cl_env=None, textured: bool = True,
-           sampling: LightSampling | None = None,
-           progress: Callable[[float], None] | None = None) -> RenderResult:
+           sampling: LightSampling | None = None, samples: PixelSamples | None = None,
+           spp: int = 1, progress: Callable[[float], None] | None = None) -> RenderResult:
     """Render one image of ``mesh`` under ``light`` with a BRDF model.
 
     Parameters
@@ -464,7 +352,7 @@ def render(mesh, light, model: str, params, camera, *, maps=None, bump: str | No
     bump : {None, "sharp", "blur"}
         Bump-map the shading normal with ``maps.bump`` or ``maps.bump_blur`` (needs maps and UVs).
     seed : int
-        Seed of the light samples (results are deterministic for a seed and chunk size).
+        Seed of the camera jitter and light samples when they are cast here.
     visibility : physics.visibility.Visibility, optional
         Embree scene of ``mesh`` built earlier (build once, render many).
     asperity_base : {"none", "lambert", "lafortune", "hk93"}, optional
@@ -476,7 +364,13 @@ def render(mesh, light, model: str, params, camera, *, maps=None, bump: str | No
         False ignores the albedo texture (the model's constant albedo everywhere), e.g. to
         render only Lafortune's specular lobes (rho_d = 0) on top of a BSSRDF image.
     sampling : LightSampling, optional
-        Research options of the light sampling (sample count, environment map, strategy).
+        Research options of the light sampling (sample count, environment map, strategy);
+        only used when the samples are cast here.
+    samples : PixelSamples, optional
+        The shared visibility (stages/visibility.py) of this mesh, light and camera; ``light``,
+        ``seed``, ``spp`` and ``sampling`` are then not used for casting.
+    spp : int
+        Camera samples per pixel when cast here (1 = the pixel centre).
     progress : callable(float), optional
         Called with the completed fraction in [0, 1].
 
@@ -485,7 +379,7 @@ def render(mesh, light, model: str, params, camera, *, maps=None, bump: str | No
     ConfigError
         Unknown model, wrong parameter type, bad camera, light or sampling option.
     DermisError
-        Malformed mesh or maps, bump without maps/UVs.
+        Malformed mesh or maps, bump without maps/UVs, samples of another camera or mesh.
     """
     from dermis.pipeline.cl import get_env
 
@@ -494,44 +388,50 @@ def render(mesh, light, model: str, params, camera, *, maps=None, bump: str | No
     base, bparams, asp = _resolve_model(model, params, asperity_base, base_params)
     lights = list(light) if isinstance(light, (list, tuple)) else [light]
     _check_bump(mesh, maps, bump)
-    sampling = _light_sampling(sampling, lights)
     env_cl = cl_env or get_env()
 
+    scene_build = t_visibility = 0.0
+    if samples is None:
+        t0 = time.perf_counter()
+        if visibility is None:
+            visibility = Visibility(mesh.vertices, mesh.faces)
+            scene_build = time.perf_counter() - t0
+        samples = cast(mesh, lights, camera, spp=spp, seed=seed, visibility=visibility,
+                       sampling=sampling, cl_env=env_cl)
+        t_visibility = time.perf_counter() - t0 - scene_build
     t0 = time.perf_counter()
-    if visibility is None:
-        visibility = Visibility(mesh.vertices, mesh.faces)
-        scene_build = time.perf_counter() - t0
-    else:
-        scene_build = 0.0
-    t0 = time.perf_counter()
-    px = pixel_surface(mesh, camera, maps=maps, bump=bump, visibility=visibility, cl_env=env_cl,
+    px = pixel_surface(mesh, camera, samples=samples, maps=maps, bump=bump, cl_env=env_cl,
                        textured=textured, albedo_const=_fallback_albedo(base, bparams))
-    t_visibility = time.perf_counter() - t0
+    t_surface = time.perf_counter() - t0
 
+    t0 = time.perf_counter()
     shader = _Shader(env_cl, base, bparams, asp, px)
-    per_point = sum(1 if lt.type in ("point", "directional")
-                    else int(sampling.shadow_samples or lt.samples) for lt in lights)
-    radiance, stats = _shade_hits(px, lights, visibility, shader, sampling, seed, per_point,
-                                  progress)
+    radiance, stats = shade(px, shader, progress)
     image, nonfinite = _image(radiance, px)
+    t_shading = time.perf_counter() - t0
     if progress is not None:
         progress(1.0)
-    timings = {"visibility": t_visibility, "shadows": stats["shadows"], "shading": stats["shading"],
-               "light_sampling": stats["light_sampling"],
+    timings = {"visibility": t_visibility, "surface": t_surface, "shading": t_shading,
                "kernel_seconds": px.kernel_seconds + stats["kernel_seconds"],
                "scene_build": scene_build, "total": time.perf_counter() - t_start}
     w, h = px.width, px.height
+    vinfo = samples.info or {}
     info = {
         "model": model, "base": base if asp is not None else model,
-        "lights": [lt.name for lt in lights], "light_types": [lt.type for lt in lights],
-        "width": w, "height": h, "samples_per_pixel": per_point, "seed": int(seed),
-        "bump": bump, "textured": px.texture is not None, "env_strategy": sampling.env_strategy,
-        "primary_rays": int(h * w), "hits": int(len(px.hit_idx)),
-        "shaded_pixels": int(len(px.front_idx)), "shadow_rays": int(stats["shadow_rays"]),
+        "lights": vinfo.get("lights", [lt.name for lt in lights]),
+        "light_types": vinfo.get("light_types", [lt.type for lt in lights]),
+        "width": w, "height": h, "spp": int(samples.spp),
+        "light_samples_per_hit": vinfo.get("light_samples_per_hit"),
+        "seed": vinfo.get("seed", int(seed)),
+        "bump": bump, "textured": px.texture is not None,
+        "env_strategy": vinfo.get("env_strategy"),
+        "primary_rays": vinfo.get("primary_rays"), "hits": int(len(px.hit_idx)),
+        "shadow_rays": vinfo.get("shadow_rays"),
         "shaded_samples": int(stats["shaded_samples"]), "triangles": int(len(mesh.faces)),
         "nonfinite_pixels": nonfinite, "device": env_cl.description,
     }
-    return RenderResult(linear=image, mask=px.hits.hit.reshape(h, w), timings=timings, info=info)
+    return RenderResult(linear=image, mask=px.mask, coverage=px.coverage, timings=timings,
+                        info=info)
 
 
 # --------------------------------------------------------------------------- stage
@@ -543,23 +443,29 @@ GEOMETRY = {"high": ("mesh_high", None), "low": ("mesh_low", None),
             "low_bump": ("mesh_low", "sharp"), "low_bump_blur": ("mesh_low", "blur")}
 
 
-def geometry_inputs(geometry: str) -> dict:
-    """Upstream roles of an image of ``geometry``: its mesh, and the baked maps when bumped."""
+def geometry_inputs(geometry: str, label: str | None = None) -> dict:
+    """Upstream roles of an image of ``geometry``: its mesh, the baked maps when bumped, and
+    (given the lighting ``label``) the shared visibility of that mesh and lighting."""
     mesh_node, bump = GEOMETRY[geometry]
-    return {"mesh": mesh_node, **({"maps": "bake"} if bump else {})}
+    return {"mesh": mesh_node, **({"maps": "bake"} if bump else {}),
+            **({"visibility": visibility_id(mesh_node, label)} if label is not None else {})}
+
+
+def visibility_id(mesh_node: str, label: str) -> str:
+    """Node id of the shared visibility of a mesh and lighting condition (stages/visibility.py)."""
+    return f"visibility-{mesh_node}-{label}"
 
 
 def node(scene, model: str, label: str, lights: tuple, geometry: str) -> Node:
-    from dermis.physics.lights import light_params
+    """One image; the lights, camera rays and seed reach it through its visibility input."""
     base = scene.render.asperity_base if model == "asperity" else None
     uses_optics = model == "hk93" or base == "hk93"
-    params = {"model": model, "label": label, "geometry": geometry, **light_params(lights),
+    params = {"model": model, "label": label, "geometry": geometry,
               "camera": asdict(scene.camera), "bump": GEOMETRY[geometry][1],
-              "seed": scene.mesh.seed, "asperity_base": base,
+              "asperity_base": base,
               "optics": scene.optics.to_dict() if uses_optics else None}
     return Node(f"render-{model}-{label}-{geometry}", NAME, __name__, params,
-                geometry_inputs(geometry), label=f"{model} / {label} / {geometry}",
-                locations=("lights[].map",))
+                geometry_inputs(geometry, label), label=f"{model} / {label} / {geometry}")
 
 
 def model_params(model: str, asperity_base: str | None, optics: dict | None):
@@ -577,14 +483,14 @@ def model_params(model: str, asperity_base: str | None, optics: dict | None):
 
 
 def run(params: dict, inputs: dict, ctx) -> StageResult:
-    mesh, model = inputs["mesh"], params["model"]
+    mesh, model, samples = inputs["mesh"], params["model"], inputs["visibility"]
     p, base_params = model_params(model, params["asperity_base"], params["optics"])
-    lights = [LightConfig(**d) for d in params["lights"]]
-    result = render(mesh, lights, model, p, CameraConfig(**params["camera"]),
-                    maps=inputs.get("maps"), bump=params["bump"], seed=params["seed"],
-                    visibility=shared_visibility(mesh, ctx.memo),
+    result = render(mesh, [], model, p, CameraConfig(**params["camera"]),
+                    maps=inputs.get("maps"), bump=params["bump"], samples=samples,
                     asperity_base=params["asperity_base"], base_params=base_params,
                     cl_env=ctx.cl, progress=ctx.progress)
+    result.timings["visibility_shared"] = float(
+        (samples.info.get("timings") or {}).get("total", 0.0))
     name = f"{model}-{params['label']}-{params['geometry']}"
     write_exr(ctx.out_dir / f"{name}.exr", result.linear)
     image = RenderedImage(result.linear, result.mask, dict(result.timings),

@@ -74,11 +74,12 @@ def test05_graph_holds_only_what_outputs_need():
                                                         "geometries": ["high"]}})
     nodes, _ = build_graph(brdf_high)
     assert set(nodes) == {"mesh_source", "mesh_high", "mesh_previews", "images"} | {  # no report
-        f"render-lafortune-{l}-high" for l in ("point", "area", "dir_left+dir_right", "sunset")}
+        n for l in ("point", "area", "dir_left+dir_right", "sunset")
+        for n in (f"render-lafortune-{l}-high", f"visibility-mesh_high-{l}")}
     unbumped = load_scene(QUICK, overrides={"render": {"geometries": ["low"]},
                                             "output": {"previews": False}})
     nodes, _ = build_graph(unbumped)
-    assert {n for n in nodes if not n.startswith(("render-", "irradiance-"))} == {
+    assert {n for n in nodes if not n.startswith(("render-", "irradiance-", "visibility-"))} == {
         "mesh_source", "mesh_high", "mesh_low", "profiles", "samples-mesh_low", "images",
         "report"}
     no_bssrdf = load_scene(QUICK, overrides={"render": {"models": ["lafortune", "hk93"]}})
@@ -93,7 +94,7 @@ def test06_cli_run_status_clean(built, capsys):
     out = capsys.readouterr().out
     assert "mesh_source" in out and "cached" in out and " ran " not in out
     assert main(["status", str(QUICK), "--cache", cache]) == 0
-    assert "0 of 66 stages stale" in capsys.readouterr().out
+    assert "0 of 74 stages stale" in capsys.readouterr().out   # 66 + 8 shared visibilities
     assert main(["run", str(QUICK), "--cache", cache, "--until", "nope"]) == 2
     capsys.readouterr()
     assert main(["clean", "--cache", cache, "--stage", "profiles"]) == 0

@@ -83,7 +83,7 @@ def test01_lambert_sphere_directional_matches_analytic(sphere, cl_env):
     assert np.all(img[dark] == 0)
     assert np.all(img[~res.mask.ravel()] == 0)
     assert res.info["nonfinite_pixels"] == 0
-    assert set(res.timings) >= {"visibility", "shadows", "shading", "kernel_seconds"}
+    assert set(res.timings) >= {"visibility", "surface", "shading", "kernel_seconds"}
 
 
 def test02_point_light_inverse_square_on_plane(cl_env):
@@ -130,9 +130,13 @@ def test03_no_nan_grazing_backfacing_and_misses(cl_env):
             assert res.info["nonfinite_pixels"] == 0
             assert np.all(res.linear >= 0)
             assert np.all(res.linear[~res.mask] == 0)
-            # the back-facing plane is covered but black
+            # the plane seen from behind is two-sided (cl/surface.cl): shaded, not black,
+            # under the sky around it (4 samples: a few pixels next to the sphere see it
+            # with all of them)
             backside = res.mask[:, 40:]
-            assert backside.any() and np.all(res.linear[:, 40:][backside] == 0)
+            assert backside.any()
+            if light.name == "e":
+                assert np.mean(res.linear[:, 40:][backside].max(axis=1) > 0) > 0.95, model
             assert res.mask.any() and not res.mask.all()
 
 

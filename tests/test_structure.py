@@ -111,7 +111,8 @@ def base_keys(scene):
 
 def _stage_of(nid: str) -> str:
     for prefix, name in (("render-bssrdf-", "bssrdf"), ("render-", "render"),
-                         ("samples-", "samples"), ("irradiance-", "irradiance")):
+                         ("samples-", "samples"), ("irradiance-", "irradiance"),
+                         ("visibility-", "visibility")):
         if nid.startswith(prefix):
             return name
     return nid
@@ -119,15 +120,16 @@ def _stage_of(nid: str) -> str:
 
 # file -> the stages whose nodes execute it (from what each stage runs, written out by hand)
 PROBE = {
-    "cl/surface.cl": {"render", "bssrdf"},             # pixel_surface: BRDF and BSSRDF images
+    "cl/surface.cl": {"render", "bssrdf", "visibility"},  # hit attributes: rays + images
     "cl/optics.h": {"render", "bssrdf", "irradiance"},  # Fresnel in the BRDFs; irradiance
                                                        # imports brdf_models (entry transmittance)
     "cl/bssrdf_gather.cl": {"bssrdf"},
     "stages/render.py": {"render", "bssrdf"},          # pixel_surface + surface term
     "stages/brdf_models.py": {"render", "bssrdf", "irradiance"},  # the BSSRDF's surface lobes
                                                        # and the entry transmittance they cap
-    "physics/visibility.py": {"render", "bssrdf", "irradiance"},
-    "physics/lights.py": {"render", "bssrdf", "irradiance"},
+    "physics/visibility.py": {"render", "bssrdf", "irradiance", "visibility"},
+    "physics/lights.py": {"render", "bssrdf", "irradiance", "visibility"},
+    "stages/visibility.py": {"visibility", "render", "bssrdf"},   # shared rays, hit attributes
     "pipeline/plan.py": set(),                         # decides which nodes exist, runs in none
     "reports/diff.py": {"report"},
     "reports/tonemap.py": {"images", "report"},        # tone mapping is not part of rendering

@@ -1,0 +1,279 @@
+"""Stage ``visibility``: the camera and shadow rays of one mesh under one lighting condition,
+cast once and shared by every model rendered with them (BRDF models and the BSSRDF).
+
+Per (mesh, lighting condition, camera, ``[render] spp``, seed) this stage
+
+1. casts ``spp`` stratified camera rays per pixel through Embree
+   (:func:`dermis.physics.visibility.subpixel_offsets`; one ray through the pixel centre
+   when spp = 1);
+2. evaluates the model-independent surface attributes at the hits with ``cl/surface.cl``
+   (position, two-sided geometric normal facing the camera, interpolated vertex normal);
+3. draws the light samples of every hit (:func:`dermis.physics.lights.sample_lights` with
+   ``share = spp``: a disc or environment light's S samples per pixel are spread over the
+   pixel's sub-pixel samples, ceil(S / spp) each, so anti-aliasing costs no extra light
+   samples) and traces their shadow rays;
+4. keeps the unoccluded samples above the geometric horizon: direction and weight per sample,
+   grouped by hit (:class:`dermis.pipeline.artifacts.PixelSamples`).
+
+The render nodes (``stages/render.py``, ``stages/bssrdf.py``) take this artifact as an input,
+so the models under one light on one mesh shade the same rays, and changing a model's
+parameters recasts no ray.  The sharing is also why the model images are comparable pixel
+by pixel: their Monte Carlo noise is the same noise.  Bump-mapped geometries of the low mesh
+share its visibility too: the bump moves the shading normal only (samples it puts below the
+shading horizon get cos = 0 in the shading kernel).
+
+Conventions: mm, linear RGB; pixel index row-major from the top-left.
+Guarded by tests/test_antialias.py and tests/test_render.py.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, replace
+
+import numpy as np
+
+from dermis.pipeline.artifacts import PixelSamples
+from dermis.pipeline.config import CameraConfig, LightConfig
+from dermis.pipeline.errors import ConfigError
+from dermis.pipeline.graph import Node, StageResult
+from dermis.physics.color import srgb_to_linear
+from dermis.physics.lights import EnvironmentMap, environment_map, light_params, sample_lights
+from dermis.physics.visibility import (Visibility, camera_rays, shared as shared_visibility,
+                                       subpixel_offsets)
+
+__all__ = ["NAME", "VERSION", "KERNELS", "LightSampling", "cast", "surface_attributes",
+           "samples_per_hit", "node", "run"]
+
+NAME = "visibility"
+VERSION = 1
+KERNELS = ("surface.cl",)
+
+# Light samples drawn and traced per batch: bounds memory (~100 bytes a sample while
+# sampling) while keeping Embree and numpy calls large.
+CHUNK_SAMPLES = 1 << 20
+# Camera rays per Embree call.
+CHUNK_RAYS = 1 << 21
+
+
+@dataclass(frozen=True)
+class LightSampling:
+    """Research options of the light sampling (the pipeline uses the defaults).
+
+    shadow_samples : light samples per PIXEL for disc and environment lights (None: each
+        light's ``samples``, 16 in the thesis); spread over the pixel's camera samples
+    env : pre-built EnvironmentMap for an environment light (None: from ``light.map``, cached)
+    env_strategy : "mis" (luminance and cosine samples about the geometric normal) or
+        "luminance" (:func:`physics.lights.sample_lights`)
+    """
+
+    shadow_samples: int | None = None
+    env: EnvironmentMap | None = None
+    env_strategy: str = "mis"
+
+
+def _light_sampling(sampling: LightSampling | None, lights) -> LightSampling:
+    """``sampling`` (defaults when None), checked, with the environment map a light needs."""
+    sampling = sampling if sampling is not None else LightSampling()
+    if sampling.shadow_samples is not None and int(sampling.shadow_samples) < 1:
+        raise ConfigError(f"shadow_samples = {sampling.shadow_samples}: must be >= 1")
+    env = sampling.env
+    for lt in lights:
+        if lt.type == "environment" and env is None:
+            env = environment_map(lt)
+    return replace(sampling, env=env)
+
+
+def samples_per_hit(lights, spp: int, shadow_samples: int | None = None) -> int:
+    """Light samples drawn per camera hit: 1 per point or directional light, ceil(S / spp)
+    per disc or environment light (S = ``shadow_samples`` or the light's ``samples``)."""
+    n = 0
+    for lt in lights:
+        if lt.type in ("point", "directional"):
+            n += 1
+        else:
+            n += -(-int(shadow_samples or lt.samples) // spp)
+    return n
+
+
+# --------------------------------------------------------------------------- OpenCL helpers
+def _buf(cl, env, array):
+    array = np.ascontiguousarray(array)
+    if array.nbytes == 0:
+        array = np.zeros(4, dtype=array.dtype)
+    return cl.Buffer(env.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
+                     hostbuf=array)
+
+
+def _global_size(n: int) -> tuple[int]:
+    return (max(64, -(-n // 64) * 64),)
+
+
+def surface_attributes(env, mesh, hits_tri, hits_bary, camera_pos, *, texture=None,
+                       bump_map=None, bump_range=0.0, albedo_const=(0.5, 0.5, 0.5)):
+    """Run cl/surface.cl on the hits: dict of (M, k) float32 arrays (position, geo_normal,
+    shading_normal, wo, uv, albedo) and the kernel seconds.
+
+    Normals are two-sided (both face the camera) and the shading normal is bent to at least
+    ``NS_MIN_COS`` towards the camera (cl/surface.cl), so every hit can be shaded.
+    """
+    import pyopencl as cl
+    from dermis.pipeline.cl import event_seconds
+
+    m = len(hits_tri)
+    has_uv = mesh.uv is not None
+    defines = {"HAS_UV": int(has_uv), "HAS_TEXTURE": int(texture is not None and has_uv),
+               "HAS_BUMP": int(bump_map is not None and has_uv)}
+    kern = cl.Kernel(env.program("surface.cl", defines), "surface")
+    lut = srgb_to_linear(np.arange(256, dtype=np.float32) / 255.0).astype(np.float32)
+    tex = texture if texture is not None else np.zeros((1, 1, 3), np.uint8)
+    bmp = bump_map if bump_map is not None else np.zeros((1, 1), np.float32)
+    ins = [
+        _buf(cl, env, np.asarray(hits_tri, dtype=np.int32)),
+        _buf(cl, env, np.asarray(hits_bary, dtype=np.float32)),
+        np.int32(m),
+        _buf(cl, env, np.asarray(mesh.vertices, dtype=np.float32)),
+        _buf(cl, env, np.asarray(mesh.faces, dtype=np.int32)),
+        _buf(cl, env, mesh.vertex_normals()),
+        _buf(cl, env, np.asarray(mesh.uv if has_uv else np.zeros((1, 2)), dtype=np.float32)),
+        _buf(cl, env, np.asarray(mesh.uv_faces if has_uv else np.zeros((1, 3)), dtype=np.int32)),
+        _buf(cl, env, np.ascontiguousarray(tex, dtype=np.uint8)),
+        np.int32(tex.shape[1]), np.int32(tex.shape[0]), _buf(cl, env, lut),
+        _buf(cl, env, np.asarray(bmp, dtype=np.float32)),
+        np.int32(bmp.shape[1]), np.int32(bmp.shape[0]), np.float32(bump_range),
+        *(np.float32(c) for c in camera_pos),
+    ]
+    shapes = {"position": 3, "geo_normal": 3, "shading_normal": 3, "wo": 3, "uv": 2,
+              "albedo": 3}
+    outs = {k: np.empty((max(m, 1), c), dtype=np.float32) for k, c in shapes.items()}
+    bufs = {k: cl.Buffer(env.context, cl.mem_flags.WRITE_ONLY, a.nbytes) for k, a in outs.items()}
+    ev = kern(env.queue, _global_size(m), None, *ins, *bufs.values(),
+              *(np.float32(c) for c in albedo_const))
+    for k in outs:
+        cl.enqueue_copy(env.queue, outs[k], bufs[k], wait_for=[ev])
+    env.queue.finish()
+    return {k: v[:m] for k, v in outs.items()}, event_seconds(ev)
+
+
+# --------------------------------------------------------------------------- casting
+def _primary(vis: Visibility, camera, spp: int, seed: int):
+    """Camera hits: (flat pixel index, triangle, barycentrics) of every sub-pixel ray that
+    hit, and the number of rays cast."""
+    w, h = int(camera.width), int(camera.height)
+    rng = np.random.default_rng((int(seed), 1))
+    offsets = subpixel_offsets(w * h, spp, rng)
+    rows_per = max(1, CHUNK_RAYS // (w * spp))
+    pix, tri, bary = [], [], []
+    for r0 in range(0, h, rows_per):
+        r1 = min(h, r0 + rows_per)
+        o, d = camera_rays(camera, offsets, rows=(r0, r1))
+        hits = vis.intersect(o, d)
+        ok = np.flatnonzero(hits.hit)
+        pix.append((ok // spp + r0 * w).astype(np.int32))
+        tri.append(hits.tri[ok])
+        bary.append(hits.bary[ok])
+    return (np.concatenate(pix), np.concatenate(tri), np.concatenate(bary), w * h * spp)
+
+
+def cast(mesh, lights, camera, *, spp: int = 1, seed: int = 0,
+         visibility: Visibility | None = None, sampling: LightSampling | None = None,
+         cl_env=None, progress=None) -> PixelSamples:
+    """Camera rays, light samples and shadow rays of one image (module docstring).
+
+    Parameters
+    ----------
+    mesh : pipeline.artifacts.Mesh (mm)
+    lights : LightConfig or sequence of LightConfig (summed)
+    camera : pipeline.config.CameraConfig
+    spp : int >= 1, camera samples per pixel (1 = the pixel centre)
+    seed : int, seeds the sub-pixel jitter and the light samples (deterministic)
+    visibility : physics.visibility.Visibility of ``mesh`` built earlier, optional
+    sampling : LightSampling, optional research options
+    cl_env : pipeline.cl.ClEnv, optional
+    progress : callable(float), optional
+
+    Returns
+    -------
+    pipeline.artifacts.PixelSamples
+    """
+    from dermis.pipeline.cl import get_env
+
+    t_start = time.perf_counter()
+    spp = int(spp)
+    if spp < 1:
+        raise ConfigError(f"render.spp = {spp}: must be >= 1")
+    lights = list(lights) if isinstance(lights, (list, tuple)) else [lights]
+    sampling = _light_sampling(sampling, lights)
+    env_cl = cl_env or get_env()
+    vis = visibility or Visibility(mesh.vertices, mesh.faces)
+    pixel, tri, bary, n_rays = _primary(vis, camera, spp, seed)
+    t_primary = time.perf_counter() - t_start
+
+    t0 = time.perf_counter()
+    cam_pos = np.asarray(camera.position, dtype=np.float64)
+    surf, k_s = surface_attributes(env_cl, mesh, tri, bary, cam_pos)
+    pos, ng = surf["position"], surf["geo_normal"]
+    t_surface = time.perf_counter() - t0
+
+    per_hit = samples_per_hit(lights, spp, sampling.shadow_samples)
+    chunk = max(1, CHUNK_SAMPLES // max(per_hit, 1))
+    m = len(tri)
+    counts = np.zeros(m, dtype=np.int32)
+    dirs, wts = [], []
+    t_sampling = t_shadows = 0.0
+    n_shadow = 0
+    for c, start in enumerate(range(0, m, chunk)):
+        sl = slice(start, min(m, start + chunk))
+        t0 = time.perf_counter()
+        ls = sample_lights(lights, pos[sl], ng[sl], samples=sampling.shadow_samples,
+                           seed=(int(seed), 0, c), env=sampling.env,
+                           env_strategy=sampling.env_strategy, share=spp)
+        live = np.any(ls.weights > 0, axis=2)
+        ip, isamp = np.nonzero(live)         # row-major: grouped by hit, in hit order
+        d = ls.directions[ip, isamp]
+        t1 = time.perf_counter()
+        t_sampling += t1 - t0
+        blocked = vis.occluded(pos[sl][ip], ng[sl][ip], d, ls.distance[ip, isamp])
+        n_shadow += len(ip)
+        keep = ~blocked
+        ip, isamp = ip[keep], isamp[keep]
+        counts[sl] = np.bincount(ip, minlength=sl.stop - sl.start)
+        dirs.append(d[keep])
+        wts.append(ls.weights[ip, isamp])
+        t_shadows += time.perf_counter() - t1
+        if progress is not None:
+            progress(min(1.0, sl.stop / max(m, 1)))
+    directions = np.concatenate(dirs) if dirs else np.zeros((0, 3), np.float32)
+    weights = np.concatenate(wts) if wts else np.zeros((0, 3), np.float32)
+    w, h = int(camera.width), int(camera.height)
+    info = {"lights": [lt.name for lt in lights], "light_types": [lt.type for lt in lights],
+            "width": w, "height": h, "spp": spp, "seed": int(seed),
+            "light_samples_per_hit": per_hit, "env_strategy": sampling.env_strategy,
+            "primary_rays": int(n_rays), "hits": int(m), "shadow_rays": int(n_shadow),
+            "unoccluded_samples": int(len(directions)), "triangles": int(len(mesh.faces)),
+            "timings": {"primary": t_primary, "surface": t_surface,
+                        "light_sampling": t_sampling, "shadows": t_shadows,
+                        "kernel_seconds": k_s, "total": time.perf_counter() - t_start}}
+    return PixelSamples(width=w, height=h, spp=spp, pixel=pixel.astype(np.int32),
+                        tri=tri.astype(np.int32), bary=bary.astype(np.float32), counts=counts,
+                        directions=np.ascontiguousarray(directions, dtype=np.float32),
+                        weights=np.ascontiguousarray(weights, dtype=np.float32), info=info)
+
+
+# --------------------------------------------------------------------------- stage
+def node(scene, mesh_node: str, label: str, lights: tuple) -> Node:
+    """One node per mesh x lighting condition (camera, spp and seed from the scene)."""
+    params = {"mesh": mesh_node, "label": label, **light_params(lights),
+              "camera": asdict(scene.camera), "spp": scene.render.spp, "seed": scene.mesh.seed}
+    return Node(f"visibility-{mesh_node}-{label}", NAME, __name__, params, {"mesh": mesh_node},
+                label=f"rays {mesh_node} / {label}", locations=("lights[].map",))
+
+
+def run(params: dict, inputs: dict, ctx) -> StageResult:
+    mesh = inputs["mesh"]
+    lights = [LightConfig(**d) for d in params["lights"]]
+    samples = cast(mesh, lights, CameraConfig(**params["camera"]), spp=params["spp"],
+                   seed=params["seed"], visibility=shared_visibility(mesh, ctx.memo),
+                   cl_env=ctx.cl, progress=ctx.progress)
+    samples.info["label"] = params["label"]
+    return StageResult(samples, info={"timings": samples.info["timings"],
+                                      "kernel_seconds": samples.info["timings"]["kernel_seconds"]})
