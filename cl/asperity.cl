@@ -17,13 +17,15 @@
  * (K-P use 1).
  * This is a term ADDED on top of a skin model (the base is the renderer's choice; the default
  * is documented with stages/brdf_models.py AsperityParams), never a material on its own.
- * The base lies under the layer, so its light crosses the layer twice: asperity_transmit is
- * the layer's transmittance exp(-tau (1/max(mu_i, tau) + 1/max(mu_o, tau))) (same clamp),
- * which cl/shade.cl multiplies the base by (flag [5]; the layering of Hanrahan-Krueger 1993,
- * docs/physics.md §5).  With it the directional albedo of term + base is at most
- * x/2 + e^{-x} <= 1 (x = tau / max(mu, tau) <= 1) for any base of albedo <= 1
- * (tests/test_energy.py); without it a Lambert base above albedo ~0.51 exceeds 1 near
- * grazing.
+ * The base lies under the layer, so its light crosses the layer twice (flag [5];
+ * docs/physics.md §5).  To the model's own first order the layer intercepts
+ * e1(mu) = tau (1 - tau/2) / max(mu, tau) of a beam (same clamp), scatters a of it (half
+ * back: the term's albedo A = a e1 / 2; half on, its angular spread neglected) and absorbs
+ * 1 - a: the base receives T(mu) = 1 - (1 - a/2) e1(mu), both ways, so cl/shade.cl
+ * multiplies the base by asperity_transmit = T(mu_i) T(mu_o).  Then the directional albedo
+ * of term + base is at most A + T = 1 - (1 - a) e1 <= 1 for any base whose own albedo is
+ * <= 1 (tests/test_energy.py); without it a Lambert base above albedo ~0.51 exceeds 1 near
+ * grazing.  Reciprocal (symmetric product).
  *
  * Conventions: local frame, z = shading normal; wo, wi unit, pointing away from the surface;
  * f excludes the cosine; float32; Delta and lambda in mm (only their ratio enters f).
@@ -52,12 +54,15 @@ inline float3 asperity_f(float3 wo, float3 wi, __constant const float *p) {
     return (wo.z > 0.0f && wi.z > 0.0f) ? f : (float3)(0.0f);
 }
 
-/* Transmittance of the layer seen by a base model below it, both ways (header comment);
- * 1 where the flag is off. */
-inline float asperity_transmit(float3 wo, float3 wi, __constant const float *p) {
+/* Transmittance of the layer seen by a base model below it, both ways, RGB (header
+ * comment); 1 where the flag is off. */
+inline float3 asperity_transmit(float3 wo, float3 wi, __constant const float *p) {
     float tau = p[0];
-    float t = exp(-tau * (1.0f / fmax(wo.z, tau) + 1.0f / fmax(wi.z, tau)));
-    return p[5] != 0.0f ? t : 1.0f;
+    float3 keep = (float3)(1.0f) - 0.5f * vload3(0, p + 2);   /* 1 - a/2 */
+    float e = tau * (1.0f - 0.5f * tau);
+    float3 t = ((float3)(1.0f) - keep * (e / fmax(wo.z, tau)))
+             * ((float3)(1.0f) - keep * (e / fmax(wi.z, tau)));
+    return p[5] != 0.0f ? t : (float3)(1.0f);
 }
 
 #ifndef DERMIS_NO_EVAL_KERNELS

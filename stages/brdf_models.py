@@ -246,6 +246,7 @@ class Transmittance:
 
     _TABLES: dict = {}
     N = 2049
+    LOOKUP = 1 << 16
 
     def __init__(self, eta: float, surface_reflection: str = "none"):
         if surface_reflection not in ("none", "lafortune_lobes"):
@@ -266,15 +267,19 @@ class Transmittance:
             tm = np.stack([np.interp(mid, mu, t[:, c]) for c in range(3)], axis=1)
             self._TABLES[key] = (mu, t, (tm * 2.0 * mid[:, None]).sum(axis=0) / 4096)
         self._mu, self._t, self.mean = self._TABLES[key]
+        fine = np.linspace(0.0, 1.0, self.LOOKUP + 1)
+        self._fine = np.stack([np.interp(fine, self._mu, self._t[:, k]) for k in range(3)],
+                              axis=1).astype(np.float32)
+        self._fine[0] = 0.0   # cos <= 0 (clipped to 0): nothing crosses
 
     def __call__(self, cos) -> np.ndarray:
-        """(..., 3) float64 T at cosines ``cos`` (0 where cos <= 0)."""
-        c = np.asarray(cos, np.float64)
-        flat = c.ravel()
-        out = np.stack([np.interp(flat, self._mu, self._t[:, k], left=0.0) for k in range(3)],
-                       axis=1)
-        out[flat <= 0] = 0.0
-        return out.reshape(c.shape + (3,))
+        """(..., 3) float32 T at cosines ``cos`` (0 where cos <= 0): the nearest of
+        ``LOOKUP`` + 1 uniform cosines (the irradiance pass applies it to ~16M light samples
+        per mesh and light; error < 3e-5 at grazing, where T rises steepest, ~1e-6 elsewhere)."""
+        c = np.asarray(cos, np.float32)
+        i = (np.clip(c.ravel(), 0.0, 1.0) * np.float32(self.LOOKUP) + np.float32(0.5)).astype(
+            np.int32)
+        return self._fine.take(i, axis=0).reshape(c.shape + (3,))
 
     def __repr__(self) -> str:
         return f"Transmittance(eta={self.eta}, surface_reflection={self.surface_reflection!r})"
@@ -589,13 +594,13 @@ class AsperityParams:
         cheaper candidate.  "lafortune" and "hk93" are accepted.
     attenuate_base : bool
         The base is seen through the asperity layer (default True; docs/physics.md §5): its
-        BRDF is multiplied by the layer's transmittance both ways,
-        exp(-tau (1 / max(mu_i, tau) + 1 / max(mu_o, tau))) (the same cosine clamp as the
-        term), as Hanrahan-Krueger attenuate a lower layer by the one above it.  Then the
-        directional albedo of term + base is <= tau / (2 mu) + exp(-tau / mu) <= 1 for
-        any base whose own albedo is <= 1.  False adds the term on top of the full base
-        (the thesis's sum), which exceeds albedo 1 for a Lambert base above ~0.51 near
-        grazing.
+        BRDF is multiplied by T(mu_i) T(mu_o), T(mu) = 1 - (1 - albedo/2) e1(mu), the light
+        the layer neither reflects nor absorbs to the term's own first order
+        (e1 = tau (1 - tau/2) / max(mu, tau) intercepted, half of the scattered part sent
+        back as the term, half on to the base).  Then term + base reflect at most
+        1 - (1 - albedo) e1 <= 1 for any base whose own albedo is <= 1 (cl/asperity.cl).
+        False adds the term on top of the full base (the thesis's sum), which exceeds albedo
+        1 for a Lambert base above ~0.51 near grazing.
     """
 
     delta_mm: float = 1.0

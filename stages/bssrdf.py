@@ -65,7 +65,8 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     from dermis.physics.visibility import shared as shared_embree
     transmit = gather.Transmittance(params["eta"], b["surface_reflection"])
     M, stats = gather.exitance(inputs["points"], inputs["irradiance"].irradiance, profile,
-                               surf["position"][front], shading_normals=surf["shading_normal"][front],
+                               surf["position"][front],
+                               shading_normals=surf["shading_normal"][front],
                                geo_normals=surf["geo_normal"][front], lights=lights,
                                visibility=shared_embree(mesh, ctx.memo), epsilon=b["epsilon"],
                                transmittance=transmit, normalisation=b["normalisation"],

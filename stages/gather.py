@@ -952,7 +952,7 @@ def _local(local: int | None):
 # gather alone blurs the image by sigma.  The profile is split by a smooth window w(r)
 # (1 inside NEAR_INNER sigma, a raised cosine down to 0 at NEAR_OUTER sigma): the far part
 # R (1 - w) is smooth at the points' resolution and is gathered from them (blurred by sigma:
-# the knife-edge error of that is < 0.7 % of Rd at these radii, bench/bench_bssrdf.py), and
+# the knife-edge error of that is <= 1.1 % of Rd at these radii), and
 # the near part R w is evaluated at each shading point.  For point and directional lights
 # (one sample per point: every point and pixel sees the same shadow curve) the near part is
 # exact: M_near(x) = C(x) [Rd_near V(x) - sum over the shadow edges within NEAR_OUTER sigma
@@ -960,8 +960,14 @@ def _local(local: int | None):
 # unshadowed, V(x) its shadow ray, and the edges located between the points by bisection
 # (:func:`shadow_edges`).  Disc and environment lights (per-point random samples: no
 # common shadow curve) keep the points' reconstruction for the near part too.
-NEAR_INNER = 1.5
-NEAR_OUTER = 3.0
+# Window radii in sigma, measured with the knife edge (tests/test_knife_edge.py, 1.25 mm
+# spacing, worst channel of skin1 / skin2): (1.5, 3.0) 1.43 / 1.18 %, (2.0, 3.5) 1.07 /
+# 0.92 %, (2.0, 4.0) 0.87 / 0.75 %.  The far part's blur is the error; a wider window leaves
+# more of the profile to the shading point, where (for point and directional lights) the
+# unshadowed irradiance is taken at the point itself, so fine geometric shading is not
+# blurred within it; (2.0, 3.5) halves the far error for 1.2x the window.
+NEAR_INNER = 2.0
+NEAR_OUTER = 3.5
 # Light types whose near field is resolved at the shading point.
 SHARP_LIGHTS = ("point", "directional")
 # Boundary-integral table Q(omega, phi): omega in [0, NEAR_OUTER sigma], phi in [0, pi/2].
@@ -1077,13 +1083,21 @@ class EdgeTable:
         i = np.minimum(a.astype(np.int32), no - 1)
         j = np.minimum(b.astype(np.int32), nphi - 1)
         fa, fb = (a - i)[:, None], (b - j)[:, None]
-        k = i.astype(np.int64) * (nphi + 1) + j
+        k = i * np.int32(nphi + 1) + j
         q = self._flat
-        lo = q[k] + fb * (q[k + 1] - q[k])
-        hi = q[k + nphi + 1] + fb * (q[k + nphi + 2] - q[k + nphi + 1])
-        v = lo + fa * (hi - lo)
-        v *= np.sign(phi).astype(np.float32)[:, None]
-        return v
+        v00, v01 = q.take(k, axis=0), q.take(k + 1, axis=0)
+        v10, v11 = q.take(k + (nphi + 1), axis=0), q.take(k + (nphi + 2), axis=0)
+        v01 -= v00
+        v01 *= fb
+        v00 += v01          # row omega_i at phi
+        v11 -= v10
+        v11 *= fb
+        v10 += v11          # row omega_i+1 at phi
+        v10 -= v00
+        v10 *= fa
+        v00 += v10
+        v00 *= np.sign(phi).astype(np.float32)[:, None]
+        return v00
 
 
 def near_tables(split: ProfileSplit) -> EdgeTable:
@@ -1171,7 +1185,7 @@ def _project(visibility, p: np.ndarray, n: np.ndarray, h: np.ndarray) -> np.ndar
 
 
 def shadow_edges(positions, normals, light, visibility, spacing_mm: float, *,
-                 transmittance=None) -> ShadowEdges:
+                 transmittance=None, irradiance: np.ndarray | None = None) -> ShadowEdges:
     """The shadow edges of a point or directional light between irradiance points.
 
     Parameters
@@ -1181,6 +1195,9 @@ def shadow_edges(positions, normals, light, visibility, spacing_mm: float, *,
     visibility : physics.visibility.Visibility of the mesh
     spacing_mm : float, the points' spacing (pairs closer than PAIR_RADIUS x it are tested)
     transmittance : callable, optional, the entry transmittance (``Transmittance``)
+    irradiance : (N, 3) float, optional
+        This light's entering irradiance at the points when already known (a lighting
+        condition of this one light: the irradiance stage's); else computed here.
 
     Returns
     -------
@@ -1195,8 +1212,11 @@ def shadow_edges(positions, normals, light, visibility, spacing_mm: float, *,
                           f"{light.type!r} ({light.name})")
     p = np.asarray(positions, np.float64)
     n = _unit(np.asarray(normals, np.float64))
-    e = point_irradiance(p.astype(np.float32), n.astype(np.float32), [light], visibility.occluded,
-                         transmittance=transmittance)
+    if irradiance is not None:
+        e = np.asarray(irradiance, np.float32)
+    else:
+        e = point_irradiance(p.astype(np.float32), n.astype(np.float32), [light],
+                             visibility.occluded, transmittance=transmittance)
     ls = sample_lights(light, p.astype(np.float32), n.astype(np.float32))
     facing = (np.einsum("ij,ij->i", ls.directions[:, 0], n) > 0) & (ls.weights[:, 0].sum(1) > 0)
     lit = e.sum(axis=1) > 0
@@ -1284,13 +1304,15 @@ def _principal(off: np.ndarray, mask: np.ndarray, normal: np.ndarray,
 
 
 def edge_sum(queries: np.ndarray, normals: np.ndarray, edges: ShadowEdges,
-             table: EdgeTable, *, on_edge_mm: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+             table: EdgeTable, *, on_edge_mm: float = 0.0,
+             tree=None) -> tuple[np.ndarray, np.ndarray]:
     """Sum over the segments within r_out of each query of the boundary integral
     sign(w) [Q(|w|, phi_2) - Q(|w|, phi_1)] (:func:`near_tables`), and which side of an
     edge each query lies on where it is within ``on_edge_mm`` of a segment's line (inside
     its extent): +1 lit, -1 shadowed, 0 farther.  The shadow ray of such a query cannot be
     trusted to agree with the located edge (its position is known to ~spacing / 2048), and
     the near field jumps by Rd_near there unless the two agree.
+    ``tree``: a scipy cKDTree of ``queries`` to reuse.
     Returns ((Q, 3) float64, (Q,) int8)."""
     from scipy.spatial import cKDTree
     x = np.asarray(queries, np.float64)
@@ -1300,26 +1322,35 @@ def edge_sum(queries: np.ndarray, normals: np.ndarray, edges: ShadowEdges,
         return out, side
     half = 0.5 * (edges.hi - edges.lo)
     centre = edges.origin + (0.5 * (edges.hi + edges.lo))[:, None] * edges.tangent
-    lists = cKDTree(x).query_ball_point(centre, table.r_out + half, return_sorted=False)
+    tree = cKDTree(x) if tree is None else tree
+    lists = tree.query_ball_point(centre, table.r_out + half, return_sorted=False)
     cnt = np.fromiter((len(l) for l in lists), np.int64, len(lists))
     if cnt.sum() == 0:
         return out, side
-    seg = np.repeat(np.arange(len(lists)), cnt)
-    px = np.concatenate([np.asarray(l, np.int64) for l in lists])
-    good = np.einsum("ij,ij->i", np.asarray(normals, np.float64)[px], edges.normal[seg]) > 0.5
+    seg = np.repeat(np.arange(len(lists), dtype=np.int32), cnt)
+    px = np.concatenate([np.asarray(l, np.int32) for l in lists])
+    # float32 per pair: w and t0 are differences of ~100 mm coordinates, exact to ~1e-5 mm
+    nrm = np.asarray(normals, np.float32)
+    good = np.einsum("ij,ij->i", nrm[px], edges.normal[seg].astype(np.float32)) > 0.5
     seg, px = seg[good], px[good]
-    d = edges.origin[seg] - x[px]
-    w = np.einsum("ij,ij->i", d, edges.outward[seg])
-    t0 = -np.einsum("ij,ij->i", d, edges.tangent[seg])
+    xf = x.astype(np.float32)[px]
+    # w = (e - x).n_out and t0 = (x - e).tangent, from per-segment constants e.n_out, e.tangent
+    ew = np.einsum("ij,ij->i", edges.origin, edges.outward).astype(np.float32)
+    et = np.einsum("ij,ij->i", edges.origin, edges.tangent).astype(np.float32)
+    w = ew[seg] - np.einsum("ij,ij->i", xf, edges.outward.astype(np.float32)[seg])
+    t0 = np.einsum("ij,ij->i", xf, edges.tangent.astype(np.float32)[seg]) - et[seg]
+    del xf
     om = np.abs(w)
-    sgn = np.where(w >= 0, 1.0, -1.0)   # on the line: counted lit, as ``side`` says
-    ph2 = np.arctan2(edges.hi[seg] - t0, om)
-    ph1 = np.arctan2(edges.lo[seg] - t0, om)
-    q12 = table.lookup(np.concatenate([om, om]), np.concatenate([ph2, ph1]))
-    val = sgn[:, None] * (q12[:len(om)] - q12[len(om):])
+    sgn = np.where(w >= 0, np.float32(1), np.float32(-1))   # on the line: counted lit
+    lo, hi = edges.lo.astype(np.float32)[seg], edges.hi.astype(np.float32)[seg]
+    ph = np.arctan2(np.concatenate([hi - t0, lo - t0]), np.concatenate([om, om]))
+    q12 = table.lookup(np.concatenate([om, om]), ph)
+    val = q12[:len(om)]
+    val -= q12[len(om):]
+    val *= sgn[:, None]
     for c in range(3):
         out[:, c] = np.bincount(px, weights=val[:, c], minlength=len(x))
-    close = (om <= on_edge_mm) & (t0 >= edges.lo[seg]) & (t0 <= edges.hi[seg])
+    close = (om <= on_edge_mm) & (t0 >= lo) & (t0 <= hi)
     if close.any():
         side[px[close]] = sgn[close].astype(np.int8)
     return out, side
@@ -1327,13 +1358,13 @@ def edge_sum(queries: np.ndarray, normals: np.ndarray, edges: ShadowEdges,
 
 def sharp_near_field(queries, shading_normals, geo_normals, light, visibility,
                      edges: ShadowEdges, table: EdgeTable, *,
-                     transmittance=None) -> np.ndarray:
+                     transmittance=None, tree=None) -> np.ndarray:
     """The near part of the exitance from one point or directional light at shading points,
     (Q, 3) float64: C(x) [Rd_near V(x) - edge_sum(x)] (module section "near field").
 
     C(x) is the light's entering irradiance at x with the shading normal (0 below the
     geometric or the shading horizon, as the BRDF renderer culls), V(x) its shadow ray
-    (offset along the geometric normal)."""
+    (offset along the geometric normal).  ``tree``: a scipy cKDTree of ``queries``."""
     from dermis.physics.lights import sample_lights
     x = np.asarray(queries, np.float32)
     ns = _unit(np.asarray(shading_normals, np.float64))
@@ -1351,10 +1382,10 @@ def sharp_near_field(queries, shading_normals, geo_normals, light, visibility,
     if transmittance is not None:
         c = c * np.asarray(transmittance(cos[live]))
     vis = ~visibility.occluded(x[live], ng[live], wi[live], dist[live])
-    s, side = edge_sum(x[live], ns[live], edges, table,
+    s, side = edge_sum(x, ns, edges, table, tree=tree,
                        on_edge_mm=EDGE_ON_LINE * edges.info.get("precision_mm", 0.0))
-    vis = np.where(side != 0, side > 0, vis)
-    out[live] = c * (table.rd_near[None, :] * vis[:, None] - s)
+    vis = np.where(side[live] != 0, side[live] > 0, vis)
+    out[live] = c * (table.rd_near[None, :] * vis[:, None] - s[live])
     return out
 
 
@@ -1419,10 +1450,12 @@ def exitance(points, irradiance: np.ndarray, profile, queries: np.ndarray, *,
         return m, stats
     t1 = time.perf_counter()
     ek = ("edges",) + key
-    if ek not in memo:
+    if ek not in memo:   # a condition of one light: the irradiance stage's is that light's
+        own = E if len(lights) == 1 else None
         memo[ek] = (points, irradiance, [shadow_edges(points.positions, points.normals, l,
                                                       visibility, spacing,
-                                                      transmittance=transmittance)
+                                                      transmittance=transmittance,
+                                                      irradiance=own)
                                          for l in sharp])
     edges = memo[ek][2]
     t_edges = time.perf_counter() - t1
@@ -1439,9 +1472,11 @@ def exitance(points, irradiance: np.ndarray, profile, queries: np.ndarray, *,
     if tk not in memo:
         memo[tk] = (profile, near_tables(split_profile(profile, sigma, cutoff_mm=tuning.cutoff_mm)))
     table = memo[tk][1]
+    from scipy.spatial import cKDTree
+    qtree = cKDTree(np.asarray(queries, np.float64))
     for light, ed in zip(sharp, edges):
         M += sharp_near_field(queries, shading_normals, geo_normals, light, visibility, ed,
-                              table, transmittance=transmittance)
+                              table, transmittance=transmittance, tree=qtree)
     stats.update({"edges_seconds": t_edges, "near_seconds": time.perf_counter() - t1,
                   "rd_near": table.rd_near.tolist(), "near_radius_mm": table.r_out,
                   "edge_crossings": [ed.info["crossings"] for ed in edges],

@@ -150,8 +150,9 @@ def test04_bssrdf_surface_plus_subsurface_at_most_one(cl_env):
     # T is Fresnel's except where the lobes reflect more (near normal incidence)
     from dermis.physics.fresnel import fresnel_transmittance
     ft = fresnel_transmittance(mu, eta)[:, None]
-    assert np.all(t(mu) <= ft + 1e-6)
-    np.testing.assert_allclose(t(mu)[2:], ft[2:].repeat(3, 1), atol=5e-6)   # 60 deg and beyond
+    # (T is looked up at the nearest of 2^16 + 1 cosines: <= 5e-5 off at grazing)
+    assert np.all(t(mu) <= ft + 5e-5)
+    np.testing.assert_allclose(t(mu)[2:], ft[2:].repeat(3, 1), atol=5e-5)   # 60 deg and beyond
     # exit: int L cos dw = M with L = T(cos_o) M / (pi T_mean)
     n = 20000
     c = (np.arange(n) + 0.5) / n

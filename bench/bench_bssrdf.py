@@ -1,0 +1,263 @@
+"""Benchmark of the BSSRDF images (issue 10): seconds per 800x800 image and per lighting
+condition (irradiance pass, gather, surface term) on the high and the low mesh, the
+gather's error against brute force, peak memory; the knife-edge error; the models'
+directional albedo; HK93 against the layer profile's Rd.
+
+Runs the pipeline itself (``python -m dermis.pipeline.cli``) on a variant of a scene
+(default: scenes/default.toml, the Lee Perry-Smith scan at 800x800) that renders only the
+BSSRDF, in a scratch cache; then re-runs the ``bssrdf`` stage alone (--force bssrdf, the
+irradiance cached) in a fresh process whose peak resident memory is recorded.  Times come
+from each node's meta.json.  It works with any version of dermis that ``python3 -m
+dermis.pipeline.cli`` imports (set PYTHONPATH to benchmark another checkout: the "before"
+numbers of bench/results/bssrdf.json came from git 6ec7c04 that way, with
+``--label before --scene <that checkout>/scenes/default.toml``).
+
+Usage: python bench/bench_bssrdf.py [--scene FILE] [--geometries high,low_bump]
+       [--lights point,area,dir_left+dir_right,sunset] [--cache DIR] [--label after]
+       [--out bench/results/bssrdf.json] [--skip-pipeline] [--brute-queries 4000]
+The 2-core machine is shared with other jobs: treat the times as noisy (+-30 %).
+"""
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import os
+import re
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def variant(scene: Path, out: Path, geometries, lights) -> Path:
+    """The scene with [render] models = bssrdf only, the given geometries and lights, and
+    its relative asset paths made absolute (the variant lives elsewhere)."""
+    text = scene.read_text()
+    base = scene.parent
+    text = re.sub(r'"(assets/[^"]+)"', lambda m: f'"{(base / m.group(1)).as_posix()}"', text)
+    text = re.sub(r"^models = .*$", 'models = ["bssrdf"]', text, flags=re.M)
+    text = re.sub(r"^geometries = .*$", "geometries = [" + ", ".join(f'"{g}"' for g in geometries)
+                  + "]", text, flags=re.M)
+    text = re.sub(r'^lights = \[".*$', "lights = [" + ", ".join(f'"{l}"' for l in lights) + "]",
+                  text, flags=re.M)
+    text = re.sub(r'^name = "[^"]*"', 'name = "bench_bssrdf"', text, count=1, flags=re.M)
+    out.write_text(text)
+    return out
+
+
+def cli(args, cache: Path) -> tuple[float, int]:
+    """Run the dermis CLI in a child process: (wall seconds, child's peak RSS in KiB)."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "dermis.pipeline.cli", *args, "--cache", str(cache),
+                    "-q"], check=True, cwd=cache.parent)
+    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    return time.perf_counter() - t0, max(peak, before)
+
+
+def node_meta(cache: Path, prefix: str) -> dict:
+    out = {}
+    for f in sorted(glob.glob(str(cache / f"{prefix}*" / "*" / "meta.json"))):
+        d = json.loads(Path(f).read_text())
+        out[d["node"]] = d
+    return out
+
+
+def pipeline(args) -> dict:
+    work = Path(args.cache).resolve()
+    work.mkdir(parents=True, exist_ok=True)
+    toml = variant(Path(args.scene).resolve(), work / "scene.toml", args.geometries, args.lights)
+    cache = work / "cache"
+    first, _ = cli(["run", str(toml)], cache)
+    again, peak_kib = cli(["run", str(toml), "--force", "bssrdf"], cache)
+    res = {"first_run_seconds": first, "bssrdf_rerun_seconds": again,
+           "bssrdf_rerun_peak_rss_mib": peak_kib / 1024.0, "irradiance": {}, "images": {}}
+    for nid, d in node_meta(cache, "irradiance-").items():
+        res["irradiance"][nid] = {"seconds": d["seconds"],
+                                  "points": d.get("info", {}).get("points")}
+    for nid, d in node_meta(cache, "samples-").items():
+        res.setdefault("samples", {})[nid] = {"seconds": d["seconds"], **{
+            k: d.get("info", {}).get(k) for k in ("points", "spacing_mm")}}
+    for nid, d in node_meta(cache, "render-bssrdf-").items():
+        t = d.get("info", {}).get("timings", {})
+        res["images"][nid] = {"seconds": d["seconds"], **{k: t.get(k) for k in (
+            "visibility", "gather", "edges_seconds", "near_seconds", "surface_reflection",
+            "total", "kernel_seconds")}}
+    return res
+
+
+# ------------------------------------------------------------------------ accuracy (new code)
+def brute_force_error(cache: Path, n_queries: int) -> dict:
+    """Relative RMSE of the shipped exitance against the brute-force gather (every point,
+    no clustering, no expansion) on random front-facing pixels, per lighting condition
+    (the high mesh).  The near field is exact either way; the difference is the far part's
+    clustering."""
+    from dermis.pipeline import artifacts
+    from dermis.pipeline.cl import get_env
+    from dermis.pipeline.config import BssrdfConfig, load_scene
+    from dermis.physics.visibility import Visibility, camera_rays
+    from dermis.stages import gather as G
+    ld = lambda n: artifacts.load(glob.glob(str(cache / n / "*"))[0])  # noqa: E731
+    mesh, pts, prof = ld("mesh_high"), ld("samples-mesh_high"), ld("profiles")
+    scene = load_scene(str(cache.parent / "scene.toml"))
+    vis = Visibility(mesh.vertices, mesh.faces)
+    o, d = camera_rays(scene.camera)
+    h = vis.intersect(o, d)
+    tri, b = h.tri[h.hit], h.bary[h.hit]
+    F, V = mesh.faces[tri], mesh.vertices
+    w = np.stack([1 - b[:, 0] - b[:, 1], b[:, 0], b[:, 1]], 1)
+    pos = (V[F] * w[..., None]).sum(1)
+    ng = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    ng /= np.linalg.norm(ng, axis=1, keepdims=True)
+    ns = (mesh.vertex_normals()[F] * w[..., None]).sum(1)
+    ns /= np.linalg.norm(ns, axis=1, keepdims=True)
+    wo = -d[h.hit]
+    front = ((ng * wo).sum(1) > 0) & ((ns * wo).sum(1) > 0)
+    pick = np.random.default_rng(0).choice(np.flatnonzero(front), n_queries, replace=False)
+    cfg = BssrdfConfig()
+    eta = scene.optics.layers[0].eta / scene.optics.eta_above
+    T = G.Transmittance(eta, cfg.surface_reflection)
+    env = get_env()
+    out = {}
+    for label, lights in scene.light_groups():
+        try:
+            irr = ld(f"irradiance-mesh_high-{label}")
+        except IndexError:
+            continue
+        kw = dict(shading_normals=ns[pick], geo_normals=ng[pick], lights=lights, visibility=vis,
+                  transmittance=T, env=env)
+        t0 = time.perf_counter()
+        m, st = G.exitance(pts, irr.irradiance, prof, pos[pick], epsilon=cfg.epsilon, **kw)
+        t1 = time.perf_counter()
+        mb, _ = G.exitance(pts, irr.irradiance, prof, pos[pick], epsilon=None, brute_force=True,
+                           **kw)
+        t2 = time.perf_counter()
+        rmse = np.sqrt(((m - mb) ** 2).mean(0) / np.maximum((mb ** 2).mean(0), 1e-30))
+        out[label] = {"queries": n_queries, "rel_rmse": float(rmse.max()),
+                      "max_rel_err": float(np.max(np.abs(m - mb).max(0) / np.maximum(
+                          np.abs(mb).max(0), 1e-30))), "seconds": t1 - t0,
+                      "brute_seconds": t2 - t1, "near_field": st["near_field"]}
+    return out
+
+
+# ------------------------------------------------------------------------ energy, HK93
+def energy_table() -> dict:
+    """Max over texture albedos in [0, 1] of each model's directional albedo (as cl/shade.cl
+    composes it) per view angle; HK93's reflectance under uniform light against the layer
+    profile's Rd."""
+    import pyopencl as cl
+    from dermis.pipeline.cl import get_env, to_device
+    from dermis.physics.fresnel import diffuse_fresnel_external
+    from dermis.physics.layers import PRESETS
+    from dermis.stages import brdf_models as B
+    from dermis.stages.profiles import build_profiles
+    env = get_env()
+    theta = [0.0, 30.0, 60.0, 80.0, 85.0, 87.0, 89.0, 89.9]
+    albedos = np.linspace(0.0, 1.0, 11)
+    x, wq = np.polynomial.legendre.leggauss(96)
+    mu, wmu = 0.5 * (x + 1), 0.5 * wq
+    phi = (np.arange(192) + 0.5) / 192 * 2 * np.pi
+    m, p = (a.ravel() for a in np.meshgrid(mu, phi, indexing="ij"))
+    s = np.sqrt(1 - m * m)
+    wi = np.stack([s * np.cos(p), s * np.sin(p), m], 1).astype(np.float32)
+    weight = np.repeat(wmu, 192) * (2 * np.pi / 192)
+
+    def albedo(base, bp, asp, alb, th):
+        t = np.radians(th)
+        wo = np.stack([np.sin(t), np.zeros_like(t), np.cos(t)], 1).astype(np.float32)
+        h, n = len(wo), len(wi)
+        knl = cl.Kernel(env.program("shade.cl", {"DERMIS_BASE": base,
+                                                 "DERMIS_ASPERITY": int(asp is not None)}),
+                        "shade_samples")
+        pt = np.repeat(np.arange(h, dtype=np.int32), n)
+        outb = np.empty((h * n, 3), np.float32)
+        d_out = cl.Buffer(env.context, cl.mem_flags.WRITE_ONLY, outb.nbytes)
+        bpk = bp.pack() if bp is not None else np.zeros(4, np.float32)
+        apk = asp.pack() if asp is not None else np.zeros(8, np.float32)
+        knl(env.queue, (h * n,), None, to_device(env, pt), to_device(env, np.tile(wi, (h, 1))),
+            to_device(env, np.ones((h * n, 3), np.float32)), np.int32(h * n),
+            to_device(env, np.tile(np.float32([0, 0, 1]), (h, 1))), to_device(env, wo),
+            to_device(env, np.tile(np.asarray(alb, np.float32), (h, 1))),
+            to_device(env, bpk), to_device(env, apk), d_out)
+        cl.enqueue_copy(env.queue, outb, d_out)
+        return (outb.reshape(h, n, 3) * weight[None, :, None]).sum(1)
+
+    hk = B.HK93Params(PRESETS["two_layer"])
+    ref = hk.texture_reference()
+    laf = B.LafortuneParams()
+    models = {"lambert": (0, None, None), "lafortune": (1, laf, None), "hk93": (2, hk, None),
+              "asperity+lambert": (0, None, B.AsperityParams()),
+              "asperity+lafortune": (1, laf, B.AsperityParams()),
+              "asperity+hk93": (2, hk, B.AsperityParams())}
+    table = {}
+    for name, (base, bp, asp) in models.items():
+        worst = np.zeros(len(theta))
+        for a in albedos:
+            alb = np.full(3, a) / (ref if base == 2 else 1.0)
+            worst = np.maximum(worst, albedo(base, bp, asp, alb, theta).max(axis=1))
+        table[name] = dict(zip([str(t) for t in theta], worst.round(4).tolist()))
+    # the BSSRDF: lobes (rho_d = 0) + a T(mu), a <= 1
+    if hasattr(B, "Transmittance"):
+        lobes = albedo(1, B.LafortuneParams(rho_d=(0, 0, 0)), None, np.zeros(3), theta)
+        t = B.Transmittance(1.4, "lafortune_lobes")(np.cos(np.radians(theta)))
+        table["bssrdf (lobes + T a)"] = dict(zip([str(x) for x in theta],
+                                                 (lobes + t).max(axis=1).round(4).tolist()))
+    hk_res = {}
+    x12, w12 = np.polynomial.legendre.leggauss(12)
+    mu12 = 0.5 * (x12 + 1)
+    for preset in ("two_layer", "skin1", "skin2"):
+        stack = PRESETS[preset]
+        p = B.HK93Params(stack)
+        a = albedo(2, p, None, np.ones(3), np.degrees(np.arccos(mu12)).tolist())  # untinted
+        rho_hh = (a * (mu12 * w12)[:, None]).sum(0)
+        rd = build_profiles(stack).Rd
+        eta = stack.layers[0].eta
+        hk_res[preset] = {"hk93_uniform_light": rho_hh.round(4).tolist(),
+                          "profile_Rd": np.round(rd, 4).tolist(),
+                          "bssrdf_uniform_light_(1-Fdr_ext)Rd": np.round(
+                              (1 - diffuse_fresnel_external(eta)) * rd, 4).tolist()}
+    return {"albedo_max_over_texture": table, "hk93_vs_profile": hk_res}
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", default=str(REPO / "scenes" / "default.toml"))
+    ap.add_argument("--geometries", default="high,low_bump")
+    ap.add_argument("--lights", default="point,area,dir_left+dir_right,sunset")
+    ap.add_argument("--cache", default="/tmp/dermis-bench-bssrdf")
+    ap.add_argument("--label", default="after")
+    ap.add_argument("--out", default=str(REPO / "bench" / "results" / "bssrdf.json"))
+    ap.add_argument("--skip-pipeline", action="store_true")
+    ap.add_argument("--brute-queries", type=int, default=4000)
+    args = ap.parse_args()
+    args.geometries = args.geometries.split(",")
+    args.lights = args.lights.split(",")
+    import dermis
+    res = {"label": args.label, "dermis": str(Path(dermis.__file__).parent),
+           "loadavg_start": list(os.getloadavg()),
+           "note": "2-core shared machine, other jobs running: times noisy (+-30 %)"}
+    if not args.skip_pipeline:
+        res["pipeline"] = pipeline(args)
+        print(json.dumps(res["pipeline"], indent=1))
+    from dermis.stages import gather as G
+    if hasattr(G, "exitance"):
+        res["brute_force"] = brute_force_error(Path(args.cache).resolve() / "cache",
+                                               args.brute_queries)
+        print(json.dumps(res["brute_force"], indent=1))
+    res["energy"] = energy_table()
+    print(json.dumps(res["energy"], indent=1))
+    res["loadavg_end"] = list(os.getloadavg())
+    out = Path(args.out)
+    old = json.loads(out.read_text()) if out.is_file() else {}
+    old[args.label] = res
+    out.write_text(json.dumps(old, indent=1))
+
+
+if __name__ == "__main__":
+    main()
