@@ -98,11 +98,13 @@ class LightConfig:
     type: str = spec(choices=LIGHT_TYPES, doc="kind of light")
     position: tuple = spec((0.0, 0.0, 0.0), unit="length", doc="point / disc centre")
     direction: tuple = spec((0.0, 0.0, 1.0), doc="directional: towards the light; disc: normal")
-    intensity: tuple = spec((1.0, 1.0, 1.0), lo=0.0, doc="point/disc: W/sr-like units; "
-                                                          "directional: irradiance")
+    # hi: float32 light samples, irradiance and radiance stay finite down to the 1e-6 mm
+    # distance floor of point lights (1e20 / 1e-12 = 1e32 < 3.4e38; tests/test_stability.py)
+    intensity: tuple = spec((1.0, 1.0, 1.0), lo=0.0, hi=1e20, doc="point/disc: W/sr-like "
+                                                                  "units; directional: irradiance")
     radius: float = spec(70.0, lo=0.0, lo_open=True, unit="length", doc="disc radius (thesis 70 mm)")
     map: str = spec("procedural_sunset", doc='environment: "procedural_sunset" or an HDR/EXR path')
-    scale: float = spec(1.0, lo=0.0, doc="environment radiance multiplier")
+    scale: float = spec(1.0, lo=0.0, hi=1e20, doc="environment radiance multiplier")
     rotation_deg: float = spec(0.0, lo=-360.0, hi=360.0, doc="environment: turn about +y")
     samples: int = spec(16, lo=1, hi=4096, doc="shadow samples (thesis: 16)")
 
@@ -583,10 +585,6 @@ def scene_warnings(scene: Scene) -> list[str]:
     return out
 
 
-    return out
-
-
-def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | None = None) -> Scene:
 def _sections(body: dict, where: str, length_scale: float):
     """The scene's tables that validate on their own (None for the others): the cross-field
     checks then still run when some other table has a problem (all problems listed at once)."""
@@ -608,8 +606,13 @@ def _merge(base: dict, over: dict) -> dict:
     out = dict(base)
     for k, v in over.items():
         out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | None = None) -> Scene:
     """Validate an already-parsed scene table (see :func:`load_scene`)."""
-    from dermis.physics.layers import parse_layer_stack, PRESETS  # layer optics own their validation
+    from dermis.physics.layers import (parse_layer_stack, PRESETS, split_profile_options,
+                                       with_profile)  # layer optics own their validation
 
     if overrides:
         table = _merge(table, overrides)
@@ -657,6 +660,10 @@ def _merge(base: dict, over: dict) -> dict:
 
     optics = table.get("optics", {"preset": "two_layer"})
     stack = None
+    profile = {}
+    if isinstance(optics, dict):  # profile / photons / seed: the BSSRDF's profile model
+        optics, profile, bad = split_profile_options(optics, where=f"{where}: optics")
+        problems.extend(bad)
     if not isinstance(optics, dict):
         problems.add(where, "optics", f" = {_fmt(optics)}: must be a table")
     elif "preset" in optics:
@@ -675,6 +682,8 @@ def _merge(base: dict, over: dict) -> dict:
             stack = parse_layer_stack(optics, where=f"{where}: optics")
         except ConfigError as exc:
             problems.append(str(exc))
+    if stack is not None:
+        stack = with_profile(stack, **profile)
 
     # cross-field checks run on every table that validated, even when another did not
     sc = scene if scene is not None else _sections(body, where, length_scale)

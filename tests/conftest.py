@@ -45,3 +45,21 @@ def wheel(tmp_path_factory) -> Path:
                     "-q", "-w", str(tmp), str(src)], check=True, capture_output=True)
     found, = tmp.glob("dermis-*.whl")
     return found
+
+
+# Hypothesis profiles for tests/test_stability.py (docs/hardening.md): "ci" is the default
+# (derandomized: the same examples every run, a few per property, CI-sized); "thorough" is run
+# with `pytest tests/test_stability.py --hypothesis-profile=thorough`.  No example database
+# (nothing is written into the repository); failures print the reproducing blob.
+try:
+    from hypothesis import HealthCheck, Phase, settings as _hyp_settings
+except ImportError:  # pragma: no cover - hypothesis is a dev extra
+    pass
+else:
+    _common = dict(deadline=None, database=None, print_blob=True, report_multiple_bugs=False,
+                   suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large,
+                                          HealthCheck.function_scoped_fixture])
+    _hyp_settings.register_profile("ci", max_examples=6, derandomize=True,   # no shrinking:
+                                   phases=[Phase.explicit, Phase.generate], **_common)
+    _hyp_settings.register_profile("thorough", max_examples=200, **_common)
+    _hyp_settings.load_profile("ci")
