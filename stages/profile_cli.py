@@ -1,14 +1,27 @@
-"""``dermis profile LAYERS.toml --csv OUT.csv [--mc PHOTONS]``: build a layer file.
+"""``dermis profile LAYERS.toml [--csv OUT.csv] [--mc PHOTONS]``: layer files and their error.
 
-Interface kept stable (other tools call it).  The CSV has ``r_mm,R_r,R_g,R_b,T_r,T_g,T_b``
-(1/mm^2, ring averages, integral 2 pi r R dr = Rd), plus with ``--mc`` the Monte Carlo
-columns ``MC_R_*``, ``MC_T_*`` and ``MC_R_*_err``, ``MC_T_*_err`` on the same rings.  One
-line per channel is printed: ``channel Rd Tt`` (multipole) and, with ``--mc``, the Monte
-Carlo totals with standard errors.
+Without ``--mc`` it prints one line per channel, ``channel Rd Tt``, for the multipole model
+(the interface other tools read), and with ``--csv`` writes ``r_mm,R_r,R_g,R_b,T_r,T_g,T_b``
+(1/mm^2, ring averages on the layer-file rings, integral 2 pi r R dr = Rd).
+
+With ``--mc PHOTONS`` it also runs the OpenCL Monte Carlo on the same rings (the reference),
+adds its columns ``MC_R_*``, ``MC_T_*`` and standard errors ``MC_R_*_err``, ``MC_T_*_err``
+to the CSV, and prints per profile model and channel Rd, Tt and their error against the
+reference (with the reference's own standard error) and the R(r) error over [0.05, 5] mm
+(misplaced energy, rms and largest relative error on 24 log-spaced rings).  The models:
+
+* ``multipole``: the BSSRDF's default (diffusion shapes, exact plane-parallel totals);
+* ``diffusion``: the same diffusion with its own totals (the diffusion model's own error);
+* ``dj2005``: the multipole of dermis <= 1 (Donner-Jensen 2005 as implemented before);
+* ``monte_carlo``: a Monte Carlo table as the BSSRDF would use it, from another seed.
+
+Convention (CSV header and output): R and T per photon that entered the top surface; the
+specular reflection at entry is not counted (per incident photon: times 1 - R_sp).
 """
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 import numpy as np
@@ -16,36 +29,116 @@ import numpy as np
 from dermis.pipeline.errors import DermisError
 from dermis.physics.layers import PRESETS, load_layers_toml
 
-__all__ = ["add_parser", "run"]
+__all__ = ["add_parser", "run", "MODELS", "ERROR_BAND_MM"]
+
+MODELS = ("multipole", "diffusion", "dj2005", "monte_carlo")
+ERROR_BAND_MM = (0.05, 5.0)
+ERROR_RINGS = 24
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
     """Register the ``profile`` subcommand on an argparse subparsers object."""
-    p = subparsers.add_parser("profile", help="multipole layer file (+ Monte Carlo reference)")
+    p = subparsers.add_parser("profile", help="layer file of a stack (+ error against Monte Carlo)")
     p.add_argument("layers", help=f"layer TOML file, or a preset name ({', '.join(PRESETS)})")
-    p.add_argument("--csv", required=True, help="output CSV path")
+    p.add_argument("--csv", default=None, help="output CSV path")
     p.add_argument("--mc", type=int, default=0, metavar="PHOTONS",
-                   help="also run the OpenCL Monte Carlo with PHOTONS photons per channel")
+                   help="also run the OpenCL Monte Carlo with PHOTONS photons per channel and "
+                        "print each model's error against it")
+    p.add_argument("--models", default=",".join(MODELS),
+                   help=f"models compared with --mc (comma-separated from {', '.join(MODELS)})")
     p.add_argument("--poles", type=int, default=None, help="pole pairs n (i = -n..n)")
-    p.add_argument("--seed", type=int, default=0, help="Monte Carlo seed")
+    p.add_argument("--seed", type=int, default=0, help="Monte Carlo seed (the monte_carlo "
+                   "model uses seed + 1)")
     p.add_argument("--device", default=None, help="OpenCL device: P:D, P, or a name substring")
     p.set_defaults(func=run)
     return p
 
 
-def _mc_on_rings(mc, n: int):
-    """Rebin MC rings of width h/2 from 0 onto the layer-file rings [kh - h/2, kh + h/2)."""
-    e = mc.R * (np.pi * np.diff(mc.r_edges**2))[:, None]
-    et = mc.T * (np.pi * np.diff(mc.r_edges**2))[:, None]
-    ve = (mc.R_err * (np.pi * np.diff(mc.r_edges**2))[:, None]) ** 2
-    vt = (mc.T_err * (np.pi * np.diff(mc.r_edges**2))[:, None]) ** 2
+def ring_edges(prof) -> np.ndarray:
+    """Ring edges (mm) of a layer file: its ``info["r_edges"]`` (Monte Carlo tables), else
+    the multipole rings [r_k - h/2, r_k + h/2) with a central disk."""
+    if "r_edges" in prof.info:
+        return np.asarray(prof.info["r_edges"], np.float64)
+    h = float(prof.r_mm[1] - prof.r_mm[0])
+    return np.concatenate([[0.0], (np.arange(len(prof.r_mm)) + 0.5) * h])
+
+
+def ring_energy(prof, edges: np.ndarray, which: str = "R") -> np.ndarray:
+    """Energy of ``prof`` between ``edges``, (len-1, 3): its cumulative energy interpolated
+    linearly in r^2 (each ring's value is its average density), so exact on its own edges."""
+    own = ring_edges(prof)
+    X = prof.R if which == "R" else prof.T
+    cum = np.vstack([np.zeros(3), np.cumsum(X * (np.pi * np.diff(own**2))[:, None], axis=0)])
+    e = np.stack([np.interp(np.asarray(edges) ** 2, own**2, cum[:, c]) for c in range(3)], axis=1)
+    return np.diff(e, axis=0)
+
+
+def _rebin(prof, edges: np.ndarray, key: str) -> np.ndarray:
+    """Ring averages (1/mm^2) of a Monte Carlo table on coarser ``edges`` that are a subset of
+    its own: sums of its rings (errors in quadrature for keys ending in _err)."""
+    own = ring_edges(prof)
+    area = np.pi * np.diff(own**2)[:, None]
+    idx = np.searchsorted(own, edges)
+    if not np.allclose(own[np.minimum(idx, len(own) - 1)], edges):
+        raise DermisError("profile: internal: rebinning edges are not a subset")
+    if key.endswith("_err"):
+        v = np.asarray(prof.info[key[:-4] + "_err"]) ** 2 * area**2
+        cum = np.vstack([np.zeros(3), np.cumsum(v, axis=0)])
+        return np.sqrt(np.diff(cum[idx], axis=0)) / (np.pi * np.diff(edges**2))[:, None]
+    X = prof.R if key == "R" else prof.T
+    cum = np.vstack([np.zeros(3), np.cumsum(X * area, axis=0)])
+    return np.diff(cum[idx], axis=0) / (np.pi * np.diff(edges**2))[:, None]
+
+
+def profile_errors(prof, ref, band=ERROR_BAND_MM, rings: int = ERROR_RINGS) -> dict:
+    """Rd, Tt and R(r) errors of layer file ``prof`` against the Monte Carlo ``ref``.
+
+    Returns per channel: dRd, dTt (relative; None where the reference is 0), their reference
+    standard errors (relative), and over ``rings`` log-spaced rings in ``band``: the rms and
+    the largest relative R(r) error, the radius of the largest, the misplaced energy
+    (sum |E - E_ref| / sum E_ref over the rings) and the reference's median relative noise.
+    The ring edges are moved to the nearest edges of ``prof``'s own rings, and ``ref``
+    should hold those edges too (the CLI's reference runs on the union of all rings).
+    """
+    # log-spaced rings, each edge moved to the nearest ring edge of ``prof`` (a table is not
+    # compared below its own resolution: near the source its first ring is a disk)
+    own_p = ring_edges(prof)
+    edges = np.geomspace(band[0], band[1], rings + 1)
+    edges = np.unique(own_p[np.abs(own_p[None, :] - edges[:, None]).argmin(axis=1)])
+    edges = edges[edges > 0] if np.sum(edges > 0) > 1 else edges
+    mid = np.sqrt(edges[1:] * np.maximum(edges[:-1], 1e-12))
+    ep, er = ring_energy(prof, edges), ring_energy(ref, edges)
+    own = ring_edges(ref)
+    var = np.vstack([np.zeros(3), np.cumsum((np.asarray(ref.info["R_err"])
+                                             * (np.pi * np.diff(own**2))[:, None]) ** 2, axis=0)])
+    ev = np.diff(np.stack([np.interp(edges, own, var[:, c]) for c in range(3)], axis=1), axis=0)
     out = []
-    for a in (e, et, ve, vt):
-        b = np.zeros((n + 1, 3))
-        b[0] = a[0]
-        b[1:] = a[1:2 * n:2] + a[2:2 * n + 1:2]
-        out.append(b)
-    return out
+    for c in range(3):
+        ok = er[:, c] > 0
+        rel = np.where(ok, ep[:, c] / np.where(ok, er[:, c], 1.0) - 1.0, np.nan)
+        noise = np.where(ok, np.sqrt(ev[:, c]) / np.where(ok, er[:, c], 1.0), np.nan)
+        k = int(np.nanargmax(np.abs(rel))) if np.any(ok) else 0
+        rd, tt = float(ref.Rd[c]), float(ref.Tt[c])
+        tot = float(np.nansum(er[:, c]))
+        out.append({
+            # energy on the rings put where the reference has none: sum |E - E_ref| / sum E_ref
+            "R_misplaced": float(np.nansum(np.abs(ep[:, c] - er[:, c])) / tot) if tot > 0 else None,
+            "dRd": float(prof.Rd[c] / rd - 1) if rd > 0 else None,
+            "dTt": float(prof.Tt[c] / tt - 1) if tt > 0 else None,
+            "Rd_se": float(ref.info["Rd_err"][c] / rd) if rd > 0 else None,
+            "Tt_se": float(ref.info["Tt_err"][c] / tt) if tt > 0 else None,
+            "R_rms": float(np.sqrt(np.nanmean(rel**2))) if np.any(ok) else None,
+            "R_max": float(rel[k]) if np.any(ok) else None,
+            "R_max_at_mm": float(mid[k]),
+            "ref_noise_median": float(np.nanmedian(noise)) if np.any(ok) else None,
+        })
+    return {"channels": out, "rings_mm": edges.tolist()}
+
+
+def _pct(x, signed=True) -> str:
+    if x is None or not math.isfinite(x):
+        return "     -"
+    return f"{100 * x:+6.1f}%" if signed else f"{100 * x:5.2f}%"
 
 
 def run(args) -> int:
@@ -62,34 +155,99 @@ def run(args) -> int:
     for i, c in enumerate("rgb"):
         cols[f"T_{c}"] = prof.T[:, i]
     mc = None
+    models = [m.strip() for m in str(getattr(args, "models", ",".join(MODELS))).split(",") if m.strip()]
+    bad = [m for m in models if m not in MODELS]
+    if bad:
+        raise DermisError(f"--models: {', '.join(bad)}: unknown; choose from {', '.join(MODELS)}")
     if args.mc:
-        from dermis.stages import mc_slab
         from dermis.pipeline import cl as dcl
         if args.mc < 1:
             raise DermisError(f"--mc = {args.mc}: must be a positive photon count")
-        h = r[1] - r[0]
-        n = len(r) - 1
-        mc = mc_slab.simulate(stack, photons=args.mc, r_max_mm=(2 * n + 1) * h / 2,
-                         bins=2 * n + 1, seed=args.seed,
-                         env=dcl.get_env(getattr(args, "device", None)))
-        e, et, ve, vt = _mc_on_rings(mc, n)
-        area = np.pi * np.diff(np.concatenate([[0.0], (np.arange(n + 1) + 0.5) * h]) ** 2)
-        for name, a in (("MC_R", e), ("MC_T", et)):
+        env = dcl.get_env(getattr(args, "device", None))
+        # the reference runs on the union of the layer-file rings, the Monte Carlo table's
+        # rings (fine near the source) and the error rings, so every rebinning is exact
+        edges = ring_edges(prof)
+        mc_edges = profiles.mc_bin_edges(stack)
+        union = np.unique(np.concatenate([edges, mc_edges]))
+        union = union[union <= max(edges[-1], mc_edges[-1])]
+        mc = profiles.monte_carlo_profiles(stack, photons=args.mc, seed=args.seed, env=env,
+                                           edges=union)
+        for name, key in (("MC_R", "R"), ("MC_T", "T")):
+            a = _rebin(mc, edges, key)
             for i, c in enumerate("rgb"):
-                cols[f"{name}_{c}"] = a[:, i] / area
-        for name, a in (("MC_R", ve), ("MC_T", vt)):
+                cols[f"{name}_{c}"] = a[:, i]
+        for name, key in (("MC_R", "R_err"), ("MC_T", "T_err")):
+            a = _rebin(mc, edges, key)
             for i, c in enumerate("rgb"):
-                cols[f"{name}_{c}_err"] = np.sqrt(a[:, i]) / area
-    out = Path(args.csv)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    data = np.column_stack(list(cols.values()))
-    np.savetxt(out, data, delimiter=",", header=",".join(cols), comments="", fmt="%.9g")
+                cols[f"{name}_{c}_err"] = a[:, i]
+    if args.csv:
+        out = Path(args.csv)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        data = np.column_stack(list(cols.values()))
+        header = (f"# dermis profile {src}: R, T ring averages in 1/mm^2 (rings [r - h/2, r + h/2), "
+                  f"a disk at r = 0; integral 2 pi r R dr = Rd) per photon that entered the top "
+                  f"surface (specular reflection at entry not counted; x (1 - R_sp) for per "
+                  f"incident photon); Rd = {_vec(prof.Rd)}, Tt = {_vec(prof.Tt)} (multipole)"
+                  + (f"; MC Rd = {_vec(mc.Rd)}, Tt = {_vec(mc.Tt)}, {mc.info['photons']} "
+                     f"photons per channel, seed {args.seed}" if mc is not None else "")
+                  + "\n" + ",".join(cols))
+        np.savetxt(out, data, delimiter=",", header=header, comments="", fmt="%.9g")
     for i, c in enumerate(("red", "green", "blue")):
         print(f"{c} {prof.Rd[i]:.6f} {prof.Tt[i]:.6f}")
-    if mc is not None:
-        for i, c in enumerate(("red", "green", "blue")):
-            print(f"{c} MC {mc.Rd[i]:.6f} +- {mc.Rd_err[i]:.6f} {mc.Tt[i]:.6f} +- {mc.Tt_err[i]:.6f}")
+    if mc is None:
+        return 0
+    _report(stack, prof, mc, models, args, env)
     return 0
+
+
+def _vec(v) -> str:
+    return "(" + ", ".join(f"{float(x):.5f}" for x in v) + ")"
+
+
+def _report(stack, prof, mc, models, args, env) -> None:
+    from dermis.physics.fresnel import fresnel_normal
+    from dermis.stages import profiles
+
+    r_sp = fresnel_normal(stack.layers[0].eta / stack.eta_above)
+    i = mc.info
+    print(f"\nR, T per photon entering the top surface (specular reflection at entry, "
+          f"R_sp = {r_sp:.5f}, not counted; per incident photon: x {1 - r_sp:.5f})")
+    print(f"Monte Carlo reference: {i['photons']} photons per channel, seed {args.seed}, "
+          f"{i['kernel_seconds']:.1f} s kernel ({i['photons_per_second']:,.0f} photons/s), "
+          f"{i['device']}")
+    print(f"  Rd {_vec(mc.Rd)} +- {_vec(i['Rd_err'])}   Tt {_vec(mc.Tt)} +- {_vec(i['Tt_err'])}")
+    built = {"multipole": prof}
+    for m in models:
+        if m in built:
+            continue
+        if m == "diffusion":
+            built[m] = profiles.build_profiles(stack, totals="diffusion", poles=args.poles)
+        elif m == "dj2005":
+            built[m] = profiles.build_profiles(stack, diffusion="dj2005", poles=args.poles)
+        elif m == "monte_carlo":
+            built[m] = profiles.monte_carlo_profiles(stack, photons=args.mc, seed=args.seed + 1,
+                                                     env=env, edges=profiles.mc_bin_edges(stack))
+    lo, hi = ERROR_BAND_MM
+    print(f"\n{'model':<12} {'ch':<5} {'Rd':>8} {'dRd':>7} {'(MC se)':>8} {'Tt':>8} {'dTt':>7} "
+          f"{'(MC se)':>8}   R(r) over [{lo:g}, {hi:g}] mm: misplaced energy, rms, largest (at r), "
+          f"MC noise")
+    for m in models:
+        p = built[m]
+        err = profile_errors(p, mc)
+        for c, ch in enumerate(("red", "green", "blue")):
+            e = err["channels"][c]
+            at = f"{e['R_max_at_mm']:.2f} mm"
+            print(f"{m:<12} {ch:<5} {p.Rd[c]:8.5f} {_pct(e['dRd'])} ({_pct(e['Rd_se'], False)}) "
+                  f"{p.Tt[c]:8.5f} {_pct(e['dTt'])} ({_pct(e['Tt_se'], False)})   "
+                  f"{_pct(e['R_misplaced'], False)}, {_pct(e['R_rms'], False)}, "
+                  f"{_pct(e['R_max'])} (at {at}), {_pct(e['ref_noise_median'], False)}")
+    lobes = prof.info.get("negative_lobes", [])
+    if lobes:
+        print(f"\nmultipole: {len(lobes)} negative lobe(s) removed (energy kept):")
+        for lb in lobes[:6]:
+            print(f"  layer {lb.get('layer')} {lb.get('light', lb.get('dir', ''))} {lb['field']} "
+                  f"{lb['channel']}: r {lb['r_mm'][0]:.2f}-{lb['r_mm'][1]:.2f} mm, "
+                  f"{100 * lb['energy_fraction']:.3g} % of its energy")
 
 
 def main(argv=None) -> int:  # pragma: no cover - convenience for running this file alone

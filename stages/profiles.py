@@ -1228,6 +1228,13 @@ MC_W_MIN = 0.25
 MC_DEPTH = 0.5
 
 
+@lru_cache(maxsize=8)
+def _diffusion_guide(stack: LayerStack) -> LayerProfile:
+    """The diffusion layer file (its own totals) that sizes the Monte Carlo table's rings
+    and weight window; cached per stack (it takes seconds for a layered stack)."""
+    return build_profiles(stack, totals="diffusion")
+
+
 def mc_bin_edges(stack: LayerStack, r_max_mm: float | None = None) -> np.ndarray:
     """Ring edges (mm) of the Monte Carlo table of ``stack``: uniform near the source, then
     geometric (module constants), out to ``r_max_mm`` (default: MC_REACH x the diffusion
@@ -1235,7 +1242,7 @@ def mc_bin_edges(stack: LayerStack, r_max_mm: float | None = None) -> np.ndarray
     st = stack.nonzero()
     mfp_min = min(1.0 / (a + s) for l in st.layers for a, s in zip(l.sigma_a, l.sigma_s_prime))
     if r_max_mm is None:
-        prof = build_profiles(st, totals="diffusion")
+        prof = _diffusion_guide(st)
         r_max_mm = max(MC_MIN_RMAX, MC_REACH * float(prof.cutoff_mm.max()))
     d0 = MC_FINE * mfp_min
     r1 = d0 / MC_GROWTH
@@ -1246,12 +1253,13 @@ def mc_bin_edges(stack: LayerStack, r_max_mm: float | None = None) -> np.ndarray
     return np.asarray(e)
 
 
-def _mc_window(stack: LayerStack, prof: LayerProfile, edges: np.ndarray) -> np.ndarray:
+def _mc_window(stack: LayerStack, prof: LayerProfile, edges: np.ndarray,
+               reach_mm: float | None = None) -> np.ndarray:
     """(3, 4) weight-window parameters (kappa, rho0, rho1, lambda) per channel from a diffusion
     profile: its energy per unit log-radius r^2 R(r) fitted by exp(-kappa (r - rho0)) beyond
     its peak rho0, kappa (x MC_KAPPA_BOOST) capped at MC_KAPPA_CAP sigma_tr of the least absorbing layer (light
     reaching rho decays no faster than that; a faster window would multiply copies without
-    bound), no splitting beyond the last ring rho1."""
+    bound), no splitting beyond rho1 = the last ring (or ``reach_mm`` if nearer)."""
     win = np.zeros((3, 4))
     mid = 0.5 * (edges[1:] + edges[:-1])
     for c in range(3):
@@ -1266,8 +1274,9 @@ def _mc_window(stack: LayerStack, prof: LayerProfile, edges: np.ndarray) -> np.n
         slope = np.polyfit(mid[sel], np.log(e[sel]), 1)[0]
         s_min = min(math.sqrt(3.0 * l.sigma_a[c] * (l.sigma_a[c] + l.sigma_s_prime[c]))
                     for l in stack.layers)
+        reach = edges[-1] if reach_mm is None else min(edges[-1], reach_mm)
         win[c] = (min(MC_KAPPA_BOOST * max(-slope, 0.0), MC_KAPPA_CAP * s_min), mid[k0],
-                  edges[-1], MC_DEPTH * s_min)
+                  reach, MC_DEPTH * s_min)
     return win
 
 
@@ -1291,7 +1300,8 @@ def monte_carlo_profiles(stack: LayerStack, *, photons: int = DEFAULT_MC_PHOTONS
         Ring edges, mm (default :func:`mc_bin_edges`).
     split : bool
         Radial splitting with a weight window from the diffusion profile (variance
-        reduction far from the source; unbiased).
+        reduction far from the source; unbiased), out to MC_REACH x the diffusion cut-off
+        (>= MC_MIN_RMAX) even when ``edges`` reach further.
     batches : int
         Independent batches for the standard errors.
 
@@ -1314,11 +1324,12 @@ def monte_carlo_profiles(stack: LayerStack, *, photons: int = DEFAULT_MC_PHOTONS
     st = stack.nonzero()
     if not st.layers:
         raise DermisError("profiles: every layer has thickness 0; nothing to profile")
-    diff = build_profiles(st, totals="diffusion") if (edges is None or split) else None
+    diff = _diffusion_guide(st) if (edges is None or split) else None
+    reach = max(MC_MIN_RMAX, MC_REACH * float(diff.cutoff_mm.max())) if diff is not None else None
     if edges is None:
-        edges = mc_bin_edges(st, max(MC_MIN_RMAX, MC_REACH * float(diff.cutoff_mm.max())))
+        edges = mc_bin_edges(st, reach)
     edges = np.asarray(edges, np.float64)
-    window = _mc_window(st, diff, edges) if split else None
+    window = _mc_window(st, diff, edges, reach) if split else None
     mc = mc_slab.simulate(st, photons=int(photons), edges=edges, seed=int(seed),
                           batches=batches, env=env, window=window, w_min=MC_W_MIN)
     ring_area = np.pi * np.diff(edges**2)
