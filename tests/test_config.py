@@ -23,7 +23,7 @@ def write(tmp_path, text, name="scene.toml"):
 def test01_embedded_default_loads_with_thesis_numbers():
     s = load_scene()
     assert s.path == str(default_scene_path())
-    assert s.mesh.source == "procedural"
+    assert s.mesh.source.endswith("assets/lps_head/LeePerrySmith_cm.obj")   # the packaged scan
     assert s.mesh.low_triangles == 16_750 and s.bake.resolution == 4096
     assert (s.camera.width, s.camera.height) == (800, 800)
     assert {l.type for l in s.lights} == {"point", "disc", "directional", "environment"}
