@@ -14,7 +14,8 @@ numbers of bench/results/bssrdf.json came from git 6ec7c04 that way, with
 
 Usage: python bench/bench_bssrdf.py [--scene FILE] [--geometries high,low_bump]
        [--lights point,area,dir_left+dir_right,sunset] [--cache DIR] [--label after]
-       [--out bench/results/bssrdf.json] [--skip-pipeline] [--brute-queries 4000]
+       [--out bench/results/bssrdf.json] [--skip-pipeline] [--brute-queries 4000] [--spp N]
+       [--skip-energy]
 The 2-core machine is shared with other jobs: treat the times as noisy (+-30 %).
 """
 from __future__ import annotations
@@ -24,7 +25,6 @@ import glob
 import json
 import os
 import re
-import resource
 import subprocess
 import sys
 import time
@@ -35,9 +35,10 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 
 
-def variant(scene: Path, out: Path, geometries, lights) -> Path:
-    """The scene with [render] models = bssrdf only, the given geometries and lights, and
-    its relative asset paths made absolute (the variant lives elsewhere)."""
+def variant(scene: Path, out: Path, geometries, lights, spp: int | None = None) -> Path:
+    """The scene with [render] models = bssrdf only, the given geometries and lights (and
+    ``spp`` camera samples per pixel if given), its relative asset paths made absolute (the
+    variant lives elsewhere)."""
     text = scene.read_text()
     base = scene.parent
     text = re.sub(r'"(assets/[^"]+)"', lambda m: f'"{(base / m.group(1)).as_posix()}"', text)
@@ -47,18 +48,31 @@ def variant(scene: Path, out: Path, geometries, lights) -> Path:
     text = re.sub(r'^lights = \[".*$', "lights = [" + ", ".join(f'"{l}"' for l in lights) + "]",
                   text, flags=re.M)
     text = re.sub(r'^name = "[^"]*"', 'name = "bench_bssrdf"', text, count=1, flags=re.M)
+    if spp is not None:
+        text = re.sub(r"^spp = .*$\n?", "", text, flags=re.M)
+        text = re.sub(r"^(models = .*)$", rf"\1\nspp = {int(spp)}", text, count=1, flags=re.M)
     out.write_text(text)
     return out
 
 
+_CHILD = """
+import resource, runpy, sys
+sys.argv = ["dermis"] + sys.argv[1:]
+try:
+    runpy.run_module("dermis.pipeline.cli", run_name="__main__")
+finally:
+    print("PEAK_RSS_KIB", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, flush=True)
+"""
+
+
 def cli(args, cache: Path) -> tuple[float, int]:
-    """Run the dermis CLI in a child process: (wall seconds, child's peak RSS in KiB)."""
-    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    """Run the dermis CLI in a child process: (wall seconds, the child's own peak RSS, KiB)."""
     t0 = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "dermis.pipeline.cli", *args, "--cache", str(cache),
-                    "-q"], check=True, cwd=cache.parent)
-    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    return time.perf_counter() - t0, max(peak, before)
+    out = subprocess.run([sys.executable, "-c", _CHILD, *args, "--cache", str(cache), "-q"],
+                         check=True, cwd=cache.parent, capture_output=True, text=True)
+    sys.stdout.write(out.stdout[-2000:])
+    peak = int(re.findall(r"PEAK_RSS_KIB (\d+)", out.stdout)[-1])
+    return time.perf_counter() - t0, peak
 
 
 def node_meta(cache: Path, prefix: str) -> dict:
@@ -72,7 +86,8 @@ def node_meta(cache: Path, prefix: str) -> dict:
 def pipeline(args) -> dict:
     work = Path(args.cache).resolve()
     work.mkdir(parents=True, exist_ok=True)
-    toml = variant(Path(args.scene).resolve(), work / "scene.toml", args.geometries, args.lights)
+    toml = variant(Path(args.scene).resolve(), work / "scene.toml", args.geometries, args.lights,
+                   args.spp)
     cache = work / "cache"
     first, _ = cli(["run", str(toml)], cache)
     again, peak_kib = cli(["run", str(toml), "--force", "bssrdf"], cache)
@@ -235,11 +250,14 @@ def main():
     ap.add_argument("--out", default=str(REPO / "bench" / "results" / "bssrdf.json"))
     ap.add_argument("--skip-pipeline", action="store_true")
     ap.add_argument("--brute-queries", type=int, default=4000)
+    ap.add_argument("--spp", type=int, default=None,
+                    help="[render] spp of the variant (default: the scene's)")
+    ap.add_argument("--skip-energy", action="store_true")
     args = ap.parse_args()
     args.geometries = args.geometries.split(",")
     args.lights = args.lights.split(",")
     import dermis
-    res = {"label": args.label, "dermis": str(Path(dermis.__file__).parent),
+    res = {"label": args.label, "dermis": str(Path(dermis.__file__).parent), "spp": args.spp,
            "loadavg_start": list(os.getloadavg()),
            "note": "2-core shared machine, other jobs running: times noisy (+-30 %)"}
     if not args.skip_pipeline:
@@ -250,8 +268,9 @@ def main():
         res["brute_force"] = brute_force_error(Path(args.cache).resolve() / "cache",
                                                args.brute_queries)
         print(json.dumps(res["brute_force"], indent=1))
-    res["energy"] = energy_table()
-    print(json.dumps(res["energy"], indent=1))
+    if not args.skip_energy:
+        res["energy"] = energy_table()
+        print(json.dumps(res["energy"], indent=1))
     res["loadavg_end"] = list(os.getloadavg())
     out = Path(args.out)
     old = json.loads(out.read_text()) if out.is_file() else {}

@@ -500,3 +500,105 @@ __kernel void gather_brute(__global const float4 *query,
     }
     out[q] = finish(m, w, rd);
 }
+
+/* Near field of point and directional lights (stages/gather.py "near field", edge_sum):
+ * for each shading point x, the sum over the located shadow-edge segments within r_out of
+ * the boundary integral of the near profile, sign(w) [Q(|w|, phi2) - Q(|w|, phi1)], with
+ * w = (e - x).n_out the signed distance of x from the segment's line, t0 = (x - e).tangent
+ * its foot, phi = atan2(lo/hi - t0, |w|), and Q the host's table (bilinear, odd in phi, 0
+ * at omega >= r_out).  Segments are binned by origin in a uniform grid whose cell is at
+ * least r_out + the longest half-segment, so the 27 cells around x hold every segment that
+ * can reach it; a segment counts where its centre lies within r_out + its half length of x
+ * (3-D distance, as edge_sum's ball query: a fold of the surface within its tangent plane
+ * but far along the normal does not) and the surface normals agree (> 0.5: the same side
+ * of a thin part).  out[q] = (S rgb, side): side = +1 / -1 where x lies within
+ * on_edge of a segment's line inside its extent (lit / shadowed side), else 0.
+ * Segments shorter than EDGE_MIDPOINT x their distance from x (most of them) are
+ * integrated by the midpoint rule on the line integrand m_K(rho) w / (2 pi rho^2) instead
+ * (one 1-D lookup of mktab, no atan2): at 0.15 the difference from the exact table is
+ * 3e-4 of Rd_near (tests/test_gather.py test13).
+ * Segment records (float4): sc = (centre, (r_out + half length)^2) (read first: most
+ * candidates fail its distance test), so = (origin, lo), st = (tangent, hi),
+ * sn = (outward, 0), sm = (surface normal, 0).  qtab rows (omega_i, phi_j) at i * (n_phi + 1) + j: Q rgb, 0.
+ * Guarded by tests/test_gather.py (against the numpy edge_sum) and tests/test_knife_edge.py. */
+#ifndef EDGE_MIDPOINT
+#define EDGE_MIDPOINT 0.15f
+#endif
+inline float3 qtab_lookup(__global const float4 *qtab, float om, float ph, int n_om, int n_ph,
+                          float inv_dom, float inv_dph) {
+    float a = clamp(om * inv_dom, 0.0f, (float)n_om);
+    float b = clamp(fabs(ph) * inv_dph, 0.0f, (float)n_ph);
+    int i = min((int)a, n_om - 1), j = min((int)b, n_ph - 1);
+    float fa = a - (float)i, fb = b - (float)j;
+    int k = i * (n_ph + 1) + j;
+    float3 lo = mix(qtab[k].xyz, qtab[k + 1].xyz, fb);
+    float3 hi = mix(qtab[k + n_ph + 1].xyz, qtab[k + n_ph + 2].xyz, fb);
+    return copysign((float3)(1.0f), (float3)(ph)) * mix(lo, hi, fa);
+}
+
+__kernel void edge_near(__global const float4 *query,      /* (Q) x, y, z, - */
+                        __global const float4 *qnormal,    /* (Q) shading normal, - */
+                        __global const float4 *sc,         /* (K) centre, reach^2 */
+                        __global const float4 *so,         /* (K) origin, lo */
+                        __global const float4 *st,         /* (K) tangent, hi */
+                        __global const float4 *sn,         /* (K) outward, - */
+                        __global const float4 *sm,         /* (K) surface normal, - */
+                        __global const int *cell_start,    /* (ncells + 1) */
+                        __global const int *cell_seg,      /* segment ids by cell */
+                        const float4 grid_lo,              /* xyz corner, w = 1 / cell */
+                        const int nx, const int ny, const int nz,
+                        __global const float4 *qtab,
+                        const int n_om, const int n_ph, const float inv_dom, const float inv_dph,
+                        __global const float4 *mktab,      /* m_K(k dmk) rgb, k < n_mk */
+                        const int n_mk, const float inv_dmk,
+                        const float r_out, const float on_edge,
+                        const int n_query,
+                        __global float4 *out)
+{
+    int q = get_global_id(0);
+    if (q >= n_query) return;
+    float3 x = query[q].xyz;
+    float3 nq = qnormal[q].xyz;
+    float3 s = (float3)(0.0f);
+    float side = 0.0f;
+    float3 g = (x - grid_lo.xyz) * grid_lo.w;
+    int cx = (int)floor(g.x), cy = (int)floor(g.y), cz = (int)floor(g.z);
+    for (int iz = max(cz - 1, 0); iz <= min(cz + 1, nz - 1); ++iz)
+    for (int iy = max(cy - 1, 0); iy <= min(cy + 1, ny - 1); ++iy)
+    for (int ix = max(cx - 1, 0); ix <= min(cx + 1, nx - 1); ++ix) {
+        int c = (iz * ny + iy) * nx + ix;
+        for (int k = cell_start[c]; k < cell_start[c + 1]; ++k) {
+            int e = cell_seg[k];
+            /* the segment's centre within r_out + its half length (as edge_sum's ball) */
+            float4 c4 = sc[e];
+            float3 dc = c4.xyz - x;
+            if (dot(dc, dc) > c4.w) continue;
+            if (dot(sm[e].xyz, nq) <= 0.5f) continue;
+            float4 o = so[e], t = st[e];
+            float3 d = o.xyz - x;
+            float w = dot(d, sn[e].xyz);
+            float om = fabs(w);
+            if (om >= r_out) continue;
+            float t0 = -dot(d, t.xyz);
+            float sg = w >= 0.0f ? 1.0f : -1.0f;   /* on the line: counted lit */
+            float len = t.w - o.w, tm = 0.5f * (o.w + t.w) - t0;
+            float rho2 = om * om + tm * tm;
+            if (len * len < EDGE_MIDPOINT * EDGE_MIDPOINT * rho2) {
+                /* a short segment far from x: the line integrand m_K(rho) w / (2 pi rho^2)
+                 * at its middle times its length (midpoint rule; relative error ~
+                 * (len / rho)^2 / 24 of a contribution that is itself small) */
+                float rho = sqrt(rho2);
+                float u = fmin(rho * inv_dmk, (float)(n_mk - 1) - 1e-3f);
+                int i = (int)u;
+                float3 mk = mix(mktab[i].xyz, mktab[i + 1].xyz, u - (float)i);
+                s += mk * (w * len * (0.5f * DERMIS_INV_PI) / rho2);
+            } else {
+                float p2 = atan2(t.w - t0, om), p1 = atan2(o.w - t0, om);
+                s += sg * (qtab_lookup(qtab, om, p2, n_om, n_ph, inv_dom, inv_dph)
+                           - qtab_lookup(qtab, om, p1, n_om, n_ph, inv_dom, inv_dph));
+            }
+            if (om <= on_edge && t0 >= o.w && t0 <= t.w) side = sg;
+        }
+    }
+    out[q] = (float4)(s, side);
+}

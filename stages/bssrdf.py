@@ -71,7 +71,9 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
                                visibility=shared_embree(mesh, ctx.memo), epsilon=b["epsilon"],
                                transmittance=transmit, normalisation=b["normalisation"],
                                leaf_size=b["leaf_size"], brute_force=b["brute_force"],
-                               env=ctx.cl, memo=ctx.memo, progress=ctx.progress)
+                               env=ctx.cl, memo=ctx.memo, progress=ctx.progress,
+                               visible=gather.sharp_visibility(vis, front, surf["position"][front],
+                                                               lights))
     t_gather = time.perf_counter() - t0
     cos_o = np.einsum("ij,ij->i", surf["shading_normal"][front], surf["wo"][front])
     albedo = None if b["albedo_mode"] == "none" else surf["albedo"][front]
