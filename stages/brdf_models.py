@@ -153,7 +153,9 @@ class LafortuneParams:
             table, mean = _lobe_albedo_table(self)
             out[27] = 1.0
             out[28:31] = 1.0 / np.maximum(1.0 - mean, 1e-6)
-            out[31:] = table.ravel()
+            # lobes reflecting more than everything (L > 1: not the skin fit, arbitrary lobes)
+            # would make 1 - L and so the coupled diffuse term negative; it stops at 0
+            out[31:] = np.minimum(table, 1.0).ravel()
         return out.astype(np.float32)
 
     def lobe_albedo(self, mu) -> np.ndarray:

@@ -1674,4 +1674,6 @@ def exitance_to_radiance(M: np.ndarray, cos_o: np.ndarray, eta: float, *,
         w = np.where(c > 0, 1.0 / np.pi, 0.0)[:, None]
     else:
         raise DermisError(f"gather: mode = {mode!r}: must be 'fresnel' or 'lambert'")
-    return np.nan_to_num(M * w, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
+    out = np.nan_to_num(M * w, nan=0.0, posinf=0.0, neginf=0.0)
+    # a finite float64 beyond float32's range (M * albedo / Rd with Rd ~ 1e-308) would cast to inf
+    return np.minimum(out, np.finfo(np.float32).max).astype(np.float32)
