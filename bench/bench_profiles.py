@@ -1,94 +1,96 @@
-"""Benchmark the layer-optics stage: layer-file build time, Monte Carlo photons/s, and the
-multipole's error against the Monte Carlo for the skin presets.
+"""Benchmark the layer-optics stage: layer-file build time, and every profile model's error
+against dermis's own Monte Carlo on the issue-12 cases and the skin presets.
 
 Usage: python bench/bench_profiles.py [--out bench/results/profiles.json] [--photons N]
-Targets (issue): two-layer RGB layer file <= 2 s; Monte Carlo >= 4 x MCML 1.2.2's ~27,000
-photons/s per core on the semi-infinite n = 1.4, mu_a = 0.01/mm, mu_s = 10/mm, g = 0 case.
+       [--cases a,b,...]
+
+For each case (a preset or scenes/layers/<case>.toml) and channel: Rd and Tt of the Monte
+Carlo reference (per photon entering: the specular reflection at entry is not counted) with
+their standard errors, and per model (multipole = the default; diffusion = the same
+diffusion with its own totals, i.e. the diffusion model's own error; dj2005 = dermis <= 1,
+"before") the relative error of Rd and Tt and the R(r) error over [0.05, 5] mm (misplaced
+energy, rms and largest relative error on 24 log rings: stages/profile_cli.py
+``profile_errors``).  The reference runs on the union of the layer file's and the Monte
+Carlo table's rings, so every comparison sums whole rings.
 """
 from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from dermis.physics.layers import PRESETS, Layer, LayerStack
-from dermis.stages import mc_slab, profiles
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
 
-MCML_PHOTONS_PER_S_PER_CORE = 27000.0  # issue text, MCML 1.2.2 on one core of this machine
+from dermis.physics.layers import PRESETS, load_layers_toml  # noqa: E402
+from dermis.stages import profiles  # noqa: E402
+from dermis.stages.profile_cli import profile_errors, ring_edges  # noqa: E402
+
+CASES = ("two_layer", "two_layer_skin", "thin_epidermis", "thin_epidermis_from_below",
+         "slab_1mm", "low_albedo", "skin1", "skin2")
+MODELS = {"multipole": {}, "diffusion": {"totals": "diffusion"},
+          "dj2005": {"diffusion": "dj2005"}}
+
+
+def load(name: str):
+    return PRESETS[name] if name in PRESETS else load_layers_toml(ROOT / "scenes/layers"
+                                                                  / f"{name}.toml")
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--out", default="bench/results/profiles.json")
-    ap.add_argument("--photons", type=int, default=400000, help="MC photons per channel")
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--out", default=str(ROOT / "bench/results/profiles.json"))
+    ap.add_argument("--photons", type=int, default=1_000_000, help="MC photons per channel")
+    ap.add_argument("--cases", default=",".join(CASES))
     args = ap.parse_args()
-    out: dict = {"load_average": os.getloadavg()}
-
+    out: dict = {"load_average_start": os.getloadavg(), "photons_per_channel": args.photons,
+                 "convention": profiles.RD_CONVENTION, "cases": {}}
     times = []
     for _ in range(3):
         t = time.perf_counter()
         profiles.build_profiles(PRESETS["two_layer"])
         times.append(time.perf_counter() - t)
-    out["layer_file_two_layer_s"] = {"min": min(times), "median": float(np.median(times))}
+    out["layer_file_two_layer_s"] = {"min": min(times), "median": float(np.median(times)),
+                                     "load_average": os.getloadavg()}
     print(f"two_layer layer file: min {min(times):.2f} s, median {np.median(times):.2f} s")
-
-    mcml = LayerStack((Layer(math.inf, 1.4, (0.01,) * 3, (10.0,) * 3),))
-    r = mc_slab.simulate(mcml, photons=20000, r_max_mm=10, bins=50)
-    out["mc_mcml_case"] = {"photons_per_second": r.photons_per_second,
-                           "interactions_per_second": r.info["interactions_per_second"],
-                           "Rd": r.Rd.tolist(), "Rd_err": r.Rd_err.tolist(),
-                           "target_photons_per_second": 4 * MCML_PHOTONS_PER_S_PER_CORE,
-                           "device": r.info["device"]}
-    print(f"MC MCML case: {r.photons_per_second:,.0f} photons/s "
-          f"({r.info['interactions_per_second']:.3g} interactions/s), Rd {r.Rd.round(4)}")
-
-    out["errors"] = {}
-    for name in ("skin1", "skin2", "two_layer"):
-        st = PRESETS[name]
-        prof = profiles.build_profiles(st)
-        h = prof.r_mm[1]
-        n = len(prof.r_mm) - 1
-        mc = mc_slab.simulate(st, photons=args.photons, r_max_mm=(2 * n + 1) * h / 2,
-                         bins=2 * n + 1, seed=1)
-        # rebin MC (width h/2 from 0) onto the layer-file rings [kh - h/2, kh + h/2)
-        area_f = np.pi * np.diff(mc.r_edges**2)[:, None]
-        e = mc.R * area_f
-        v = (mc.R_err * area_f) ** 2
-        eb = np.vstack([e[:1], e[1:2 * n:2] + e[2:2 * n + 1:2]])
-        vb = np.vstack([v[:1], v[1:2 * n:2] + v[2:2 * n + 1:2]])
-        area = np.pi * np.diff(np.concatenate([[0.0], (np.arange(n + 1) + 0.5) * h]) ** 2)
-        mcR, mcE = eb / area[:, None], np.sqrt(vb) / area[:, None]
-        top = st.layers[0]
-        mfp = 1 / (np.array(top.sigma_a) + np.array(top.sigma_s_prime))
-        entry = {"Rd_multipole": prof.Rd.tolist(), "Rd_mc": mc.Rd.tolist(),
-                 "Rd_mc_err": mc.Rd_err.tolist(),
-                 "Rd_rel_error": (prof.Rd / mc.Rd - 1).tolist(),
-                 "Tt_multipole": prof.Tt.tolist(), "Tt_mc": mc.Tt.tolist(),
-                 "mc_photons_per_second": mc.photons_per_second, "radii": {}}
-        for mult in (0.5, 1, 2, 4, 8, 16):
-            row = []
-            for c in range(3):
-                k = int(round(mult * mfp[c] / h))
-                if k > n or mcR[k, c] <= 0:
-                    row.append(None)
-                    continue
-                row.append({"r_mm": float(prof.r_mm[k]), "multipole": float(prof.R[k, c]),
-                            "mc": float(mcR[k, c]), "mc_err": float(mcE[k, c]),
-                            "ratio": float(prof.R[k, c] / mcR[k, c])})
-            entry["radii"][f"{mult}_mfp"] = row
-        out["errors"][name] = entry
-        ratios = {m: [None if x is None else round(x["ratio"], 3) for x in row]
-                  for m, row in entry["radii"].items()}
-        print(f"{name}: Rd multipole {prof.Rd.round(4)} MC {mc.Rd.round(4)} "
-              f"+- {mc.Rd_err.round(4)}; R ratio multipole/MC by radius {ratios}")
+    for name in args.cases.split(","):
+        st = load(name)
+        built = {m: profiles.build_profiles(st, **kw) for m, kw in MODELS.items()}
+        edges = ring_edges(built["multipole"])
+        mc_edges = profiles.mc_bin_edges(st)
+        union = np.unique(np.concatenate([edges, mc_edges]))
+        union = union[union <= max(edges[-1], mc_edges[-1])]
+        t = time.perf_counter()
+        ref = profiles.monte_carlo_profiles(st, photons=args.photons, seed=1, edges=union)
+        entry = {"mc": {"Rd": ref.Rd.tolist(), "Rd_err": ref.info["Rd_err"],
+                        "Tt": ref.Tt.tolist(), "Tt_err": ref.info["Tt_err"],
+                        "photons_per_second": ref.info["photons_per_second"],
+                        "wall_s": time.perf_counter() - t, "load_average": os.getloadavg()},
+                 "models": {}}
+        for m, p in built.items():
+            err = profile_errors(p, ref)
+            entry["models"][m] = {"Rd": p.Rd.tolist(), "Tt": p.Tt.tolist(), **err,
+                                  "negative_lobes": len(p.info.get("negative_lobes", []))}
+            ch = err["channels"]
+            print(f"{name:26s} {m:10s} dRd {_fmt([c['dRd'] for c in ch])} dTt "
+                  f"{_fmt([c['dTt'] for c in ch])} R(r) misplaced "
+                  f"{_fmt([c['R_misplaced'] for c in ch])} max {_fmt([c['R_max'] for c in ch])}")
+        out["cases"][name] = entry
+        print(f"{name:26s} MC Rd {np.round(ref.Rd, 4)} +- {np.round(ref.info['Rd_err'], 4)} "
+              f"Tt {np.round(ref.Tt, 4)}")
+    out["load_average_end"] = os.getloadavg()
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(out, indent=1))
     print(f"wrote {args.out}")
+
+
+def _fmt(v) -> str:
+    return "[" + " ".join("    -" if x is None else f"{100 * x:+5.1f}" for x in v) + "] %"
 
 
 if __name__ == "__main__":
