@@ -3,24 +3,26 @@
 Two profile models produce the same :class:`~dermis.pipeline.artifacts.LayerProfile`
 (``build_profiles(stack, model=...)``; docs/profiles.md has the measurements):
 
-* ``"multipole"``: diffusion per layer in float64 on the host, layers combined by the
-  adding equations in frequency space (physics.md section 3).
+* ``"multipole"``: diffusion per layer in float64 on the host for the radial shapes, layers
+  combined by the adding equations in frequency space, every total set to the exact
+  plane-parallel radiative-transfer value (adding-doubling).
 * ``"monte_carlo"``: R(r), T(r) tabulated from the OpenCL layered Monte Carlo
-  (:mod:`dermis.stages.mc_slab`) for the stack itself, with per-ring standard errors.
+  (:mod:`dermis.stages.mc_slab`) for the stack itself, with per-ring standard errors and
+  radial splitting for the far rings.
 
 Per-layer diffusion (``diffusion="pbd"``, the default; why each choice: docs/profiles.md):
 
-* **Sources along the beam, real extinction.**  The refracted beam's first real collisions
-  have density sigma_s e^{-sigma_t t} (sigma_t = sigma_a + sigma_s, sigma_s =
-  sigma_s' / (1 - g)); each becomes a diffusion source and the depth integral is a
-  Gauss-Legendre rule in u = 1 - e^{-sigma_t t} (``NQ_BEAM`` nodes), as in photon beam
-  diffusion (Habel, Christensen & Jarosz 2013).  Only e^{-sigma_t d} leaves a slab of
-  thickness d unscattered (the ballistic part of T).
-* **Anisotropic sources (P1).**  A photon scattered with mean cosine g carries a flux
-  moment; to first order this is an isotropic source displaced by 3 D g along the beam.
-  A source displaced past the bottom of a finite layer is light scattered forward out of
-  the layer: it leaves as collimated light, attenuated by e^{-sigma_a (d - t) / g} on the
-  way (the straight path at mean cosine g).
+* **Sources along the beam, real extinction.**  The refracted beam's first collisions are
+  integrated in depth (photon beam diffusion, Habel, Christensen & Jarosz 2013) by
+  Gauss-Legendre in u = 1 - e^{-sigma* t} (``NQ_BEAM`` nodes; diffuse light: ``NMU_DIFFUSE``
+  cosines x ``NQ_DIFFUSE``).  delta-P1 (Carp, Prahl & Venugopalan 2004): the fraction
+  f = g^2 of each scattering is forward, sigma_s* = sigma_s (1 - g^2), g* = g / (1 + g).
+  Only e^{-sigma_t d} (sigma_t = sigma_a + sigma_s, sigma_s = sigma_s' / (1 - g)) leaves a
+  slab unscattered (``info["T_ballistic"]``).
+* **Anisotropic sources (P1).**  A collision's flux moment is an isotropic source moved
+  3 D g* mu deeper.  A source moved past the bottom of a finite layer is light scattered
+  forward out of it: collimated, attenuated by e^{-sigma_a (d - t) / (g* mu)}
+  (``info["T_forward"]``, with the delta-P1 forward peak).
 * **Boundaries (d'Eon 2012, "A better dipole").**  Grosjean's D = (2 sigma_a + sigma_s')
   / (3 sigma_t'^2), extrapolation distance z_b = 2 A D with A = (1 + 3 C2) / (1 - 2 C1)
   from the Fresnel moments, and exitance C_phi phi + C_E J_n (the Fresnel-weighted
@@ -30,41 +32,49 @@ Per-layer diffusion (``diffusion="pbd"``, the default; why each choice: docs/pro
   boundaries (Donner & Jensen 2005), n per channel so the first omitted pair is damped by
   e^{-20}.
 * **Collimated light at a mismatched boundary** (ballistic + forward) reflects with the
-  normal-incidence Fresnel factor; the reflected beam re-enters the layer from below and is
-  followed once (first order; the second order, < r0^2, is recorded as dropped).
+  normal-incidence Fresnel factor (forward light: averaged over a once-scattered HG lobe;
+  diffuse light: 2 C1); the reflected light re-enters the layer from that side and is
+  followed once (the second order, < r0^2, is recorded as dropped).
 
 ``diffusion="dj2005"`` keeps the model of dermis <= 1 (a single source at the mean reduced
-collision depth, flux-only exitance, e^{-sigma_t' d} passed through as if unscattered) for
-before/after comparisons; it is what the issue measured.
+collision depth, flux-only exitance, e^{-sigma_t' d} passed through as if unscattered,
+all light added as collimated) for before/after comparisons; it is what the issue measured.
 
-Adding (both diffusion models).  Layers are folded top-down with the general adding
-equations (stack A above layer B; primes are "seen from below"):
-R = R_A + T_A R_B T'_A / (1 - R'_A R_B),  T = T_A T_B / (1 - R'_A R_B),
-R' = R'_B + T'_B R'_A T_B / (1 - R'_A R_B),  T' = T'_B T'_A / (1 - R'_A R_B),
-each T carrying its collimated part as a constant in frequency space.  The profiles are
-radially symmetric, so their 2-D grid is even in x and y; the 2-D DFT of an even periodic
-grid is a 2-D DCT-I of one quadrant (``scipy.fft.dctn(type=1)``), padded x2 against
-wrap-around.  Pixels hold ring averages from each source's closed-form cumulative energy,
-and each spectrum's DC term is set to the closed-form total exactly.
+Exact totals (``totals="transport"``, the default with "pbd").  Adding-doubling of the 1-D
+transport problem (HG with delta-M, Fresnel faces, directions split at the critical
+angles) gives each layer's R and T for collimated and for diffuse light and, when all
+layers share one eta, the whole stack's; the diffusion fields are scaled to them
+(``info["scale_to_exact"]``: exact / diffusion, the diffusion model's own error).
+``totals="diffusion"`` keeps diffusion's own totals.
+
+Adding.  Layers are folded top-down, per spatial frequency (stack A above layer B): light
+that A passes on collimated enters B as collimated light, diffuse light as diffuse light;
+U = (tau_A R_Bc + R_Bd T_Ac) / (1 - R_Bd R'_Ad) goes up into A, R = R_Ac + T'_Ad U, and so
+on (``_combine``).  The profiles are radially symmetric, so their 2-D grid is even in x and
+y; the 2-D DFT of an even periodic grid is a 2-D DCT-I of one quadrant
+(``scipy.fft.dctn(type=1)``), padded x2 against wrap-around.  Pixels hold ring averages
+from each source's closed-form cumulative energy, and each spectrum's DC term is set to
+its total exactly.
 
 Negative values.  Diffusion sums can go negative (thin layers far from the source, FFT
 ringing).  They are never clipped silently: every negative lobe beyond float64 round-off
-is recorded in ``info["negative_lobes"]`` (layer, direction, field, channel, radii, energy
-fraction), set to zero, and the rest of that profile rescaled so its energy (the
-closed-form total) is kept.
+is recorded in ``info["negative_lobes"]`` (layer, light, field, channel, radii, energy
+fraction), set to zero, and the rest of that profile rescaled so its energy is kept.
 
 Output table.  r_k = k h, values are averages over rings [r_k - h/2, r_k + h/2) (a disk for
-k = 0), in 1/mm^2, so sum_k R_k * ring_area_k = the energy inside the table.  ``Rd``/``Tt``
-are per photon that entered the top surface (the specular reflection at entry excluded;
-MCML's per-incident-photon values are these times 1 - R_sp) and include energy beyond the
-table; ``Tt`` includes the collimated transmission.  The cut-off radius is the smallest
-r_k whose rings hold ``CUTOFF_FRACTION`` = 99.9 % of Rd.
+k = 0), in 1/mm^2, so sum_k R_k * ring_area_k = the energy inside the table (exactly: the
+radial fit is rescaled to the grid's energy inside its radius).  ``Rd``/``Tt`` are per
+photon that entered the top surface (the specular reflection at entry excluded; MCML's
+per-incident-photon values are these times 1 - R_sp) and include energy beyond the table;
+``Tt`` includes the collimated transmission.  The cut-off radius is the smallest r_k whose
+rings hold ``CUTOFF_FRACTION`` = 99.9 % of Rd.
 """
 from __future__ import annotations
 
 import math
 import time
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 import scipy.fft
@@ -562,15 +572,11 @@ def _radau01(n: int) -> tuple[np.ndarray, np.ndarray]:
     return 0.5 * (x + 1.0), 0.5 * w
 
 
-from functools import lru_cache  # noqa: E402  (kept beside its only users)
-
-
 @lru_cache(maxsize=64)
 def _ad_quadrature(n: int, cuts: tuple) -> tuple[np.ndarray, np.ndarray]:
     """~n directions on (0, 1], Gauss-Legendre per segment between the critical cosines
     ``cuts``, Radau on the last segment (node at mu = 1); nodes per segment ~ its length."""
     bounds = [0.0] + sorted(c for c in cuts if 0.0 < c < 1.0) + [1.0]
-    lens = np.diff(bounds)
     mus, ws = [], []
     for k, (a, b) in enumerate(zip(bounds[:-1], bounds[1:])):
         m = max(4, int(round(n * (b - a))))

@@ -7,14 +7,13 @@ errors of the run here, and never more than the issue's 10 %.  The Monte Carlo t
 a second seed and against the multipole's fields and units.
 """
 import dataclasses
-import math
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from dermis.pipeline.artifacts import LayerProfile
-from dermis.physics.layers import PRESETS, Layer, LayerStack, load_layers_toml
+from dermis.physics.layers import PRESETS, LayerStack, load_layers_toml
 from dermis.stages import mc_slab as M
 from dermis.stages import profiles as P
 
