@@ -601,19 +601,20 @@ def test18_damaged_cache_entry_is_reported_and_rebuilt(damage, warm, tmp_path, c
     _, cache = warm
     c = _cached_copy(cache, tmp_path / "c")
     node = "render-lafortune-point-high"
-    d = _entry(c, node)
-    data = d / "data.npz"
-    if damage == "deleted":
-        data.unlink()
-    elif damage == "truncated":
-        data.write_bytes(data.read_bytes()[:100])
-    elif damage == "bit_flip":
-        raw = bytearray(data.read_bytes())
-        raw[len(raw) // 2] ^= 0xFF
-        data.write_bytes(bytes(raw))
-    else:
-        from dermis.pipeline.imageio import write_exr
-        write_exr(d / "lafortune-point-high.exr", np.full((32, 32, 3), np.nan, np.float32))
+    # damage every entry of the node (other tests may have added entries under other keys)
+    for d in [p.parent for p in c.glob(f"{node}/*/meta.json")]:
+        data = d / "data.npz"
+        if damage == "deleted":
+            data.unlink()
+        elif damage == "truncated":
+            data.write_bytes(data.read_bytes()[:100])
+        elif damage == "bit_flip":
+            raw = bytearray(data.read_bytes())
+            raw[len(raw) // 2] ^= 0xFF
+            data.write_bytes(bytes(raw))
+        else:
+            from dermis.pipeline.imageio import write_exr
+            write_exr(d / "lafortune-point-high.exr", np.full((32, 32, 3), np.nan, np.float32))
     scene = scene_file(tmp_path)
     rc = main(["status", str(scene), "--cache", str(c)])
     text = capsys.readouterr().out
