@@ -25,6 +25,7 @@ STAGES = (
     ("bssrdf", "dermis.stages.bssrdf"),
     ("reference", "dermis.stages.reference"),
     ("images", "dermis.reports.images"),
+    ("differences", "dermis.reports.differences"),
     ("report", "dermis.reports.report"),
 )
 

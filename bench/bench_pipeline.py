@@ -1,12 +1,18 @@
 """Benchmark a whole scene: seconds per stage and per image, and the thesis's timing table.
 
 Runs a scene into a fresh (or given) cache and writes JSON with every node's wall and kernel
-seconds, peak memory, the load average, and a model x lighting x geometry table of seconds per
-800x800 image. For the BSSRDF it reports the image time alone and with its (cached, shared)
-irradiance pass, to check the thesis's headline that with area and environment lights the
-cached-irradiance BSSRDF is the fastest model (docs/physics.md §7).
+seconds, the seconds summed per stage (where the time goes), peak memory, the load average,
+and a model x lighting x geometry table of seconds per 800x800 image.  For the BSSRDF it
+reports the image time alone and with its (cached, shared) irradiance pass, to check the
+thesis's headline that with area and environment lights the cached-irradiance BSSRDF is the
+fastest model (docs/physics.md §7).  With ``--warm-light NAME`` it then scales that light's
+intensity by 1.1 and runs again on the same cache: what one changed light costs (warm).
 
     python3 bench/bench_pipeline.py [SCENE] [--cache DIR] [--out bench/results/pipeline.json]
+        [--warm-light point]
+
+Peak memory is the process's maximum resident set (``ru_maxrss``), which includes the
+OpenCL runtime's threads (PoCL runs in-process).
 """
 from __future__ import annotations
 
@@ -20,26 +26,46 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+
+
+def _per_stage(summary) -> dict:
+    """Seconds and node counts summed per stage (ran nodes only)."""
+    out: dict = {}
+    for n in summary.nodes:
+        if n.status != "ran":
+            continue
+        rec = out.setdefault(n.stage, {"nodes": 0, "seconds": 0.0, "kernel_seconds": 0.0})
+        rec["nodes"] += 1
+        rec["seconds"] += n.seconds
+        rec["kernel_seconds"] += n.kernel_seconds
+    return out
+
+
+def _run(api, scene, cache) -> tuple[float, object]:
+    t0 = time.perf_counter()
+    summary = api.run(scene, cache=cache, export=False)
+    return time.perf_counter() - t0, summary
 
 
 def main(argv=None) -> int:
     from dermis.pipeline import api
     from dermis.pipeline.config import load_scene
-    from dermis.pipeline.plan import GEOMETRY_MESH
+    from dermis.stages.render import GEOMETRY
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("scene", nargs="?", default=None)
     ap.add_argument("--cache", default=None, help="default: a fresh temporary directory")
     ap.add_argument("--out", default=str(REPO / "bench" / "results" / "pipeline.json"))
+    ap.add_argument("--warm-light", default=None,
+                    help="then rerun with this light's intensity x 1.1 (warm cost of a change)")
     args = ap.parse_args(argv)
 
     scene = load_scene(args.scene)
     cache = args.cache or tempfile.mkdtemp(prefix="dermis-bench-")
     load0 = os.getloadavg()
-    t0 = time.perf_counter()
-    summary = api.run(scene, cache=cache, export=False)
-    wall = time.perf_counter() - t0
+    cpu0 = time.process_time()
+    wall, summary = _run(api, scene, cache)
+    cpu = time.process_time() - cpu0
     nodes = {n.id: {"status": n.status, "seconds": n.seconds, "kernel_seconds": n.kernel_seconds}
              for n in summary.nodes}
 
@@ -49,27 +75,44 @@ def main(argv=None) -> int:
             continue
         _, model, rest = nid.split("-", 2)
         label, geometry = rest.rsplit("-", 1)
-        row = {"image_s": n["seconds"]}
+        mesh = GEOMETRY[geometry][0]
+        row = {"image_s": n["seconds"],
+               "visibility_s": nodes.get(f"visibility-{mesh}-{label}", {}).get("seconds", 0.0)}
         if model == "bssrdf":
-            irr = nodes.get(f"irradiance-{GEOMETRY_MESH[geometry]}-{label}", {})
+            irr = nodes.get(f"irradiance-{mesh}-{label}", {})
             row["irradiance_s"] = irr.get("seconds", 0.0)
             row["with_irradiance_s"] = row["image_s"] + row["irradiance_s"]
         table.setdefault(geometry, {}).setdefault(label, {})[model] = row
 
     result = {
-        "scene": scene.path, "cache": cache, "wall_seconds": wall,
+        "scene": scene.path, "cache": cache, "wall_seconds": wall, "cpu_seconds": cpu,
+        "spp": scene.render.spp,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "loadavg_before": load0, "loadavg_after": os.getloadavg(), "cpus": os.cpu_count(),
-        "nodes": nodes, "seconds_per_image": table,
+        "per_stage": _per_stage(summary), "nodes": nodes, "seconds_per_image": table,
     }
+    if args.warm_light:
+        light = next(l for l in scene.lights if l.name == args.warm_light)
+        over = {"lights": [{**_light_table(l), **({"intensity": [1.1 * x for x in l.intensity]}
+                                               if l.name == light.name else {})}
+                           for l in scene.lights]}
+        changed = load_scene(args.scene, overrides=over)
+        w2, s2 = _run(api, changed, cache)
+        result["warm"] = {"light": args.warm_light, "wall_seconds": w2,
+                          "fraction_of_cold": w2 / wall, "ran": s2.ran(),
+                          "per_stage": _per_stage(s2)}
+        result["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(result, indent=1))
 
-    print(f"{scene.path}: {wall:.1f} s wall, peak RSS {result['peak_rss_mb']:.0f} MB, "
-          f"load {load0[0]:.2f}")
+    print(f"{scene.path}: {wall:.1f} s wall ({cpu:.1f} s CPU in this process), peak RSS "
+          f"{result['peak_rss_mb']:.0f} MB, load {load0[0]:.2f}, spp {scene.render.spp}")
+    print(f"\n{'stage':<14}{'nodes':>6}{'seconds':>10}")
+    for stage, rec in result["per_stage"].items():
+        print(f"{stage:<14}{rec['nodes']:>6}{rec['seconds']:>10.1f}")
     for geometry, rows in table.items():
         models = sorted({m for r in rows.values() for m in r})
-        print(f"\n{geometry:<14}" + "".join(f"{m:>16}" for m in models))
+        print(f"\n{geometry:<20}" + "".join(f"{m:>16}" for m in models))
         for label, r in rows.items():
             cells = []
             for m in models:
@@ -80,10 +123,21 @@ def main(argv=None) -> int:
                     cells.append(f"{c['image_s']:7.2f} ({c['with_irradiance_s']:5.1f})")
                 else:
                     cells.append(f"{c['image_s']:16.2f}")
-            print(f"{label:<14}" + "".join(cells))
-    print("\nbssrdf: image seconds (with its irradiance pass, computed once per mesh and light)")
+            print(f"{label:<20}" + "".join(cells))
+    print("\nbssrdf: image seconds (with its irradiance pass, computed once per mesh and light);"
+          " the visibility of each mesh and light is shared by its models (per_stage)")
+    if "warm" in result:
+        w = result["warm"]
+        print(f"warm after changing light {w['light']!r}: {w['wall_seconds']:.1f} s = "
+              f"{w['fraction_of_cold']:.0%} of cold; ran {len(w['ran'])} nodes")
     print(f"wrote {args.out}")
     return 0
+
+
+def _light_table(light) -> dict:
+    """A LightConfig as its scene table (lengths are already in mm: the scene's units)."""
+    from dataclasses import asdict
+    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(light).items()}
 
 
 if __name__ == "__main__":

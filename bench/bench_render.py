@@ -1,16 +1,25 @@
-"""Seconds per 800 x 800 BRDF image, per model and light, on a ~1M and a ~17k-triangle head.
+"""BRDF images of the default scene: seconds, anti-aliasing error per spp, and fireflies.
 
-Meshes: the Lee Perry-Smith scan (17,684 triangles, the thesis's ~16,750-triangle "low"
-stand-in) and its Loop subdivision to ~1.1M triangles (stages.mesh_prep.make_high; the
-"high" stand-in, without displacement).  When the shared data or the mesh stage is missing,
-icospheres of 20,480 and 1,310,720 triangles stand in (the JSON says which).
-Also measures Embree's rays/s here (closest-hit and occlusion, random rays through the
-high mesh) and the share of visibility / shadows / shading in each image.
+Meshes and maps are the default scene's (the Lee Perry-Smith scan, ``scenes/default.toml``),
+built or read through the pipeline cache (``--cache``, else ``$DERMIS_CACHE`` / ``./.dermis-cache``).
 
-    python bench/bench_render.py [--out bench/results/render.json] [--size 800]
-        [--models lafortune,hk93,asperity] [--lights point,area,directional,environment]
+Modes (each writes JSON):
 
-Numbers on a shared 2-core machine are noisy; run it alone for figures to quote.
+* ``--timing`` (default): per lighting condition and mesh, the shared visibility
+  (camera rays, light sampling, shadow rays) and each BRDF model's shading, 800 x 800.
+  -> ``bench/results/render.json``
+* ``--spp 1,4,9,16``: the point light (hard shadows) and the sunset, Lafortune on the high
+  mesh: seconds (visibility + shading) and the relative RMSE of the image against an
+  spp = 64 render, over the head's pixels, per spp: what anti-aliasing buys for its cost.
+  -> ``bench/results/render_spp.json``
+* ``--fireflies``: under the sunset, the fraction of inner head pixels whose luminance is
+  more than 1.5x (and 2x) their converged value (a 384-sample-per-pixel render), for the
+  scene's settings; the three BRDF models.  -> ``bench/results/render_fireflies.json``
+
+    python bench/bench_render.py [--timing] [--spp 1,4,9,16] [--fireflies] [--cache DIR]
+
+Numbers on a shared 2-core machine are noisy; CPU seconds (``process_time``, all threads)
+are recorded beside wall seconds.
 """
 from __future__ import annotations
 
@@ -25,143 +34,167 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tests"))
+RESULTS = REPO / "bench" / "results"
 
-from dermis.pipeline.cl import get_env  # noqa: E402
-from dermis.pipeline.config import CameraConfig, LightConfig  # noqa: E402
-from dermis.physics.visibility import Visibility  # noqa: E402
-from dermis.stages.render import render  # noqa: E402
-
-SHARED = REPO.parent / "shared" / "data" / "lps_head" / "LeePerrySmith_cm.obj"
-
-# The thesis's four lights (docs/physics.md §6; positions as in scenes/default.toml, relative to
-# the face centre).
-def _lights(centre: np.ndarray) -> dict:
-    c = centre
-    key = tuple(float(x) for x in c + np.array([350.0, 450.0, 600.0]))
-    return {
-        "point": [LightConfig(name="point", type="point", position=key, intensity=(4e5,) * 3)],
-        "area": [LightConfig(name="area", type="disc", position=key, radius=70.0,
-                             direction=(0.35, 0.45, 0.6), intensity=(4e5,) * 3, samples=16)],
-        "directional": [LightConfig(name="dir_left", type="directional",
-                                    direction=(-0.6, 0.3, 0.75), intensity=(0.6,) * 3),
-                        LightConfig(name="dir_right", type="directional",
-                                    direction=(0.6, 0.3, 0.75), intensity=(0.6,) * 3)],
-        "environment": [LightConfig(name="sunset", type="environment", samples=16)],
-    }
+# Firefly: a pixel more than this times its converged luminance (the issue's "about 1 % of
+# head pixels" at 16 samples before anti-aliasing is this threshold, bench/results/
+# render_fireflies.json "before").
+FIREFLY_FACTOR = 1.5
 
 
-def _meshes():
-    """(name, mesh, source note) for the low and high geometry."""
-    try:
-        from dermis.stages.mesh_prep import make_high
-        from dermis.stages.scan_io import load_scan
-        if not SHARED.is_file():
-            raise FileNotFoundError(SHARED)
-        low = load_scan(SHARED, units="cm")
-        high = make_high(low, target_triangles=1_000_000, scheme="loop")
-        return [("low", low, "Lee Perry-Smith scan"),
-                ("low_bump", low, "LPS + synthetic 4096^2 albedo/bump maps, bump='sharp'"),
-                ("high", high, "LPS, Loop-subdivided")]
-    except Exception as exc:  # the bench must run on a bare checkout too
-        from render_fixtures import icosphere
-        note = f"icosphere stand-in ({type(exc).__name__}: {exc})"
-        return [("low", icosphere(100.0, 5), note), ("high", icosphere(100.0, 8), note)]
+def _inputs(cache):
+    """(scene, {"mesh_high": Mesh, "mesh_low": Mesh, "bake": BakedMaps}) of the default scene."""
+    from dermis.pipeline import api, artifacts
+    from dermis.pipeline.config import load_scene
+    scene = load_scene(None)
+    summary = api.run(scene, cache=cache, until="bake", export=False)
+    got = {}
+    for rep in summary.nodes:
+        if rep.id in ("mesh_high", "mesh_low", "bake"):
+            got[rep.id] = artifacts.load(rep.path)
+    return scene, got
 
 
-def _synthetic_maps(resolution: int = 4096):
-    """BakedMaps of the thesis's size (4096^2) with a smooth random bump: timing stand-in."""
-    from scipy.ndimage import zoom
-    from dermis.pipeline.artifacts import BakedMaps
-    rng = np.random.default_rng(1)
-    bump = zoom(rng.random((64, 64)).astype(np.float32), resolution / 64, order=1)
-    albedo = np.full((resolution, resolution, 3), (200, 150, 130), np.uint8)
-    return BakedMaps(albedo_srgb=albedo, bump=bump, bump_blur=bump,
-                     coverage=np.ones(bump.shape, bool), bump_min_mm=0.0, bump_range_mm=0.5,
-                     blur_sigma_px=0.0)
+def _models(scene):
+    from dermis.stages.render import model_params
+    optics = scene.optics.to_dict()
+    return {"lafortune": model_params("lafortune", None, None),
+            "hk93": model_params("hk93", None, optics),
+            "asperity": model_params("asperity", scene.render.asperity_base, optics)}
 
 
-def _camera(mesh, size: int) -> CameraConfig:
-    """Frame the head like the thesis figures: the top 330 mm of the mesh (a face is ~300 mm
-    tall, docs/physics.md "Conventions") seen from 900 mm along +z."""
-    v = np.asarray(mesh.vertices)
-    lo, hi = v.min(0), v.max(0)
-    extent = min(330.0, hi[1] - lo[1])
-    front = np.array([(lo[0] + hi[0]) / 2, hi[1] - extent / 2, hi[2]])
-    fov = float(np.degrees(2 * np.arctan(0.5 * extent / 900.0)))
-    return CameraConfig(position=tuple(front + [0, 0, 900.0]), look_at=tuple(front),
-                        fov_deg=fov, width=size, height=size)
+def _shade(mesh, samples, model, pb, cam, env, scene, **kw):
+    from dermis.stages.render import render
+    p, bp = pb
+    return render(mesh, [], model, p, cam, samples=samples, cl_env=env, base_params=bp,
+                  asperity_base=scene.render.asperity_base if model == "asperity" else None, **kw)
 
 
-def _embree_rays_per_second(vis: Visibility, mesh, n: int = 2_000_000) -> dict:
-    rng = np.random.default_rng(0)
-    v = np.asarray(mesh.vertices)
-    lo, hi = v.min(0), v.max(0)
-    o = rng.uniform(lo, hi, (n, 3)).astype(np.float32)
-    d = rng.normal(size=(n, 3)).astype(np.float32)
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    t = time.perf_counter()
-    vis.intersect(o, d)
-    closest = n / (time.perf_counter() - t)
-    t = time.perf_counter()
-    vis.occluded(o, d, d, np.full(n, np.inf, np.float32))
-    occl = n / (time.perf_counter() - t)
-    return {"closest_hit_rays_per_s": closest, "occlusion_rays_per_s": occl, "rays": n}
+def _lum(img):
+    return np.asarray(img, np.float64) @ np.array([0.2126, 0.7152, 0.0722])
+
+
+def timing(scene, got, env, spp: int) -> dict:
+    from dermis.physics.visibility import Visibility
+    from dermis.stages.visibility import cast
+    cam = scene.camera
+    out = {}
+    for mesh_node, extra in (("mesh_high", {}),
+                             ("mesh_low", {"maps": got["bake"], "bump": "sharp"})):
+        mesh = got[mesh_node]
+        t = time.perf_counter()
+        vis = Visibility(mesh.vertices, mesh.faces)
+        rec = {"triangles": int(len(mesh.faces)), "scene_build_s": time.perf_counter() - t,
+               "lights": {}}
+        for label, lights in scene.light_groups():
+            t, c = time.perf_counter(), time.process_time()
+            s = cast(mesh, lights, cam, spp=spp, seed=0, visibility=vis, cl_env=env)
+            row = {"visibility_s": time.perf_counter() - t, "visibility_cpu_s": time.process_time() - c,
+                   "visibility_parts": s.info["timings"], "hits": s.info["hits"],
+                   "shadow_rays": s.info["shadow_rays"],
+                   "unoccluded_samples": s.info["unoccluded_samples"], "models": {}}
+            for model, pb in _models(scene).items():
+                t, c = time.perf_counter(), time.process_time()
+                r = _shade(mesh, s, model, pb, cam, env, scene, **extra)
+                row["models"][model] = {"seconds": time.perf_counter() - t,
+                                        "cpu_seconds": time.process_time() - c,
+                                        "surface_s": r.timings["surface"],
+                                        "shading_s": r.timings["shading"],
+                                        "kernel_seconds": r.timings["kernel_seconds"]}
+            rec["lights"][label] = row
+            print(f"  {mesh_node:9s} {label:20s} visibility {row['visibility_s']:5.2f} s  "
+                  + "  ".join(f"{m} {v['seconds']:.2f}" for m, v in row["models"].items()))
+        out[mesh_node] = rec
+    return out
+
+
+def spp_sweep(scene, got, env, values) -> dict:
+    from dermis.physics.visibility import Visibility
+    from dermis.stages.visibility import cast
+    cam, mesh = scene.camera, got["mesh_high"]
+    vis = Visibility(mesh.vertices, mesh.faces)
+    pb = _models(scene)["lafortune"]
+    groups = dict(scene.light_groups())
+    out = {}
+    for label in ("point", "sunset"):
+        lights = groups[label]
+        ref = _shade(mesh, cast(mesh, lights, cam, spp=64, seed=99, visibility=vis, cl_env=env),
+                     "lafortune", pb, cam, env, scene).linear
+        head = _lum(ref) > 0
+        rows = {}
+        for spp in values:
+            t, c = time.perf_counter(), time.process_time()
+            s = cast(mesh, lights, cam, spp=spp, seed=1, visibility=vis, cl_env=env)
+            img = _shade(mesh, s, "lafortune", pb, cam, env, scene).linear
+            secs, cpu = time.perf_counter() - t, time.process_time() - c
+            d = (img - ref)[head]
+            rows[spp] = {"seconds": secs, "cpu_seconds": cpu,
+                         "rel_rmse_vs_spp64": float(np.sqrt((d ** 2).mean() / (ref[head] ** 2).mean())),
+                         "unoccluded_samples": s.info["unoccluded_samples"]}
+            print(f"  {label:8s} spp {spp:3d}: {secs:5.2f} s, relative RMSE vs spp 64 "
+                  f"{rows[spp]['rel_rmse_vs_spp64']:.4f}")
+        out[label] = rows
+    return out
+
+
+def fireflies(scene, got, env, passes: int = 6) -> dict:
+    from scipy.ndimage import binary_erosion
+    from dermis.physics.visibility import Visibility
+    from dermis.stages.visibility import LightSampling, cast
+    cam, mesh = scene.camera, got["mesh_high"]
+    vis = Visibility(mesh.vertices, mesh.faces)
+    lights = dict(scene.light_groups())["sunset"]
+    models = _models(scene)
+    acc = {m: 0.0 for m in models}
+    for k in range(passes):          # converged: passes x 64 light samples per pixel
+        s = cast(mesh, lights, cam, spp=4, seed=5000 + k, visibility=vis, cl_env=env,
+                 sampling=LightSampling(shadow_samples=64))
+        for m, pb in models.items():
+            acc[m] = acc[m] + _shade(mesh, s, m, pb, cam, env, scene).linear.astype(np.float64)
+    s = cast(mesh, lights, cam, spp=scene.render.spp, seed=scene.mesh.seed, visibility=vis,
+             cl_env=env)
+    out = {"reference_samples_per_pixel": 64 * passes, "spp": scene.render.spp,
+           "light_samples_per_pixel": lights[0].samples, "models": {}}
+    for m, pb in models.items():
+        ref = _lum(acc[m] / passes)
+        img = _lum(_shade(mesh, s, m, pb, cam, env, scene).linear)
+        inner = binary_erosion(ref > 0)
+        sel = inner & (ref > 0.01 * np.percentile(ref[inner], 99))
+        out["models"][m] = {f">{f}x": float(np.mean(img[sel] > f * ref[sel]))
+                            for f in (FIREFLY_FACTOR, 2.0)}
+        out["models"][m]["pixels"] = int(sel.sum())
+        print(f"  {m:10s} fireflies (> {FIREFLY_FACTOR}x converged): "
+              f"{out['models'][m][f'>{FIREFLY_FACTOR}x']:.4%}")
+    return out
 
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default=str(REPO / "bench" / "results" / "render.json"))
-    ap.add_argument("--size", type=int, default=800)
-    ap.add_argument("--models", default="lafortune,hk93,asperity")
-    ap.add_argument("--lights", default="point,area,directional,environment")
+    ap.add_argument("--timing", action="store_true")
+    ap.add_argument("--spp", default=None, help="comma-separated spp values to sweep")
+    ap.add_argument("--fireflies", action="store_true")
+    ap.add_argument("--cache", default=None)
     ap.add_argument("--device", default=None)
     args = ap.parse_args(argv)
-
+    from dermis.pipeline.cl import get_env
     env = get_env(args.device)
-    from dermis.stages.brdf_models import AsperityParams
-    results = {"machine": platform.processor() or platform.machine(), "device": env.description,
-               "size": args.size, "note": "shared 2-core machine: noisy", "meshes": {}}
-    for gname, mesh, note in _meshes():
-        t = time.perf_counter()
-        vis = Visibility(mesh.vertices, mesh.faces)
-        build = time.perf_counter() - t
-        cam = _camera(mesh, args.size)
-        extra = {}
-        if gname == "low_bump" and mesh.uv is not None:
-            extra = {"maps": _synthetic_maps(), "bump": "sharp"}
-        lights = _lights(np.asarray(cam.look_at))
-        rec = {"source": note, "triangles": int(len(mesh.faces)), "scene_build_s": build,
-               "embree": _embree_rays_per_second(vis, mesh), "images": {}}
-        print(f"[{gname}] {note}: {len(mesh.faces):,} triangles, Embree build {build:.2f} s, "
-              f"{rec['embree']['closest_hit_rays_per_s'] / 1e6:.2f} M closest / "
-              f"{rec['embree']['occlusion_rays_per_s'] / 1e6:.2f} M occlusion rays/s")
-        # warm-up: compile every kernel variant outside the timings
-        for model in args.models.split(","):
-            params = AsperityParams(base="hk93") if model == "asperity" else None
-            render(mesh, lights["point"], model, params, replace(cam, width=16, height=16),
-                   visibility=vis, cl_env=env, **extra)
-        for lname in args.lights.split(","):
-            for model in args.models.split(","):
-                params = AsperityParams(base="hk93") if model == "asperity" else None
-                res = render(mesh, lights[lname], model, params, cam, visibility=vis, cl_env=env,
-                             **extra)
-                tm = res.timings
-                busy = tm["visibility"] + tm["shadows"] + tm["shading"]
-                row = {**tm, "shadow_rays": res.info["shadow_rays"],
-                       "shadow_rays_per_s": res.info["shadow_rays"] / max(tm["shadows"], 1e-9),
-                       "coverage": float(res.mask.mean()),
-                       "share": {k: tm[k] / busy for k in ("visibility", "shadows", "shading")}}
-                rec["images"][f"{model}/{lname}"] = row
-                print(f"  {model:10s} {lname:12s} {tm['total']:6.2f} s  (vis {tm['visibility']:.2f}"
-                      f", shadows {tm['shadows']:.2f} (sampling {tm['light_sampling']:.2f}), shading {tm['shading']:.2f}, kernels "
-                      f"{tm['kernel_seconds']:.2f}; {res.info['shadow_rays'] / 1e6:.2f} M shadow "
-                      f"rays, coverage {row['coverage']:.2f})")
-        results["meshes"][gname] = rec
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(results, indent=1))
-    print(f"wrote {out}")
+    scene, got = _inputs(args.cache)
+    meta = {"machine": platform.processor() or platform.machine(), "device": env.description,
+            "size": [scene.camera.width, scene.camera.height], "scene": scene.path,
+            "note": "shared 2-core machine: noisy"}
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    results = {}
+    if args.timing or not (args.spp or args.fireflies):
+        results["timing"] = {**meta, "spp": scene.render.spp,
+                             "meshes": timing(scene, got, env, scene.render.spp)}
+        (RESULTS / "render.json").write_text(json.dumps(results["timing"], indent=1))
+    if args.spp:
+        values = [int(v) for v in args.spp.split(",")]
+        results["spp"] = {**meta, "lights": spp_sweep(scene, got, env, values)}
+        (RESULTS / "render_spp.json").write_text(json.dumps(results["spp"], indent=1))
+    if args.fireflies:
+        results["fireflies"] = {**meta, **fireflies(scene, got, env)}
+        (RESULTS / "render_fireflies.json").write_text(json.dumps(results["fireflies"], indent=1))
     return results
 
 

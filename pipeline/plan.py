@@ -66,11 +66,16 @@ def build_graph(scene: Scene) -> tuple[dict[str, Node], list[str]]:
                 render_ids.append(add(node).id)
     if scene.reference.enabled:  # Mitsuba ground truth, one node per lighting condition
         _add_references(scene, add)
+    images_id = None
     if render_ids:
-        add(stage("images").node(scene, render_ids), target=True)
+        images_id = add(stage("images").node(scene, render_ids), target=True).id
     if REFERENCE_MODEL in models and len(models) > 1:  # differences need the reference + another
         irradiance_ids = [n for n, node in nodes.items() if node.stage == "irradiance"]
-        add(stage("report").node(scene, render_ids, irradiance_ids), target=True)
+        diff_ids = [add(stage("differences").node(scene, label, [
+            r for r in render_ids if nodes[r].params.get("label") == label])).id
+            for label, _ in scene.light_groups()]     # one light's comparisons per node
+        add(stage("report").node(scene, render_ids, irradiance_ids, diff_ids, images_id),
+            target=True)
     return nodes, targets
 
 

@@ -422,11 +422,61 @@ def _record(res: DiffResult, image, ref_image, fname: str, against: dict) -> dic
     return rec
 
 
+# The two comparison sets: (metrics section, scale kind, grid file prefix, grid title)
+SETS = (("model_vs_reference", "model", "diffgrid",
+         lambda ref, geom: f"difference vs {ref}, geometry {geom} (red = brighter, blue = darker)"),
+        ("geometry_vs_high", "geometry", "geomgrid",
+         lambda ref, geom: f"{geom} vs {GEOMETRY_REFERENCE} mesh, same model and light (red = "
+                           "brighter, blue = darker)"))
+
+
+def write_grids(metrics: dict, tiles: dict, out_dir) -> list[Path]:
+    """The labelled grids, one per comparison set and geometry (rows models, columns lights):
+    ``diffgrid-<geometry>.png`` and ``geomgrid-<geometry>.png``, from the difference images
+    ``tiles`` ({"model": {(m, l, g): image}, "geometry": {...}}, full size or thumbnails)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from dermis.reports.sheets import save_png
+
+    out_dir = Path(out_dir)
+    jobs = []
+    for section, kind, prefix, title in SETS:
+        recs = metrics.get(section, {})
+        got = tiles.get(kind, {})
+        for geom in sorted({r["geometry"] for r in recs.values()}):
+            sel = {(r["model"], r["light"]): got[(r["model"], r["light"], geom)]
+                   for r in recs.values() if r["geometry"] == geom
+                   and (r["model"], r["light"], geom) in got}
+            caps = {(m, l): _caption(recs[f"{m}-{l}-{geom}"]) for (m, l) in sel}
+            jobs.append((out_dir / f"{prefix}-{geom}.png",
+                         _grid_image(sel, sorted({m for m, _ in sel}), sorted({l for _, l in sel}),
+                                     metrics["scales"][kind],
+                                     title=title(metrics.get("reference_model", "bssrdf"), geom),
+                                     captions=caps)))
+    with ThreadPoolExecutor(2) as pool:
+        return list(pool.map(lambda job: save_png(*job), jobs))
+
+
+def merge_metrics(parts: list) -> dict:
+    """One metrics dict from several :func:`write_differences` results (e.g. one per
+    lighting condition): their records and per-light scales side by side."""
+    out = {"reference_model": "bssrdf", "rel_floor_fraction": REL_FLOOR_FRACTION,
+           "scale_percentile": DIFF_SCALE_PERCENTILE, "scales": {"model": {}, "geometry": {}},
+           "model_vs_reference": {}, "geometry_vs_high": {}}
+    for part in parts:
+        for key in ("reference_model", "rel_floor_fraction", "scale_percentile"):
+            out[key] = part.get(key, out[key])
+        for kind in ("model", "geometry"):
+            out["scales"][kind].update(part.get("scales", {}).get(kind, {}))
+        for section in ("model_vs_reference", "geometry_vs_high"):
+            out[section].update(part.get(section, {}))
+    return out
+
+
 def _write_set(pairs: dict, refs: dict, by_key: dict, metrics: dict, scale_kind: str,
-               section: str, prefix: str, grid_prefix: str, out_dir: Path, extra: dict,
-               title, tiles_out: dict | None = None) -> list[Path]:
-    """One comparison set: a shared scale per light, a PNG and a metrics record per pair, and
-    a labelled grid per geometry (models x lights)."""
+               section: str, prefix: str, out_dir: Path, extra: dict,
+               tiles_out: dict | None = None) -> list[Path]:
+    """One comparison set: a shared scale per light, a PNG and a metrics record per pair."""
     from concurrent.futures import ThreadPoolExecutor
 
     from dermis.reports.sheets import save_png
@@ -442,13 +492,6 @@ def _write_set(pairs: dict, refs: dict, by_key: dict, metrics: dict, scale_kind:
         jobs.append((out_dir / fname, idx, pal))     # palette PNG: 1 byte a pixel
         metrics[section][f"{m}-{l}-{g}"] = _record(res, by_key[(m, l, g)], refs[(m, l, g)],
                                                     fname, extra)
-    for geom in sorted({g for _, _, g in pairs}):
-        sel = {(m, l): t for (m, l, g), t in tiles.items() if g == geom}
-        caps = {(m, l): _caption(metrics[section][f"{m}-{l}-{geom}"]) for (m, l) in sel}
-        jobs.append((out_dir / f"{grid_prefix}-{geom}.png",
-                     _grid_image(sel, sorted({m for m, _ in sel}), sorted({l for _, l in sel}),
-                                 metrics["scales"][scale_kind], title=title(geom),
-                                 captions=caps), None))
     if tiles_out is not None:
         tiles_out.update(tiles)
     with ThreadPoolExecutor(2) as pool:
@@ -456,7 +499,8 @@ def _write_set(pairs: dict, refs: dict, by_key: dict, metrics: dict, scale_kind:
 
 
 def write_differences(images: dict, out_dir, *, reference_model: str = "bssrdf",
-                      tiles_out: dict | None = None) -> tuple[list[Path], dict]:
+                      tiles_out: dict | None = None, grids: bool = True
+                      ) -> tuple[list[Path], dict]:
     """Difference images and metrics of every model against the reference, and of the low
     geometries against the high mesh.
 
@@ -469,6 +513,9 @@ def write_differences(images: dict, out_dir, *, reference_model: str = "bssrdf",
     tiles_out : dict, optional
         Filled with the colour-coded difference images, ``{"model": {(model, light, geom):
         uint8 image}, "geometry": {...}}``, so the PDF reuses them instead of recomputing
+    grids : bool
+        Also draw the labelled grids (:func:`write_grids`); False when one call sees one
+        lighting condition and the grids are drawn from all of them later
 
     Returns
     -------
@@ -515,13 +562,13 @@ def write_differences(images: dict, out_dir, *, reference_model: str = "bssrdf",
         if m == reference_model or ref is None:
             continue
         todo[(m, l, g)] = (im, ref)
+    tiles = {"model": {}, "geometry": {}} if tiles_out is None else tiles_out
+    tiles.setdefault("model", {})
+    tiles.setdefault("geometry", {})
     pairs = _pairs(todo, lambda k: (k[1], k[2]))        # DiffResults, grouped by reference
-    tiles = tiles_out.setdefault("model", {}) if tiles_out is not None else None
     files += _write_set(pairs, {k: by_key[(reference_model, k[1], k[2])] for k in pairs},
-                        by_key, metrics, "model", "model_vs_reference", "diff", "diffgrid",
-                        out_dir, {"reference": reference_model},
-                        lambda geom: f"difference vs {reference_model}, geometry {geom} "
-                                     "(red = brighter, blue = darker)", tiles)
+                        by_key, metrics, "model", "model_vs_reference", "diff", out_dir,
+                        {"reference": reference_model}, tiles["model"])
     del pairs
 
     # --- geometries vs the high mesh, same model and light --------------------------------
@@ -531,12 +578,12 @@ def write_differences(images: dict, out_dir, *, reference_model: str = "bssrdf",
         if g in GEOMETRY_COMPARED and hi is not None:
             todo[(m, l, g)] = (im, hi)
     gpairs = _pairs(todo, lambda k: (k[0], k[1]))
-    tiles = tiles_out.setdefault("geometry", {}) if tiles_out is not None else None
     files += _write_set(gpairs, {k: by_key[(k[0], k[1], GEOMETRY_REFERENCE)] for k in gpairs},
-                        by_key, metrics, "geometry", "geometry_vs_high", "geomdiff", "geomgrid",
-                        out_dir, {"reference_geometry": GEOMETRY_REFERENCE},
-                        lambda geom: f"{geom} vs {GEOMETRY_REFERENCE} mesh, same model and "
-                                     "light (red = brighter, blue = darker)", tiles)
+                        by_key, metrics, "geometry", "geometry_vs_high", "geomdiff", out_dir,
+                        {"reference_geometry": GEOMETRY_REFERENCE}, tiles["geometry"])
+    del gpairs
+    if grids:
+        files += write_grids(metrics, tiles, out_dir)
 
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=1, sort_keys=True))
     files.append(out_dir / "metrics.json")

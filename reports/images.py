@@ -25,13 +25,15 @@ def _label(image) -> tuple[str, str, str]:
     return info.get("model", "?"), info.get("light", "?"), info.get("geometry", "?")
 
 
-def write_pngs(images: dict, out_dir: Path) -> list[Path]:
+def write_pngs(images: dict, out_dir: Path, *, thumbnails: bool = False) -> list[Path]:
     """Write ``<model>-<light>-<geometry>.png`` per image and one contact sheet per geometry.
 
     Parameters
     ----------
     images : dict node id -> :class:`pipeline.artifacts.RenderedImage`
     out_dir : directory to write into
+    thumbnails : also write ``thumb-<model>-<light>-<geometry>.png`` (the contact sheets'
+        tiles, :data:`reports.sheets.TILE_PX`) for the report's image pages (not returned)
 
     Returns
     -------
@@ -43,7 +45,7 @@ def write_pngs(images: dict, out_dir: Path) -> list[Path]:
     """
     from concurrent.futures import ThreadPoolExecutor
 
-    from dermis.reports.sheets import save_png
+    from dermis.reports.sheets import save_png, thumbnail
     from dermis.reports.tonemap import encode_srgb8, shared_exposure
 
     out_dir = Path(out_dir)
@@ -56,6 +58,8 @@ def write_pngs(images: dict, out_dir: Path) -> list[Path]:
         for i in group:
             mapped[i] = encode_srgb8(images[i].linear, exposures[light])
     jobs = [(out_dir / ("%s-%s-%s.png" % _label(images[nid])), mapped[nid]) for nid in ids]
+    thumbs = [(out_dir / ("thumb-%s-%s-%s.png" % _label(images[nid])), thumbnail(mapped[nid]))
+              for nid in ids] if thumbnails else []
     for geom in sorted({_label(images[i])[2] for i in ids}):
         sel = {i: mapped[i] for i in ids if _label(images[i])[2] == geom}
         jobs.append((out_dir / f"sheet-{geom}.png",
@@ -63,6 +67,7 @@ def write_pngs(images: dict, out_dir: Path) -> list[Path]:
                                          title=f"geometry: {geom}")))
     with ThreadPoolExecutor(2) as pool:
         files = list(pool.map(lambda job: save_png(*job), jobs))
+        list(pool.map(lambda job: save_png(*job), thumbs))
     (out_dir / "exposure.json").write_text(json.dumps({"exposure_per_light": exposures, "images": ids},
                                                      indent=1))
     files.append(out_dir / "exposure.json")
@@ -100,5 +105,23 @@ def node(scene, render_ids: list[str]) -> Node:
 
 
 def run(params: dict, inputs: dict, ctx) -> StageResult:
-    files = write_pngs({nid: inputs[nid] for nid in params["renders"]}, ctx.out_dir)
+    files = write_pngs({nid: inputs[nid] for nid in params["renders"]}, ctx.out_dir,
+                       thumbnails=True)
     return StageResult(files=[f.name for f in files])
+
+
+def load_thumbnails(folder) -> tuple[dict, dict]:
+    """(thumbnails {(model, light, geometry): uint8 image}, exposure per light) that an
+    ``images`` node wrote (:func:`write_pngs` with ``thumbnails``)."""
+    import numpy as np
+    from PIL import Image
+
+    folder = Path(folder)
+    out = {}
+    for path in sorted(folder.glob("thumb-*.png")):
+        model, rest = path.stem[len("thumb-"):].split("-", 1)
+        light, geom = rest.rsplit("-", 1)
+        with Image.open(path) as im:
+            out[(model, light, geom)] = np.asarray(im.convert("RGB"))
+    exposure = json.loads((folder / "exposure.json").read_text())["exposure_per_light"]
+    return out, exposure

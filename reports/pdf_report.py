@@ -241,20 +241,24 @@ def _downsample(linear: np.ndarray, px: int) -> np.ndarray:
     return out / np.float32(k * k)
 
 
-def _image_pages(plt, images):
+def _image_pages(plt, images, thumbnails=None):
     from dermis.reports.sheets import TILE_PX, grid
     from dermis.reports.tonemap import encode_srgb8, shared_exposure
 
     idx = _index(images)
     lights = sorted({l for _, l, _ in idx})
     models = _ordered_models(m for m, _, _ in idx)
-    exposure = {l: shared_exposure([im.linear for (_, ll, _), im in idx.items() if ll == l])
-                for l in lights}
+    exposure = None
+    if not thumbnails or not all(k in thumbnails for k in idx):
+        thumbnails = None      # tone-map here (the images stage's exposure rule)
+        exposure = {l: shared_exposure([im.linear for (_, ll, _), im in idx.items() if ll == l])
+                    for l in lights}
     for geom in _ordered_geoms(g for _, _, g in idx):
         tiles, caps = {}, {}
         for (m, l, g), im in idx.items():
             if g == geom:
-                tiles[(m, l)] = encode_srgb8(_downsample(im.linear, TILE_PX), exposure[l])
+                tiles[(m, l)] = (thumbnails[(m, l, g)] if thumbnails is not None else
+                                 encode_srgb8(_downsample(im.linear, TILE_PX), exposure[l]))
                 caps[(m, l)] = f"{m} / {l}\n{_fmt_s(_seconds(im))}"
         yield _mosaic_page(plt, f"Images, geometry {geom}  (one exposure per light, shared by "
                                 "all models and geometries)",
@@ -449,7 +453,8 @@ def _geometry_page(plt, metrics):
 
 
 def write_report(images: dict, metrics: dict, out_pdf, *, scene_name: str, device: str,
-                 timings_extra: dict | None = None, credits=(), tiles: dict | None = None) -> Path:
+                 timings_extra: dict | None = None, credits=(), tiles: dict | None = None,
+                 image_tiles: dict | None = None) -> Path:
     """Write the multi-page comparison PDF.
 
     Parameters
@@ -464,6 +469,8 @@ def write_report(images: dict, metrics: dict, out_pdf, *, scene_name: str, devic
     credits : attribution lines of the scene's assets, printed on the title page
     tiles : the ``tiles_out`` of :func:`reports.diff.write_differences`, optional: its
         difference images are placed as they are (else recomputed)
+    image_tiles : {(model, light, geometry): uint8 thumbnail}, optional: the images stage's
+        tone-mapped thumbnails (:func:`reports.images.load_thumbnails`), else tone-mapped here
     timings_extra : dict (light, mesh) -> seconds, optional
         The BSSRDF's irradiance pass per lighting condition and mesh ("mesh_high"/"mesh_low",
         or "high"/"low"); added to the BSSRDF's time in the table, summary and scatter plot.
@@ -487,12 +494,14 @@ def write_report(images: dict, metrics: dict, out_pdf, *, scene_name: str, devic
     # Latin-1 would print as '?'; the report's own text is ASCII).
     import logging
     logging.getLogger("matplotlib.font_manager").setLevel(logging.ERROR)
+    # zlib level 1 for the page images: ~3x faster than 6 for a slightly larger file
     with plt.rc_context({"font.size": FONT_PT, "pdf.use14corefonts": True,
-                         "font.family": "sans-serif"}), PdfPages(out_pdf) as pdf:
+                         "font.family": "sans-serif", "pdf.compression": 1}), \
+            PdfPages(out_pdf) as pdf:
         builders = [lambda: [_title_page(plt, images, metrics, scene_name=scene_name,
                                          device=device, timings_extra=timings_extra,
                                          credits=credits)],
-                    lambda: _image_pages(plt, images),
+                    lambda: _image_pages(plt, images, image_tiles),
                     lambda: _diff_pages(plt, images, metrics, (tiles or {}).get("model")),
                     lambda: [_timing_page(plt, images, metrics, device=device,
                                           timings_extra=timings_extra)],

@@ -60,6 +60,7 @@ KNOBS = {k.path: k for k in (
     Knob("bssrdf.irradiance_samples", "higher", integer=True, doc="irradiance shadow samples"),
     Knob("bssrdf.leaf_size", "lower", "brute_force", integer=True, doc="points per octree leaf"),
     Knob("lights.samples", "higher", integer=True, doc="area/environment light samples"),
+    Knob("render.spp", "higher", integer=True, doc="camera samples per pixel (anti-aliasing)"),
     Knob("bake.resolution", "higher", integer=True, doc="baked map resolution"),
     Knob("mesh.low_triangles", "higher", "high_mesh", integer=True,
          doc="triangles of the simplified mesh"),

@@ -468,12 +468,23 @@ def node(scene, model: str, label: str, lights: tuple, geometry: str) -> Node:
                 geometry_inputs(geometry, label), label=f"{model} / {label} / {geometry}")
 
 
-def model_params(model: str, asperity_base: str | None, optics: dict | None):
+def model_params(model: str, asperity_base: str | None, optics: dict | None,
+                 memo: dict | None = None):
     """The parameter objects of a BRDF model and of its asperity base, from the config slice
-    (HK93 shares the BSSRDF's layer stack)."""
+    (HK93 shares the BSSRDF's layer stack).  ``memo`` (the run's scratch dict) keeps one
+    HK93Params per layer stack: building one integrates the layers' albedo (~0.8 s), and
+    the 12 HK93 images of a matrix share it."""
+    import json
     from dermis.physics.layers import LayerStack
     from dermis.stages.brdf_models import AsperityParams, HK93Params, LafortuneParams
-    hk = lambda: HK93Params(layers=LayerStack.from_dict(optics))  # noqa: E731
+
+    def hk():
+        key = ("hk93_params", json.dumps(optics, sort_keys=True, default=str))
+        if memo is None:
+            return HK93Params(layers=LayerStack.from_dict(optics))
+        if key not in memo:
+            memo[key] = HK93Params(layers=LayerStack.from_dict(optics))
+        return memo[key]
     if model == "lafortune":
         return LafortuneParams(), None
     if model == "hk93":
@@ -484,7 +495,7 @@ def model_params(model: str, asperity_base: str | None, optics: dict | None):
 
 def run(params: dict, inputs: dict, ctx) -> StageResult:
     mesh, model, samples = inputs["mesh"], params["model"], inputs["visibility"]
-    p, base_params = model_params(model, params["asperity_base"], params["optics"])
+    p, base_params = model_params(model, params["asperity_base"], params["optics"], ctx.memo)
     result = render(mesh, [], model, p, CameraConfig(**params["camera"]),
                     maps=inputs.get("maps"), bump=params["bump"], samples=samples,
                     asperity_base=params["asperity_base"], base_params=base_params,

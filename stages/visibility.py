@@ -11,7 +11,8 @@ Per (mesh, lighting condition, camera, ``[render] spp``, seed) this stage
 3. draws the light samples of every hit (:func:`dermis.physics.lights.sample_lights` with
    ``share = spp``: a disc or environment light's S samples per pixel are spread over the
    pixel's sub-pixel samples, ceil(S / spp) each, so anti-aliasing costs no extra light
-   samples) and traces their shadow rays;
+   samples, and stratified over the whole pixel, :class:`~dermis.physics.lights.PixelStrata`)
+   and traces their shadow rays;
 4. keeps the unoccluded samples above the geometric horizon: direction and weight per sample,
    grouped by hit (:class:`dermis.pipeline.artifacts.PixelSamples`).
 
@@ -37,7 +38,8 @@ from dermis.pipeline.config import CameraConfig, LightConfig
 from dermis.pipeline.errors import ConfigError
 from dermis.pipeline.graph import Node, StageResult
 from dermis.physics.color import srgb_to_linear
-from dermis.physics.lights import EnvironmentMap, environment_map, light_params, sample_lights
+from dermis.physics.lights import (ENV_STRATEGIES, EnvironmentMap, GlossyLobe, PixelStrata,
+                                   environment_map, light_params, sample_lights)
 from dermis.physics.visibility import (Visibility, camera_rays, shared as shared_visibility,
                                        subpixel_offsets)
 
@@ -62,13 +64,19 @@ class LightSampling:
     shadow_samples : light samples per PIXEL for disc and environment lights (None: each
         light's ``samples``, 16 in the thesis); spread over the pixel's camera samples
     env : pre-built EnvironmentMap for an environment light (None: from ``light.map``, cached)
-    env_strategy : "mis" (luminance and cosine samples about the geometric normal) or
-        "luminance" (:func:`physics.lights.sample_lights`)
+    env_strategy : "product" (luminance x cosine and cosine samples about the geometric
+        normal), "mis" (luminance and cosine) or "luminance" (:func:`physics.lights.sample_lights`)
+    glossy_fraction, glossy_exponent, glossy_tilt : under "mis", the share of environment
+        samples drawn about the glossy reflection of the view
+        (:class:`physics.lights.GlossyLobe`; fraction 0 = none)
     """
 
     shadow_samples: int | None = None
     env: EnvironmentMap | None = None
-    env_strategy: str = "mis"
+    env_strategy: str = ENV_STRATEGIES[0]
+    glossy_fraction: float = 0.0
+    glossy_exponent: float = 32.0
+    glossy_tilt: float = 0.75
 
 
 def _light_sampling(sampling: LightSampling | None, lights) -> LightSampling:
@@ -156,22 +164,24 @@ def surface_attributes(env, mesh, hits_tri, hits_bary, camera_pos, *, texture=No
 
 # --------------------------------------------------------------------------- casting
 def _primary(vis: Visibility, camera, spp: int, seed: int):
-    """Camera hits: (flat pixel index, triangle, barycentrics) of every sub-pixel ray that
-    hit, and the number of rays cast."""
+    """Camera hits: (flat pixel index, sub-sample index, triangle, barycentrics) of every
+    sub-pixel ray that hit, and the number of rays cast."""
     w, h = int(camera.width), int(camera.height)
     rng = np.random.default_rng((int(seed), 1))
     offsets = subpixel_offsets(w * h, spp, rng)
     rows_per = max(1, CHUNK_RAYS // (w * spp))
-    pix, tri, bary = [], [], []
+    pix, sub, tri, bary = [], [], [], []
     for r0 in range(0, h, rows_per):
         r1 = min(h, r0 + rows_per)
         o, d = camera_rays(camera, offsets, rows=(r0, r1))
         hits = vis.intersect(o, d)
         ok = np.flatnonzero(hits.hit)
         pix.append((ok // spp + r0 * w).astype(np.int32))
+        sub.append((ok % spp).astype(np.int32))
         tri.append(hits.tri[ok])
         bary.append(hits.bary[ok])
-    return (np.concatenate(pix), np.concatenate(tri), np.concatenate(bary), w * h * spp)
+    return (np.concatenate(pix), np.concatenate(sub), np.concatenate(tri), np.concatenate(bary),
+            w * h * spp)
 
 
 def cast(mesh, lights, camera, *, spp: int = 1, seed: int = 0,
@@ -205,13 +215,19 @@ def cast(mesh, lights, camera, *, spp: int = 1, seed: int = 0,
     sampling = _light_sampling(sampling, lights)
     env_cl = cl_env or get_env()
     vis = visibility or Visibility(mesh.vertices, mesh.faces)
-    pixel, tri, bary, n_rays = _primary(vis, camera, spp, seed)
+    pixel, sub, tri, bary, n_rays = _primary(vis, camera, spp, seed)
+    # a pixel's light samples, stratified over its sub-samples (one sample: per point)
+    strata = PixelStrata(pixel, sub, spp, int(seed)) if spp > 1 else None
     t_primary = time.perf_counter() - t_start
 
     t0 = time.perf_counter()
     cam_pos = np.asarray(camera.position, dtype=np.float64)
     surf, k_s = surface_attributes(env_cl, mesh, tri, bary, cam_pos)
     pos, ng = surf["position"], surf["geo_normal"]
+    lobe = None
+    if sampling.glossy_fraction > 0:
+        lobe = GlossyLobe(surf["wo"], surf["shading_normal"], sampling.glossy_fraction,
+                          sampling.glossy_exponent, sampling.glossy_tilt)
     t_surface = time.perf_counter() - t0
 
     per_hit = samples_per_hit(lights, spp, sampling.shadow_samples)
@@ -226,7 +242,9 @@ def cast(mesh, lights, camera, *, spp: int = 1, seed: int = 0,
         t0 = time.perf_counter()
         ls = sample_lights(lights, pos[sl], ng[sl], samples=sampling.shadow_samples,
                            seed=(int(seed), 0, c), env=sampling.env,
-                           env_strategy=sampling.env_strategy, share=spp)
+                           env_strategy=sampling.env_strategy, share=spp,
+                           strata=strata[sl] if strata is not None else None,
+                           lobe=lobe[sl] if lobe is not None else None)
         live = np.any(ls.weights > 0, axis=2)
         ip, isamp = np.nonzero(live)         # row-major: grouped by hit, in hit order
         d = ls.directions[ip, isamp]

@@ -34,7 +34,8 @@ def test01_first_run_builds_every_requested_stage(built):
     assert sorted(r for r in ran if r.startswith("samples-")) == ["samples-mesh_high",
                                                                    "samples-mesh_low"]
     assert len([r for r in ran if r.startswith("irradiance-")]) == 2 * 4
-    assert ran[-2:] == ["images", "report"]
+    assert ran[-6:] == ["images"] + [f"differences-{l}" for l in ("area", "dir_left+dir_right",
+                                                                  "point", "sunset")] + ["report"]
     report = root / "out" / "quick" / "report"
     assert (report / "report.pdf").stat().st_size > 10_000 and (report / "metrics.json").is_file()
     out = root / "out" / "quick"
@@ -57,7 +58,8 @@ def test03_one_parameter_reruns_exactly_downstream(built):
     assert status["mesh_previews"].reasons == ["upstream_changed bake (stale)"]
     s = api.run(blurrier, cache=root / "cache")
     low_bump = [r for r in s.ran() if r.startswith("render-")]
-    assert s.ran()[:2] == ["bake", "mesh_previews"] and s.ran()[-2:] == ["images", "report"]
+    assert s.ran()[:2] == ["bake", "mesh_previews"] and s.ran()[-1] == "report"
+    assert "images" in s.ran() and len([r for r in s.ran() if r.startswith("differences-")]) == 4
     assert low_bump and all(r.endswith("-low_bump") or r.endswith("-low_bump_blur")
                             for r in low_bump)          # the high-mesh renders stay cached
     assert len(low_bump) == 4 * 4 * 2
@@ -79,7 +81,8 @@ def test05_graph_holds_only_what_outputs_need():
     unbumped = load_scene(QUICK, overrides={"render": {"geometries": ["low"]},
                                             "output": {"previews": False}})
     nodes, _ = build_graph(unbumped)
-    assert {n for n in nodes if not n.startswith(("render-", "irradiance-", "visibility-"))} == {
+    assert {n for n in nodes if not n.startswith(("render-", "irradiance-", "visibility-",
+                                                  "differences-"))} == {
         "mesh_source", "mesh_high", "mesh_low", "profiles", "samples-mesh_low", "images",
         "report"}
     no_bssrdf = load_scene(QUICK, overrides={"render": {"models": ["lafortune", "hk93"]}})
@@ -94,7 +97,7 @@ def test06_cli_run_status_clean(built, capsys):
     out = capsys.readouterr().out
     assert "mesh_source" in out and "cached" in out and " ran " not in out
     assert main(["status", str(QUICK), "--cache", cache]) == 0
-    assert "0 of 74 stages stale" in capsys.readouterr().out   # 66 + 8 shared visibilities
+    assert "0 of 78 stages stale" in capsys.readouterr().out   # 66 + 8 visibilities + 4 diffs
     assert main(["run", str(QUICK), "--cache", cache, "--until", "nope"]) == 2
     capsys.readouterr()
     assert main(["clean", "--cache", cache, "--stage", "profiles"]) == 0

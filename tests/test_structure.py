@@ -112,7 +112,7 @@ def base_keys(scene):
 def _stage_of(nid: str) -> str:
     for prefix, name in (("render-bssrdf-", "bssrdf"), ("render-", "render"),
                          ("samples-", "samples"), ("irradiance-", "irradiance"),
-                         ("visibility-", "visibility")):
+                         ("visibility-", "visibility"), ("differences-", "differences")):
         if nid.startswith(prefix):
             return name
     return nid
@@ -131,7 +131,8 @@ PROBE = {
     "physics/lights.py": {"render", "bssrdf", "irradiance", "visibility"},
     "stages/visibility.py": {"visibility", "render", "bssrdf"},   # shared rays, hit attributes
     "pipeline/plan.py": set(),                         # decides which nodes exist, runs in none
-    "reports/diff.py": {"report"},
+    "reports/diff.py": {"report", "differences"},
+    "reports/sheets.py": {"images", "report", "differences"},   # grids drawn with Pillow
     "reports/tonemap.py": {"images", "report"},        # tone mapping is not part of rendering
     "stages/gather.py": {"bssrdf"},
     "stages/mesh_prep.py": {"mesh_source", "mesh_high", "mesh_low"},
