@@ -111,6 +111,7 @@ DEFAULT_POLES = None  # adaptive, see _chan
 MIN_POLES = 3
 MAX_POLES = 2000
 POLE_DAMPING = 20.0
+POLE_FAR_MM = 200.0
 # Gauss-Legendre nodes along the beam (u = 1 - e^{-sigma_t t}, split where the displaced
 # sources leave the layer).  Measured (tests/test_profiles.py::test03_beam_convergence):
 # 16 -> 64 nodes changes the epidermis R(r) by < 1e-6 and the semi-infinite dermis by
@@ -221,7 +222,11 @@ def _chan(layer: Layer, c: int, eta_top: float, eta_bot: float, diffusion: str,
         # enough images that the next pair is damped by e^{-20} (POLE_DAMPING), at least
         # MIN_POLES, at most MAX_POLES (sigma_a -> 0 only converges algebraically)
         period = 2.0 * (d + zb_t + zb_b)
+        # sigma_tr = 0 (no absorption): the image pairs cancel only algebraically; images
+        # beyond POLE_FAR_MM change the shape within the table by < 1 % at 1 mm (the totals
+        # come from the transport solution)
         need = POLE_DAMPING / (sig * period) if sig > 0 else MAX_POLES
+        need = min(need, POLE_FAR_MM / period)
         n = int(min(max(MIN_POLES, math.ceil(need)), MAX_POLES))
     return _Chan(d, sa, ss, ssp, g, D, sig, zb_t, zb_b, cphi_t, ce_t, cphi_b, ce_b,
                  fr_t, fr_b, n, diffusion)
@@ -505,17 +510,18 @@ def multipole_profiles(layer: Layer, r_mm, *, eta_above: float, eta_below: float
 def multipole_totals(layer: Layer, *, eta_above: float, eta_below: float,
                      poles: int | None = DEFAULT_POLES, diffusion: str = "pbd",
                      nq: int = NQ_BEAM, light: str = "collimated",
-                     totals: str = "diffusion") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     totals: str = "transport") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Totals of one layer lit from above: (R, T_diffuse, T_direct), (3,) each.
 
     light = "collimated" (normal incidence): T_direct is the collimated transmission, the
     unscattered e^{-sigma_t d} plus the light scattered forward out of the layer ("pbd";
     e^{-sigma_t' d} for "dj2005"), after the Fresnel reflection at the bottom; "diffuse"
     (Lambertian flux entering): T_direct is the direct (unscattered or forward) diffuse light.
-    totals = "diffusion": the per-layer model's own closed forms (what
-    :func:`build_profiles` adds with ``totals="diffusion"``); "transport": the exact
-    plane-parallel values (adding-doubling), split between T_diffuse and T_direct as the
-    diffusion model splits them.  R includes light the bottom reflects straight back.
+    totals = "transport" (default, what the layer file uses): the exact plane-parallel
+    values (adding-doubling), split between T_diffuse and T_direct as the diffusion model
+    splits them; "diffusion": the per-layer model's own closed forms (what
+    :func:`build_profiles` adds with ``totals="diffusion"``).  "dj2005" always gives its own.
+    R includes light the bottom reflects straight back.
     """
     _check_diffusion(diffusion)
     Rd, Td, col = np.zeros(3), np.zeros(3), np.zeros(3)
@@ -595,7 +601,13 @@ def _ad_redistribution(n: int, cuts: tuple, g: float):
     """Azimuth-averaged delta-M HG redistribution between the directions: (P_same, P_opp,
     f), P[i, j] the probability that a photon travelling along mu_j scatters into mu_i of
     the same / the opposite hemisphere (columns renormalised to 1 against quadrature
-    error); f = g^(2N) is the delta-M forward fraction (N = number of directions)."""
+    error); f = g^(2N) is the delta-M forward fraction scaled out of the slab (N = number
+    of directions; 0 for g < 0, whose delta-M peak points backwards)."""
+    if g < 0:
+        # HG(-|g|) is HG(|g|) reversed: same and opposite hemispheres swap, and delta-M's
+        # forward peak becomes a backward one, a real scattering (kept, not scaled out)
+        Ps, Po, f = _ad_redistribution(n, cuts, -g)
+        return (1.0 - f) * Po, (1.0 - f) * Ps + f * np.eye(len(Ps)), 0.0
     mu, w = _ad_quadrature(n, cuts)
     L = 2 * len(mu)
     f = g ** L

@@ -122,7 +122,11 @@ def test02_adding_doubling_published():
 def test02_adding_doubling_conserves_energy():
     # no absorption: everything that enters leaves (R + T = 1), Fresnel faces included, up
     # to the round-off of ~2^33 doublings from the 1e-6 mu_min first layer (~4e-7)
-    lay = Layer(0.5, 1.4, (0.0,) * 3, (2.0, 5.0, 9.0), 0.8)
+    for g in (0.8, -0.5):      # g < 0: delta-M's peak points backwards (kept as scattering)
+        _conserves(Layer(0.5, 1.4, (0.0,) * 3, (2.0, 5.0, 9.0), g))
+
+
+def _conserves(lay):
     for c in range(3):
         ex = P._ad_totals([lay], c, 1.4, 1.4 / 1.33)
         assert ex.Rc + ex.Tc + ex.Tu == pytest.approx(1.0, abs=1e-6)
