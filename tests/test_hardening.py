@@ -684,7 +684,9 @@ def test20_ctrl_c_gives_exit_130_and_no_traceback(monkeypatch, tmp_path, capsys)
     time.sleep(1.0)                              # inside dermis's own imports or its work
     p.send_signal(signal.SIGINT)
     _, err = p.communicate(timeout=60)
-    assert p.returncode in (0, 130) and "Traceback" not in err
+    # -2: SIGINT arrived before the interpreter installed its handler (a loaded machine): the
+    # process ends by the signal itself, which prints no traceback either
+    assert p.returncode in (0, 130, -signal.SIGINT) and "Traceback" not in err
 
 
 def test21_shipped_scenes_fit_a_4_gib_machine_and_a_bad_memory_override_is_named(monkeypatch,
