@@ -141,9 +141,15 @@ RTOL_HK93 = 1e-3
 
 
 # --------------------------------------------------------------------------- BRDFs
+# Lobe coefficients: 0 or 1e-6 <= |c| <= 1, as float32 (the kernel's precision): below that,
+# c cos cos underflows float32 at grazing while (c cos cos)^0.1 is still ~1e-4 in float64.
+COEFF = st.sampled_from([0.0, -1.0, 1.0]) | st.floats(2.0**-20, 1.0, width=32).flatmap(
+    lambda x: st.sampled_from([x, -x]))
+
+
 @given(seed=st.integers(0, 2**31 - 1), rho=st.tuples(ALBEDO, ALBEDO, ALBEDO),
-       lobes=st.booleans(), n_exp=st.sampled_from([0.1, 1.0, 64.0, 1e3]) | st.floats(0.1, 1e3),
-       c=st.floats(-1.0, 1.0))
+       lobes=st.booleans(),
+       n_exp=st.sampled_from([0.1, 1.0, 64.0, 1e3]) | st.floats(0.125, 1e3, width=32), c=COEFF)
 def test_lafortune_finite_nonnegative_reciprocal_and_close_to_float64(cl_env, seed, rho, lobes,
                                                                     n_exp, c):
     from dermis.stages.brdf_models import LafortuneParams, evaluate
@@ -236,7 +242,7 @@ def _finite_layer(lay: Layer) -> bool:
 def test_multipole_layer_totals_are_finite_nonnegative_and_conserve_energy(lay, eta_above,
                                                                            eta_below):
     from dermis.stages.profiles import multipole_totals
-    assume(not all(a == 0 for a in lay.sigma_a) or not _finite_layer(lay))  # test09 has these
+    assume(not any(a == 0 for a in lay.sigma_a) or not _finite_layer(lay))  # test09 has these
     assume(lay.g >= 0 or not _finite_layer(lay))                             # test12 has these
     Rd, Td, col = multipole_totals(lay, eta_above=eta_above, eta_below=eta_below)
     note(f"Rd {Rd}, Td {Td}, T_collimated {col}")
