@@ -26,9 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np

@@ -234,6 +234,16 @@ def stratified_2d(rng: np.random.Generator, n: int, s: int) -> np.ndarray:
     return np.stack([ax0, ax1], axis=-1)
 
 
+def _search(table: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    """``np.searchsorted(table, keys, side="right")`` through the sorted keys: a large table
+    is then walked in order instead of at random (3-4x faster for millions of keys into a
+    table of millions of entries, cache misses being the cost); the same result."""
+    order = np.argsort(keys)
+    out = np.empty(len(keys), dtype=np.int64)
+    out[order] = np.searchsorted(table, keys[order], side="right")
+    return out
+
+
 def _hash_u64(x: np.ndarray) -> np.ndarray:
     """splitmix64 finaliser (Steele, Lea & Flood 2014) of uint64 values: a fixed, seedable
     integer hash, the same for a pixel wherever its samples fall in a batch."""
@@ -697,7 +707,7 @@ class EnvironmentMap:
             d = np.zeros((m, 3))
             d[:, 1] = 1.0
             return d, np.zeros((m, 3), dtype=np.float32), np.zeros(m)
-        idx = np.searchsorted(self.cdf, u[:, 0] * self.cdf[-1], side="right")
+        idx = _search(self.cdf, u[:, 0] * self.cdf[-1])
         idx = np.minimum(idx, len(self.pmf) - 1)
         row, col = np.divmod(idx, self.width)
         d, sin_t = self._dirs((col + u[:, 2]) / self.width, (row + u[:, 1]) / self.height)
@@ -764,10 +774,10 @@ class EnvironmentMap:
         t = self._product()
         nb = t["table"].shape[1]
         key = bins + u[:, 0] * t["cum_last"][bins] * (1.0 - 1e-12)
-        b = np.searchsorted(t["cum_flat"], key, side="right") - bins * nb
+        b = _search(t["cum_flat"], key) - bins * nb
         b = np.clip(b, 0, nb - 1)
         per = t["bh"] * t["bw"]
-        j = np.searchsorted(t["fine_flat"], b + u[:, 1] * (1.0 - 1e-12), side="right") - b * per
+        j = _search(t["fine_flat"], b + u[:, 1] * (1.0 - 1e-12)) - b * per
         j = np.clip(j, 0, per - 1)
         row = (b // t["wc"]) * t["bh"] + j // t["bw"]
         col = (b % t["wc"]) * t["bw"] + j % t["bw"]

@@ -247,7 +247,6 @@ def camera_rays(camera, offsets: np.ndarray | None = None, *,
     if offsets is None:
         offsets = np.full((h * w, 1, 2), 0.5)
     offsets = offsets[r0 * w:r1 * w]
-    s = offsets.shape[1]
     col = np.tile(np.arange(w), r1 - r0)[:, None] + offsets[..., 0]        # (N, S)
     row = np.repeat(np.arange(r0, r1), w)[:, None] + offsets[..., 1]
     x = ((col / w) * 2.0 - 1.0) * (tan * (w / short))

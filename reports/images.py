@@ -74,7 +74,7 @@ def write_pngs(images: dict, out_dir: Path, *, thumbnails: bool = False) -> list
     return files
 
 
-def contact_sheet_image(images: dict, mapped: dict, *, title: str = "") -> "np.ndarray":
+def contact_sheet_image(images: dict, mapped: dict, *, title: str = ""):
     """A labelled grid (uint8 RGB): rows are models, columns are lights, seconds per image
     under each label (the render node's own time; the shared visibility node is timed on
     its own)."""

@@ -184,9 +184,28 @@ def _primary(vis: Visibility, camera, spp: int, seed: int):
             w * h * spp)
 
 
+def _camera_hits(mesh, camera, spp: int, seed: int, vis: Visibility, env_cl,
+                 memo: dict | None):
+    """Camera hits and their surface attributes, which depend on the mesh, camera, spp and
+    seed but not on the light: kept in the run's ``memo`` (one entry per mesh) so the
+    lighting conditions of a mesh cast its camera rays once."""
+    key = ("camera_hits", id(mesh), repr(camera), int(spp), int(seed))
+    if memo is not None and key in memo:
+        return memo[key][1][:-1] + (0.0,)        # no kernel ran for this node
+    pixel, sub, tri, bary, n_rays = _primary(vis, camera, spp, seed)
+    cam_pos = np.asarray(camera.position, dtype=np.float64)
+    surf, k_s = surface_attributes(env_cl, mesh, tri, bary, cam_pos)
+    out = (pixel, sub, tri, bary, n_rays, surf, k_s)
+    if memo is not None:
+        for k in [k for k in memo if k[0] == "camera_hits" and k[1] == id(mesh)]:
+            del memo[k]                      # one camera per mesh at a time
+        memo[key] = (mesh, out)
+    return out
+
+
 def cast(mesh, lights, camera, *, spp: int = 1, seed: int = 0,
          visibility: Visibility | None = None, sampling: LightSampling | None = None,
-         cl_env=None, progress=None) -> PixelSamples:
+         cl_env=None, progress=None, memo: dict | None = None) -> PixelSamples:
     """Camera rays, light samples and shadow rays of one image (module docstring).
 
     Parameters
@@ -200,6 +219,9 @@ def cast(mesh, lights, camera, *, spp: int = 1, seed: int = 0,
     sampling : LightSampling, optional research options
     cl_env : pipeline.cl.ClEnv, optional
     progress : callable(float), optional
+    memo : dict, optional
+        The run's scratch dict: the camera hits of a mesh are then cast once for all its
+        lighting conditions (the same rays, so the same result).
 
     Returns
     -------
@@ -215,14 +237,13 @@ def cast(mesh, lights, camera, *, spp: int = 1, seed: int = 0,
     sampling = _light_sampling(sampling, lights)
     env_cl = cl_env or get_env()
     vis = visibility or Visibility(mesh.vertices, mesh.faces)
-    pixel, sub, tri, bary, n_rays = _primary(vis, camera, spp, seed)
+    pixel, sub, tri, bary, n_rays, surf, k_s = _camera_hits(mesh, camera, spp, seed, vis,
+                                                           env_cl, memo)
     # a pixel's light samples, stratified over its sub-samples (one sample: per point)
     strata = PixelStrata(pixel, sub, spp, int(seed)) if spp > 1 else None
     t_primary = time.perf_counter() - t_start
 
     t0 = time.perf_counter()
-    cam_pos = np.asarray(camera.position, dtype=np.float64)
-    surf, k_s = surface_attributes(env_cl, mesh, tri, bary, cam_pos)
     pos, ng = surf["position"], surf["geo_normal"]
     lobe = None
     if sampling.glossy_fraction > 0:
@@ -291,7 +312,7 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     lights = [LightConfig(**d) for d in params["lights"]]
     samples = cast(mesh, lights, CameraConfig(**params["camera"]), spp=params["spp"],
                    seed=params["seed"], visibility=shared_visibility(mesh, ctx.memo),
-                   cl_env=ctx.cl, progress=ctx.progress)
+                   cl_env=ctx.cl, progress=ctx.progress, memo=ctx.memo)
     samples.info["label"] = params["label"]
     return StageResult(samples, info={"timings": samples.info["timings"],
                                       "kernel_seconds": samples.info["timings"]["kernel_seconds"]})
