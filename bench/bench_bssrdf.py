@@ -61,25 +61,29 @@ sys.argv = ["dermis"] + sys.argv[1:]
 try:
     runpy.run_module("dermis.pipeline.cli", run_name="__main__")
 finally:
-    print("PEAK_RSS_KIB", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, flush=True)
+    u = resource.getrusage(resource.RUSAGE_SELF)
+    print("PEAK_RSS_KIB", u.ru_maxrss, "CPU_S", u.ru_utime + u.ru_stime, flush=True)
 """
 
 
-def cli(args, cache: Path) -> tuple[float, int]:
-    """Run the dermis CLI in a child process: (wall seconds, the child's own peak RSS, KiB)."""
+def cli(args, cache: Path) -> tuple[float, int, float]:
+    """Run the dermis CLI in a child process: (wall seconds, the child's own peak RSS in
+    KiB, its CPU seconds over all threads)."""
     t0 = time.perf_counter()
     out = subprocess.run([sys.executable, "-c", _CHILD, *args, "--cache", str(cache), "-q"],
                          check=True, cwd=cache.parent, capture_output=True, text=True)
     sys.stdout.write(out.stdout[-2000:])
-    peak = int(re.findall(r"PEAK_RSS_KIB (\d+)", out.stdout)[-1])
-    return time.perf_counter() - t0, peak
+    peak, cpu = re.findall(r"PEAK_RSS_KIB (\d+) CPU_S ([0-9.]+)", out.stdout)[-1]
+    return time.perf_counter() - t0, int(peak), float(cpu)
 
 
 def node_meta(cache: Path, prefix: str) -> dict:
+    """meta.json of each node; of a node's several keys (runs sharing a cache), the newest."""
     out = {}
     for f in sorted(glob.glob(str(cache / f"{prefix}*" / "*" / "meta.json"))):
         d = json.loads(Path(f).read_text())
-        out[d["node"]] = d
+        if d["node"] not in out or d.get("finished", "") >= out[d["node"]].get("finished", ""):
+            out[d["node"]] = d
     return out
 
 
@@ -89,10 +93,11 @@ def pipeline(args) -> dict:
     toml = variant(Path(args.scene).resolve(), work / "scene.toml", args.geometries, args.lights,
                    args.spp)
     cache = work / "cache"
-    first, _ = cli(["run", str(toml)], cache)
-    again, peak_kib = cli(["run", str(toml), "--force", "bssrdf"], cache)
+    first, _, _ = cli(["run", str(toml)], cache)
+    again, peak_kib, cpu = cli(["run", str(toml), "--force", "bssrdf"], cache)
     res = {"first_run_seconds": first, "bssrdf_rerun_seconds": again,
-           "bssrdf_rerun_peak_rss_mib": peak_kib / 1024.0, "irradiance": {}, "images": {}}
+           "bssrdf_rerun_cpu_seconds": cpu, "bssrdf_rerun_peak_rss_mib": peak_kib / 1024.0,
+           "irradiance": {}, "images": {}}
     for nid, d in node_meta(cache, "irradiance-").items():
         res["irradiance"][nid] = {"seconds": d["seconds"],
                                   "points": d.get("info", {}).get("points")}

@@ -1450,6 +1450,8 @@ def sharp_visibility(samples, hits: np.ndarray, positions: np.ndarray, lights) -
     their surface points.  A hit sees a light when one of its samples points at it."""
     sharp = [l for l in lights if l.type in SHARP_LIGHTS]
     hits = np.asarray(hits, np.int64)
+    if not sharp:
+        return np.zeros((len(hits), 0), bool)
     counts = np.asarray(samples.counts, np.int64)
     row_hit = np.repeat(np.arange(len(counts)), counts)
     # samples of the queried hits only, and which query each belongs to

@@ -554,3 +554,6 @@ def test14_shared_visibility_of_point_and_directional_lights():
     np.testing.assert_array_equal(v, [[True, True], [False, True], [False, False]])
     v = G.sharp_visibility(samples, np.array([1]), x[1:2], [lamp])
     np.testing.assert_array_equal(v, [[True]])
+    # no point or directional light (a disc or the environment alone): no columns, no work
+    v = G.sharp_visibility(samples, np.array([0, 1, 2]), x, [disc])
+    assert v.shape == (3, 0) and v.dtype == bool
