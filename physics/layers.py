@@ -208,42 +208,51 @@ def _eta(value: Any, where: str, key: str) -> float:
     return v
 
 
-def _parse_layer(tab: Any, where: str, i: int, last: bool) -> Layer:
+def _parse_layer(tab: Any, where: str, i: int, last: bool) -> tuple[Layer | None, list[str]]:
+    """(the layer or None, every problem found in it)."""
     pre = f"layers[{i}]."
     if not isinstance(tab, dict):
-        raise ConfigError(f"{where}: layers[{i}] = {tab!r}: must be a table")
-    errors = _unknown(tab.keys(), _LAYER_KEYS, where, pre)
-    if errors:
-        raise ConfigError("\n".join(errors))
+        return None, [f"{where}: layers[{i}] = {tab!r}: must be a table"]
+    problems = _unknown(tab.keys(), _LAYER_KEYS, where, pre)
     for req in ("thickness_mm", "eta", "sigma_a"):
         if req not in tab:
-            raise ConfigError(f"{where}: {pre}{req}: missing (required)")
+            problems.append(f"{where}: {pre}{req}: missing (required)")
     if ("sigma_s_prime" in tab) == ("sigma_s" in tab):
-        raise ConfigError(f"{where}: {pre}sigma_s_prime / {pre}sigma_s: give exactly one of them"
-                          " (sigma_s needs g; sigma_s_prime = sigma_s * (1 - g))")
-    d = _number(tab["thickness_mm"], where, pre + "thickness_mm", " (mm)", allow_inf=True)
-    if d < 0:
-        raise ConfigError(f"{where}: {pre}thickness_mm = {d:g} (mm): must be >= 0 "
-                          "(0 means no layer)")
-    if math.isinf(d) and not last:
-        raise ConfigError(f"{where}: {pre}thickness_mm = inf: only the last layer may be "
-                          "semi-infinite")
-    eta = _eta(tab["eta"], where, pre + "eta")
-    g = _number(tab.get("g", 0.0), where, pre + "g", "")
-    if not -1.0 < g < 1.0:
-        raise ConfigError(f"{where}: {pre}g = {g:g}: must be in (-1, 1) "
-                          "(Henyey-Greenstein mean cosine)")
-    sa = _vec3(tab["sigma_a"], where, pre + "sigma_a")
+        problems.append(f"{where}: {pre}sigma_s_prime / {pre}sigma_s: give exactly one of them"
+                        " (sigma_s needs g; sigma_s_prime = sigma_s * (1 - g))")
+    d = eta = sa = ss = ssp = None
+    if "thickness_mm" in tab:
+        d = _collect(problems, _number, tab["thickness_mm"], where, pre + "thickness_mm",
+                     " (mm)", allow_inf=True)
+        if d is not None and d < 0:
+            problems.append(f"{where}: {pre}thickness_mm = {d:g} (mm): must be >= 0 "
+                            "(0 means no layer)")
+        elif d is not None and math.isinf(d) and not last:
+            problems.append(f"{where}: {pre}thickness_mm = inf: only the last layer may be "
+                            "semi-infinite")
+    if "eta" in tab:
+        eta = _collect(problems, _eta, tab["eta"], where, pre + "eta")
+    g = _collect(problems, _number, tab.get("g", 0.0), where, pre + "g", "")
+    if g is not None and not -1.0 < g < 1.0:
+        problems.append(f"{where}: {pre}g = {g:g}: must be in (-1, 1) "
+                        "(Henyey-Greenstein mean cosine)")
+        g = None
+    if "sigma_a" in tab:
+        sa = _collect(problems, _vec3, tab["sigma_a"], where, pre + "sigma_a")
     if "sigma_s_prime" in tab:
-        ssp = _vec3(tab["sigma_s_prime"], where, pre + "sigma_s_prime")
-    else:
-        ss = _vec3(tab["sigma_s"], where, pre + "sigma_s")
-        ssp = tuple(s * (1.0 - g) for s in ss)
-    for c, (a, s) in enumerate(zip(sa, ssp)):
-        if a + s <= 0:
-            raise ConfigError(f"{where}: {pre}sigma_a + sigma_s_prime = 0 in channel {'RGB'[c]}:"
-                              " must be > 0 (a layer must absorb or scatter)")
-    return Layer(d, eta, sa, ssp, g)  # type: ignore[arg-type]
+        ssp = _collect(problems, _vec3, tab["sigma_s_prime"], where, pre + "sigma_s_prime")
+    elif "sigma_s" in tab:
+        ss = _collect(problems, _vec3, tab["sigma_s"], where, pre + "sigma_s")
+        if ss is not None and g is not None:
+            ssp = tuple(s * (1.0 - g) for s in ss)
+    if sa is not None and ssp is not None:
+        for c, (a, s) in enumerate(zip(sa, ssp)):
+            if a + s <= 0:
+                problems.append(f"{where}: {pre}sigma_a + sigma_s_prime = 0 in channel "
+                                f"{'RGB'[c]}: must be > 0 (a layer must absorb or scatter)")
+    if problems:
+        return None, problems
+    return Layer(d, eta, sa, ssp, g), []  # type: ignore[arg-type]
 
 
 def parse_layer_stack(table: dict, *, where: str) -> LayerStack:
@@ -271,19 +280,34 @@ def parse_layer_stack(table: dict, *, where: str) -> LayerStack:
     """
     if not isinstance(table, dict):
         raise ConfigError(f"{where}: must be a table with [[layers]]")
-    errors = _unknown(table.keys(), _TOP_KEYS, where, "")
-    if errors:
-        raise ConfigError("\n".join(errors))
+    # every problem is listed at once, like the rest of the scene validation (issue 16 item 9)
+    problems = _unknown(table.keys(), _TOP_KEYS, where, "")
     layers = table.get("layers")
+    parsed: list = []
     if not isinstance(layers, list) or not layers:
-        raise ConfigError(f"{where}: layers: missing or empty; give at least one [[layers]] table")
-    parsed = tuple(_parse_layer(t, where, i, i == len(layers) - 1) for i, t in enumerate(layers))
-    eta_above = _eta(table.get("eta_above", 1.0), where, "eta_above")
-    eta_below = _eta(table.get("eta_below", 1.0), where, "eta_below")
-    if all(l.thickness_mm == 0 for l in parsed):
-        raise ConfigError(f"{where}: layers: every layer has thickness_mm = 0; "
-                          "at least one must be > 0")
-    return LayerStack(parsed, eta_above, eta_below)
+        problems.append(f"{where}: layers: missing or empty; give at least one [[layers]] table")
+    else:
+        for i, t in enumerate(layers):
+            layer, bad = _parse_layer(t, where, i, i == len(layers) - 1)
+            problems.extend(bad)
+            parsed.append(layer)
+    eta_above = _collect(problems, _eta, table.get("eta_above", 1.0), where, "eta_above")
+    eta_below = _collect(problems, _eta, table.get("eta_below", 1.0), where, "eta_below")
+    if parsed and all(l is not None and l.thickness_mm == 0 for l in parsed):
+        problems.append(f"{where}: layers: every layer has thickness_mm = 0; "
+                        "at least one must be > 0")
+    if problems:
+        raise ConfigError("\n".join(problems))
+    return LayerStack(tuple(parsed), eta_above, eta_below)
+
+
+def _collect(problems: list, fn, *args, **kw):
+    """``fn(*args)``, or None with its ConfigError's message appended to ``problems``."""
+    try:
+        return fn(*args, **kw)
+    except ConfigError as exc:
+        problems.append(str(exc))
+        return None
 
 
 def load_layers_toml(path: str | Path) -> LayerStack:

@@ -199,8 +199,6 @@ def test02_every_problem_is_listed_at_once(tmp_path, capsys):
         assert key in err, key
 
 
-@pytest.mark.xfail(reason="physics/layers.py parse_layer_stack stops at the first problem "
-                          "(issue 12's engineer owns the file)", strict=False)
 def test03_optics_problems_are_listed_at_once(tmp_path, capsys):
     layer = {"thickness_mm": -1.0, "eta": 0.5, "sigma_a": [0.1, 0.1, 0.1],
              "sigma_s_prime": [1.0, 1.0, 1.0], "g": 2.0}
