@@ -64,8 +64,9 @@ def build_graph(scene: Scene) -> tuple[dict[str, Node], list[str]]:
                 else:
                     node = stage("render").node(scene, model, label, lights, geometry)
                 render_ids.append(add(node).id)
+    reference_ids, reference_skipped = [], None
     if scene.reference.enabled:  # Mitsuba ground truth, one node per lighting condition
-        _add_references(scene, add)
+        reference_ids, reference_skipped = _add_references(scene, add)
     images_id = None
     if render_ids:
         images_id = add(stage("images").node(scene, render_ids), target=True).id
@@ -74,16 +75,17 @@ def build_graph(scene: Scene) -> tuple[dict[str, Node], list[str]]:
         diff_ids = [add(stage("differences").node(scene, label, [
             r for r in render_ids if nodes[r].params.get("label") == label])).id
             for label, _ in scene.light_groups()]     # one light's comparisons per node
-        add(stage("report").node(scene, render_ids, irradiance_ids, diff_ids, images_id),
-            target=True)
+        add(stage("report").node(scene, render_ids, irradiance_ids, diff_ids, images_id,
+                                 reference_ids, reference_skipped), target=True)
     return nodes, targets
 
 
 _SKIP_NOTICES: set = set()
 
 
-def _add_references(scene: Scene, add) -> None:
-    """The reference nodes the scene asks for; without Mitsuba, none and one message."""
+def _add_references(scene: Scene, add) -> tuple[list[str], str | None]:
+    """The reference nodes the scene asks for, and why there are none (Mitsuba missing:
+    one message)."""
     import sys
     from .errors import ConfigError
     ref = stage("reference")
@@ -98,6 +100,6 @@ def _add_references(scene: Scene, add) -> None:
         if reason not in _SKIP_NOTICES:
             _SKIP_NOTICES.add(reason)
             print(f"dermis: reference stage skipped: {reason}", file=sys.stderr)
-        return
-    for label in wanted:
-        add(ref.node(scene, label, groups[label]), target=True)
+        return [], f"Reference stage skipped: {reason}"
+    return [add(ref.node(scene, label, groups[label]), target=True).id
+            for label in wanted], None

@@ -411,7 +411,7 @@ def _fmt_e(s: dict | None) -> str:
 def _fmt_speed(s: dict | None) -> str:
     if not s or "speedup" not in s or not math.isfinite(s["speedup"]):
         return "-"
-    return ("≥ " if s.get("speedup_is_lower_bound") else "") + f"{s['speedup']:.3g}×"
+    return (">= " if s.get("speedup_is_lower_bound") else "") + f"{s['speedup']:.3g}×"
 
 
 def ground_truth_pages(pdf, metrics: dict | None, images: dict, references: dict, *,
@@ -476,7 +476,7 @@ def ground_truth_pages(pdf, metrics: dict | None, images: dict, references: dict
 
     # page 2: region table (relative luminance difference ± sigma per region)
     fig = plt.figure(figsize=figsize)
-    fig.suptitle("Distance to ground truth: region means (model / reference − 1, luminance)",
+    fig.suptitle("Distance to ground truth: region means (model / reference - 1, luminance)",
                  fontsize=12)
     ax = fig.add_axes([0.03, 0.08, 0.94, 0.8])
     ax.axis("off")
@@ -551,7 +551,7 @@ def ground_truth_pages(pdf, metrics: dict | None, images: dict, references: dict
     for c in metrics.get("thesis", []):
         vals = "; ".join(f"{l}: " + ", ".join(f"{k} {v:.3g}" for k, v in d.items())
                          for l, d in c["values"].items())
-        fig.text(0.04, y, f"• {c['claim']} — {c['verdict']}", fontsize=9, weight="bold")
+        fig.text(0.04, y, f"- {c['claim']} - {c['verdict']}", fontsize=9, weight="bold")
         fig.text(0.06, y - 0.035, f"measure: {c['measure']}", fontsize=7.5)
         fig.text(0.06, y - 0.07, vals, fontsize=7.5, wrap=True)
         y -= 0.16
@@ -559,7 +559,7 @@ def ground_truth_pages(pdf, metrics: dict | None, images: dict, references: dict
     for l in lights:
         order = metrics["ranking"].get(l, [])
         lines.append(f"{l}: " + " < ".join(
-            ("≈ " if r["tied_with_previous"] else "") + f"{r['model']} ({100 * r['rel_rmse']:.1f} %)"
+            ("~ " if r["tied_with_previous"] else "") + f"{r['model']} ({100 * r['rel_rmse']:.1f} %)"
             for r in order))
     fig.text(0.04, max(y, 0.1), "Ranking per light (closest first):\n" + "\n".join(lines),
              fontsize=8)

@@ -454,7 +454,7 @@ def _geometry_page(plt, metrics):
 
 def write_report(images: dict, metrics: dict, out_pdf, *, scene_name: str, device: str,
                  timings_extra: dict | None = None, credits=(), tiles: dict | None = None,
-                 image_tiles: dict | None = None) -> Path:
+                 image_tiles: dict | None = None, extra_pages=None) -> Path:
     """Write the multi-page comparison PDF.
 
     Parameters
@@ -474,6 +474,8 @@ def write_report(images: dict, metrics: dict, out_pdf, *, scene_name: str, devic
     timings_extra : dict (light, mesh) -> seconds, optional
         The BSSRDF's irradiance pass per lighting condition and mesh ("mesh_high"/"mesh_low",
         or "high"/"low"); added to the BSSRDF's time in the table, summary and scatter plot.
+    extra_pages : callable(PdfPages), optional
+        Adds further pages at the end (the distance-to-ground-truth section).
 
     Returns
     -------
@@ -511,6 +513,8 @@ def write_report(images: dict, metrics: dict, out_pdf, *, scene_name: str, devic
             for fig in build():  # generators: one page in memory at a time
                 pdf.savefig(fig)
                 plt.close(fig)
+        if extra_pages is not None:
+            extra_pages(pdf)
         info = pdf.infodict()
         info["Title"] = f"dermis comparison: {scene_name}"
         info["Creator"] = "dermis reports.pdf_report"

@@ -16,16 +16,26 @@ NAME = "report"
 VERSION = 3
 KERNELS = ()
 REFERENCE_MODEL = "bssrdf"
+GROUND_TRUTH_MESH = "mesh_high"   # the references are of the high mesh; regions are on it
 
 
 def node(scene, render_ids: list[str], irradiance_ids: list[str],
-         difference_ids: list[str] = (), images_id: str | None = None) -> Node:
+         difference_ids: list[str] = (), images_id: str | None = None,
+         reference_ids: list[str] = (), reference_skipped: str | None = None) -> Node:
+    """The report of the renders; with ``reference_ids`` (Mitsuba ground truth) also the
+    distance-to-ground-truth section, which needs the high mesh (regions) and the camera.
+    ``reference_skipped`` is the reason the scene asked for references and got none."""
     params = {"renders": sorted(render_ids), "irradiance": sorted(irradiance_ids),
               "differences": sorted(difference_ids), "images": images_id,
+              "references": sorted(reference_ids), "reference_skipped": reference_skipped,
               "scene_name": scene.scene.name, "credits": list(scene.credits())}
-    return Node(NAME, NAME, __name__, params,
-                tuple(render_ids) + tuple(irradiance_ids) + tuple(sorted(difference_ids))
-                + ((images_id,) if images_id else ()), label="grids + PDF")
+    deps = (tuple(render_ids) + tuple(irradiance_ids) + tuple(sorted(difference_ids))
+            + ((images_id,) if images_id else ()) + tuple(sorted(reference_ids)))
+    if reference_ids:
+        from dataclasses import asdict
+        params["camera"] = asdict(scene.camera)
+        deps += (GROUND_TRUTH_MESH,)
+    return Node(NAME, NAME, __name__, params, deps, label="grids + PDF")
 
 
 def run(params: dict, inputs: dict, ctx) -> StageResult:
@@ -53,9 +63,34 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     if params.get("images"):   # the images stage's tone-mapped thumbnails for the image pages
         from dermis.reports.images import load_thumbnails
         thumbs, _ = load_thumbnails(inputs[params["images"]])
+    gt_pages, gt_info = _ground_truth(params, inputs, images, extra, ctx.out_dir, files)
     pdf = pdf_report.write_report(images, metrics, ctx.out_dir / "report.pdf",
                                   scene_name=params["scene_name"], device=ctx.cl.description,
                                   timings_extra=extra, credits=params["credits"], tiles=tiles,
-                                  image_tiles=thumbs)
+                                  image_tiles=thumbs, extra_pages=gt_pages)
     names = [Path(f).name for f in files] + [pdf.name]
-    return StageResult(files=names, info={"pages": pdf_report.report_page_count(images, metrics)})
+    pages = pdf_report.report_page_count(images, metrics) + gt_info["pages"]
+    return StageResult(files=names, info={"pages": pages, "ground_truth": gt_info})
+
+
+def _ground_truth(params: dict, inputs: dict, images: dict, extra: dict, out_dir, files: list):
+    """The distance-to-ground-truth section (:mod:`dermis.reports.ground_truth`).
+
+    Its files are appended to ``files``.  Returns a function that adds its pages to the open
+    PDF and an info dict whose ``pages`` is filled in when that function has run."""
+    from dermis.reports import ground_truth as gt_mod
+    refs = {inputs[nid].info["light"]: inputs[nid] for nid in params.get("references", ())}
+    info = {"references": sorted(refs), "pages": 0}
+    gt = None
+    if refs:
+        from dermis.pipeline.config import CameraConfig
+        gt = gt_mod.ground_truth_metrics(images, refs, mesh=inputs[GROUND_TRUTH_MESH],
+                                         camera=CameraConfig(**params["camera"]),
+                                         extra_seconds=extra)
+        files.extend(gt_mod.write_ground_truth(gt, images, refs, out_dir))
+        info["ranking"] = gt["ranking"]
+
+    def add_pages(pdf):
+        info["pages"] = gt_mod.ground_truth_pages(pdf, gt, images, refs,
+                                                  skip_reason=params.get("reference_skipped"))
+    return add_pages, info

@@ -256,3 +256,43 @@ def test08_stage_runs_and_distances_are_honest(mi, quick_mesh, tmp_path):
         n = ground_truth_pages(pdf, gt, {"fake": fake}, {label: ref})
         n0 = ground_truth_pages(pdf, None, {}, {}, skip_reason="no Mitsuba")
     assert n == 4 and n0 == 1 and (tmp_path / "gt.pdf").stat().st_size > 0
+
+
+def test09_report_gains_the_ground_truth_section(mi, tmp_path, monkeypatch):
+    """The whole pipeline with references on: the report node reads them, writes
+    ground_truth.json (every high-mesh model of the light measured and ranked) and its PDF
+    has the section; without Mitsuba the same report still builds and says why."""
+    import json
+    import subprocess
+    from dermis.pipeline import plan
+    from dermis.pipeline.api import run
+    from dermis.stages import mitsuba_scene
+    over = {"camera": {"width": 80, "height": 80}, "mesh": {"high_triangles": 20_000},
+            "render": {"models": ["lafortune", "bssrdf"], "lights": ["point"],
+                       "geometries": ["high"]},
+            "output": {"previews": False, "output_dir": str(tmp_path / "out")},
+            "reference": {"enabled": True, "width": 40, "height": 40, "spp": 8,
+                          "slab_samples": 4096}}
+    cache = tmp_path / "cache"
+
+    def report_of(summary):
+        rep = next(n for n in summary.nodes if n.id == "report")
+        return Path(rep.path)
+
+    out = report_of(run(load_scene(QUICK, overrides=over), cache=cache, export=False))
+    gt = json.loads((out / "ground_truth.json").read_text())
+    assert set(gt["models"]) == {"lafortune-point", "bssrdf-point"}
+    assert [r["model"] for r in gt["ranking"]["point"]] != []
+    assert (out / "gt-error-bssrdf-point.png").is_file()
+    text = subprocess.run(["pdftotext", str(out / "report.pdf"), "-"], capture_output=True,
+                          text=True, check=True).stdout
+    assert "Distance to ground truth" in text and "Mitsuba" in text
+
+    monkeypatch.setattr(mitsuba_scene, "mitsuba_missing_reason",
+                        lambda: "Mitsuba 3 is not installed: pip install 'dermis[reference]'")
+    monkeypatch.setattr(plan, "_SKIP_NOTICES", set())
+    out = report_of(run(load_scene(QUICK, overrides=over), cache=cache, export=False))
+    assert not (out / "ground_truth.json").exists()
+    text = subprocess.run(["pdftotext", str(out / "report.pdf"), "-"], capture_output=True,
+                          text=True, check=True).stdout
+    assert "Reference stage skipped" in text and "dermis[reference]" in text
