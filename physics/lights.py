@@ -69,6 +69,10 @@ Light types (``pipeline.config.LightConfig``, lengths in mm):
   glossy reflection of the view; measured on the same image it removed a third of the
   specular lobes' own outliers but, taking samples from the diffuse strategies, made the
   whole Lafortune image noisier (off by default).
+  A backward-scattering layer (HK93 with g < RETRO_G_MAX, :class:`RetroLobe`) instead draws
+  a share about the view direction itself, where its Henyey-Greenstein backscatter peak
+  lies (wi = wo): at g = -0.99 that peak is ~1e3 times its mean and the other strategies
+  land in it too rarely (fireflies, issue 16 item 10).
 
 Lat-long convention: y is up; image row 0 is the zenith; the image centre (u = 0.5) looks
 along +z, in front of the face and behind the default camera, and the panorama is seen
@@ -99,6 +103,7 @@ __all__ = [
     "LightSamples", "EnvironmentMap", "sample_lights", "irradiance", "environment_map",
     "procedural_sunset", "light_params", "concentric_disc", "cosine_hemisphere", "LUMINANCE",
     "SUNSET_SUN_ELEVATION_DEG", "ENV_STRATEGIES", "stratified_2d", "PixelStrata", "GlossyLobe",
+    "RetroLobe", "RETRO_G_MAX",
 ]
 
 # Environment-light sampling strategies (module docstring); the first is the default.
@@ -421,8 +426,67 @@ class GlossyLobe:
         return (self.exponent + 1.0) / _TWO_PI * c ** self.exponent
 
 
+# A layer scattering more backwards than this gets the retro lobe (RetroLobe).  Its HG peak
+# at g is (1 - g^2) / (4 pi (1 - |g|)^3) / (1 / 4 pi) times the isotropic value: 20 at
+# g = -0.5, 1e4 at -0.99 (against 4 samples per hit).
+RETRO_G_MAX = -0.5
+# Share of the environment samples drawn from the retro lobe (one of 4 per hit at the
+# default 16 per pixel / 4 camera samples): measured in bench/results/hk93_retro.json.
+RETRO_FRACTION = 0.25
+
+
+@dataclass(frozen=True)
+class RetroLobe:
+    """An environment-sampling strategy for a backward-scattering layer seen at ``view``:
+    the Henyey-Greenstein distribution p(wi) = (1 - k^2) / (4 pi (1 + k^2 - 2 k wi.wo)^1.5)
+    about the view direction wo (Henyey & Greenstein 1941; inverted as in pbrt-v3
+    ``HenyeyGreenstein::Sample_p``).  A layer of mean cosine g < 0 and index eta backscatters
+    about wi = wo with an angular width ~(1 - |g|) inside, ~eta (1 - |g|) outside (Snell near
+    normal incidence), so k = 1 - eta (1 - |g|) (:meth:`for_layer`); the MIS weights count
+    this density whatever the BRDF is, so the estimate stays unbiased for every model.
+
+    view : (N, 3) unit directions to the eye; fraction : share of the samples; k : in [0, 1)
+    """
+
+    view: np.ndarray
+    fraction: float = RETRO_FRACTION
+    k: float = 0.9
+
+    @staticmethod
+    def k_for_layer(g: float, eta: float) -> float:
+        return float(min(max(1.0 - eta * (1.0 - abs(g)), 0.0), 0.999))
+
+    def __getitem__(self, sl) -> "RetroLobe":
+        return RetroLobe(self.view[sl], self.fraction, self.k)
+
+    def sample(self, u: np.ndarray) -> np.ndarray:
+        """(N, S, 3) directions for uniform (N, S, 2) numbers."""
+        a = _normalize(np.asarray(self.view, np.float64))
+        k = self.k
+        if k < 1e-3:
+            cos_a = 1.0 - 2.0 * u[..., 0]
+        else:
+            sq = (1.0 - k * k) / (1.0 - k + 2.0 * k * u[..., 0])
+            cos_a = np.clip((1.0 + k * k - sq * sq) / (2.0 * k), -1.0, 1.0)
+        sin_a = np.sqrt(np.maximum(1.0 - cos_a * cos_a, 0.0))
+        phi = _TWO_PI * u[..., 1]
+        t, b = _frames(a)
+        d = ((sin_a * np.cos(phi))[..., None] * t[:, None] + (sin_a * np.sin(phi))[..., None]
+             * b[:, None] + cos_a[..., None] * a[:, None])
+        return _normalize(d)
+
+    def pdf(self, directions: np.ndarray) -> np.ndarray:
+        """(N, S) solid-angle density of (N, S, 3) directions."""
+        a = _normalize(np.asarray(self.view, np.float64))
+        c = np.einsum("nsk,nk->ns", directions, a)
+        k = self.k
+        return (1.0 - k * k) / (4.0 * math.pi * np.maximum(1.0 + k * k - 2.0 * k * c, 1e-30)
+                                ** 1.5)
+
+
 def _environment(light, p: np.ndarray, rng, samples: int, env, normals, strategy: str,
-                 strata=None, salt: int = 0, lobe: "GlossyLobe | None" = None) -> tuple:
+                 strata=None, salt: int = 0,
+                 lobe: "GlossyLobe | RetroLobe | None" = None) -> tuple:
     if env is None:
         env = environment_map(light)
     n = len(p)
@@ -486,7 +550,7 @@ def sample_lights(lights, points: np.ndarray, normals: np.ndarray | None = None,
                   env: "EnvironmentMap | None" = None,
                   env_strategy: str = ENV_STRATEGIES[0], share: int = 1,
                   strata: "PixelStrata | None" = None,
-                  lobe: "GlossyLobe | None" = None) -> LightSamples:
+                  lobe: "GlossyLobe | RetroLobe | None" = None) -> LightSamples:
     """Sample one light or several (summed) for N surface points.
 
     Parameters

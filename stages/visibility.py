@@ -38,7 +38,8 @@ from dermis.pipeline.config import CameraConfig, LightConfig
 from dermis.pipeline.errors import ConfigError
 from dermis.pipeline.graph import Node, StageResult
 from dermis.physics.color import srgb_to_linear
-from dermis.physics.lights import (ENV_STRATEGIES, EnvironmentMap, GlossyLobe, PixelStrata,
+from dermis.physics.lights import (ENV_STRATEGIES, RETRO_FRACTION, RETRO_G_MAX,
+                                   EnvironmentMap, GlossyLobe, PixelStrata, RetroLobe,
                                    environment_map, light_params, sample_lights)
 from dermis.physics.visibility import (Visibility, camera_rays, shared as shared_visibility,
                                        subpixel_offsets)
@@ -69,6 +70,10 @@ class LightSampling:
     glossy_fraction, glossy_exponent, glossy_tilt : under "mis", the share of environment
         samples drawn about the glossy reflection of the view
         (:class:`physics.lights.GlossyLobe`; fraction 0 = none)
+    retro_fraction, retro_k : the share of environment samples drawn about the view
+        direction from a Henyey-Greenstein lobe of mean cosine ``retro_k``
+        (:class:`physics.lights.RetroLobe`; fraction 0 = none); :func:`retro_lobe` sets it
+        for a scene whose HK93 layers scatter backwards
     """
 
     shadow_samples: int | None = None
@@ -77,6 +82,22 @@ class LightSampling:
     glossy_fraction: float = 0.0
     glossy_exponent: float = 32.0
     glossy_tilt: float = 0.75
+    retro_fraction: float = 0.0
+    retro_k: float = 0.0
+
+
+def retro_lobe(scene) -> dict | None:
+    """The retro lobe a scene's images need: {"fraction", "k"} when a model rendered is HK93
+    (or the asperity term on HK93) and one of its layers scatters backwards (g <
+    RETRO_G_MAX: the Henyey-Greenstein backscatter peak at wi = wo would give fireflies,
+    issue 16 item 10), else None.  The most backward layer sets the lobe's width."""
+    models = tuple(scene.render.models)
+    if not ("hk93" in models or ("asperity" in models and scene.render.asperity_base == "hk93")):
+        return None
+    layer = min(scene.optics.layers, key=lambda l: l.g)
+    if not layer.g < RETRO_G_MAX:
+        return None
+    return {"fraction": RETRO_FRACTION, "k": RetroLobe.k_for_layer(layer.g, layer.eta)}
 
 
 def _light_sampling(sampling: LightSampling | None, lights) -> LightSampling:
@@ -246,9 +267,14 @@ def cast(mesh, lights, camera, *, spp: int = 1, seed: int = 0,
     t0 = time.perf_counter()
     pos, ng = surf["position"], surf["geo_normal"]
     lobe = None
+    if sampling.glossy_fraction > 0 and sampling.retro_fraction > 0:
+        raise ConfigError("sampling: glossy_fraction and retro_fraction are both > 0; "
+                          "one environment lobe at a time")
     if sampling.glossy_fraction > 0:
         lobe = GlossyLobe(surf["wo"], surf["shading_normal"], sampling.glossy_fraction,
                           sampling.glossy_exponent, sampling.glossy_tilt)
+    elif sampling.retro_fraction > 0:
+        lobe = RetroLobe(surf["wo"], sampling.retro_fraction, sampling.retro_k)
     t_surface = time.perf_counter() - t0
 
     per_hit = samples_per_hit(lights, spp, sampling.shadow_samples)
@@ -287,6 +313,8 @@ def cast(mesh, lights, camera, *, spp: int = 1, seed: int = 0,
     info = {"lights": [lt.name for lt in lights], "light_types": [lt.type for lt in lights],
             "width": w, "height": h, "spp": spp, "seed": int(seed),
             "light_samples_per_hit": per_hit, "env_strategy": sampling.env_strategy,
+            "env_lobe": (None if lobe is None else {"type": type(lobe).__name__,
+                                                    "fraction": lobe.fraction}),
             "primary_rays": int(n_rays), "hits": int(m), "shadow_rays": int(n_shadow),
             "unoccluded_samples": int(len(directions)), "triangles": int(len(mesh.faces)),
             "timings": {"primary": t_primary, "surface": t_surface,
@@ -303,6 +331,9 @@ def node(scene, mesh_node: str, label: str, lights: tuple) -> Node:
     """One node per mesh x lighting condition (camera, spp and seed from the scene)."""
     params = {"mesh": mesh_node, "label": label, **light_params(lights),
               "camera": asdict(scene.camera), "spp": scene.render.spp, "seed": scene.mesh.seed}
+    retro = retro_lobe(scene) if any(lt.type == "environment" for lt in lights) else None
+    if retro is not None:          # only then: every other scene keeps its node keys
+        params["retro_lobe"] = retro
     return Node(f"visibility-{mesh_node}-{label}", NAME, __name__, params, {"mesh": mesh_node},
                 label=f"rays {mesh_node} / {label}", locations=("lights[].map",))
 
@@ -310,8 +341,12 @@ def node(scene, mesh_node: str, label: str, lights: tuple) -> Node:
 def run(params: dict, inputs: dict, ctx) -> StageResult:
     mesh = inputs["mesh"]
     lights = [LightConfig(**d) for d in params["lights"]]
+    retro = params.get("retro_lobe")
+    sampling = (LightSampling(retro_fraction=retro["fraction"], retro_k=retro["k"])
+                if retro else None)
     samples = cast(mesh, lights, CameraConfig(**params["camera"]), spp=params["spp"],
                    seed=params["seed"], visibility=shared_visibility(mesh, ctx.memo),
+                   sampling=sampling,
                    cl_env=ctx.cl, progress=ctx.progress, memo=ctx.memo)
     samples.info["label"] = params["label"]
     return StageResult(samples, info={"timings": samples.info["timings"],
