@@ -22,6 +22,7 @@ import importlib
 import json
 import time
 import traceback
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -213,8 +214,12 @@ MEASUREMENT_KEYS = frozenset({"timings", "seconds", "kernel_seconds", "wall_seco
 
 
 def _is_measurement(key: str, value) -> bool:
-    return key in MEASUREMENT_KEYS or key.endswith("_seconds") or (
-        key.endswith("_s") and isinstance(value, float) and not key.startswith("sigma"))
+    # "seconds_sampling" (samples stage steps) and rates such as "photons_per_second" (the
+    # Monte Carlo profile) are timings too: left in the artifact they made its bytes differ
+    # between runs (issue 15, the serial vs Dask byte-identity test)
+    return key in MEASUREMENT_KEYS or key.endswith("_seconds") or key.startswith("seconds_") \
+        or key.endswith("_per_second") or (
+            key.endswith("_s") and isinstance(value, float) and not key.startswith("sigma"))
 
 
 def _split(d: dict) -> tuple[dict, dict]:
@@ -275,6 +280,25 @@ def _load(store: Store, node_id: str, key: str):
     return d  # file-only artifacts (images): their directory
 
 
+@contextmanager
+def _one_blas_thread():
+    """Run a node with BLAS/LAPACK on one thread.
+
+    OpenBLAS splits a product over its threads and sums the parts in a thread-count-dependent
+    order, so the same node gave different last bits in a process with 2 BLAS threads (dermis
+    run) and in a Dask worker (which starts with OMP_NUM_THREADS=1): the profiles' adding-
+    doubling differed by 1 ulp and everything downstream with it (issue 15).  One thread on
+    every machine and in every process makes the bytes independent of where a node runs; the
+    stages' matrices are small (tens of quadrature nodes), so nothing measurable is lost."""
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:     # declared in pyproject; without it results may vary in the last bit
+        yield
+        return
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield
+
+
 def execute(nodes: dict[str, Node], targets: list[str], store: Store, ctx, *,
             force: tuple[str, ...] = (), dry_run: bool = False, progress=None,
             notice=None) -> RunSummary:
@@ -319,7 +343,8 @@ def execute(nodes: dict[str, Node], targets: list[str], store: Store, ctx, *,
             ctx.out_dir = tmp
             ctx.progress = (lambda f, _n=node: progress(_n, f)) if progress else None
             try:
-                result = node.call(inputs, ctx)
+                with _one_blas_thread():
+                    result = node.call(inputs, ctx)
             except DermisError:
                 raise
             except Exception as exc:

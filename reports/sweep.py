@@ -43,15 +43,26 @@ __all__ = ["KNOBS", "Knob", "SweepSpec", "parse_sweep", "run_sweep", "pareto_fro
 class Knob:
     """A sweepable setting: where it lives in the scene, which way is finer, its reference.
 
-    reference: "finest" (the sweep's most refined value), "brute_force" (the exact gather) or
-    "high_mesh" (the same images on the ~1M-triangle mesh).
+    reference: "finest" (the sweep's most refined value), "brute_force" (the exact gather),
+    "high_mesh" (the same images on the ~1M-triangle mesh) or "monte_carlo" (the same images
+    with the Monte Carlo profile table, ``[optics] profile = "monte_carlo"``).
+    choices: a categorical knob's values, coarse to fine (``finer = "choices"``).
+    also: settings a point of this knob needs besides its value (path -> value).
     """
 
     path: str
-    finer: str                 # "higher" or "lower"
+    finer: str                 # "higher", "lower" or "choices"
     reference: str = "finest"
     integer: bool = False
     doc: str = ""
+    choices: tuple = ()
+    also: tuple = ()           # ((path, value), ...)
+
+    def rank(self, value) -> float:
+        """Larger = more refined."""
+        if self.choices:
+            return float(self.choices.index(value))
+        return float(value) if self.finer == "higher" else -float(value)
 
 
 KNOBS = {k.path: k for k in (
@@ -64,6 +75,13 @@ KNOBS = {k.path: k for k in (
     Knob("bake.resolution", "higher", integer=True, doc="baked map resolution"),
     Knob("mesh.low_triangles", "higher", "high_mesh", integer=True,
          doc="triangles of the simplified mesh"),
+    # the profile model the BSSRDF renders with (docs/profiles.md); the issue's reference for
+    # the profile knobs is the Monte Carlo profile.  The multipole's pole count and FFT grid
+    # are not scene settings (stages/profiles.py node: model, photons, seed only), so not knobs.
+    Knob("optics.profile", "choices", "monte_carlo", choices=("multipole", "monte_carlo"),
+         doc="profile model of the BSSRDF (reference: the Monte Carlo table)"),
+    Knob("optics.photons", "higher", integer=True, also=(("optics.profile", "monte_carlo"),),
+         doc="photons per channel of the Monte Carlo profile (sets profile = monte_carlo)"),
 )}
 
 MODES = ("one_at_a_time", "grid")
@@ -85,6 +103,15 @@ def _problem(where: str, key: str, msg: str) -> str:
 
 
 def _values(where: str, name: str, spec, knob: Knob) -> list:
+    if knob.choices:
+        if not isinstance(spec, list) or not spec:
+            raise ConfigError(_problem(where, f"knobs.{name}", f" = {spec!r}: must be a "
+                                       "non-empty list of " + ", ".join(map(repr, knob.choices))))
+        for v in spec:
+            if v not in knob.choices:
+                raise ConfigError(_problem(where, f"knobs.{name}", f": value {v!r} must be one "
+                                           "of " + ", ".join(map(repr, knob.choices))))
+        return sorted(set(spec), key=spec.index)
     if isinstance(spec, list):
         values = spec
     elif isinstance(spec, dict):
@@ -171,6 +198,8 @@ def _set(table: dict, path: str, value) -> dict:
         return out
     head, _, key = path.partition(".")
     out.setdefault(head, {})[key] = value
+    for p, v in KNOBS[path].also if path in KNOBS else ():
+        out = _set(out, p, v)
     return out
 
 
@@ -185,6 +214,9 @@ def _current(table: dict, scene, path: str):
     if path == "lights.samples":
         vals = [l.samples for l in scene.lights if l.type in ("disc", "environment")]
         return vals[0] if vals else None
+    knob = KNOBS.get(path)
+    if knob is not None and any(_current(table, scene, p) != v for p, v in knob.also):
+        return None             # e.g. photons while the scene renders with the multipole
     head, _, key = path.partition(".")
     return getattr(getattr(scene, head), key)
 
@@ -215,6 +247,10 @@ def sweep_points(table: dict, where: str, spec: SweepSpec) -> list[Point]:
             t = _set(table, "bssrdf.brute_force", True)
             points.append(Point(name, {"bssrdf.brute_force": True},
                                 _scene(t, where, f"{name} reference"), "reference"))
+        elif knob.reference == "monte_carlo":
+            t = _set(table, "optics.profile", "monte_carlo")
+            points.append(Point(name, {"optics.profile": "monte_carlo"},
+                                _scene(t, where, f"{name} reference"), "reference"))
         elif knob.reference == "high_mesh":
             if "high" not in base.render.geometries:
                 raise ConfigError(_problem(where, f"knobs.{name}", ": its reference is the high "
@@ -224,14 +260,17 @@ def sweep_points(table: dict, where: str, spec: SweepSpec) -> list[Point]:
 
 
 # ------------------------------------------------------------------------------ scoring
+IMAGE_STAGES = ("render", "bssrdf")   # the nodes whose images a sweep point is scored on
+
+
 def _images(store, summary) -> dict:
-    """(model, light, geometry) -> RenderedImage of the render nodes of a summary."""
+    """(model, light, geometry) -> (cache key, RenderedImage) of the image nodes of a summary."""
     from dermis.pipeline import artifacts
     out = {}
     for rep in summary.nodes:
-        if rep.stage in ("render", "bssrdf"):
+        if rep.stage in IMAGE_STAGES:
             img = artifacts.load(store.artifact_dir(rep.id, rep.key))
-            out[(img.info["model"], img.info["light"], img.info["geometry"])] = img
+            out[(img.info["model"], img.info["light"], img.info["geometry"])] = (rep.key, img)
     return out
 
 
@@ -247,18 +286,29 @@ def _flip(image, reference) -> float:
 
 
 def _errors(images: dict, refs: dict, *, high_mesh: bool = False) -> dict:
+    """Mean relative RMSE and FLIP over the images the knob changes.
+
+    An image with the same cache key as its reference is the same artifact (the knob does not
+    reach it: the Lafortune image under a gather knob): it is not scored, else every such
+    image would pull the mean towards 0.  A point whose images are all its reference's (the
+    finest value of a knob) has error 0."""
     from dermis.reports.diff import difference
-    rel, flips = [], []
-    for (model, light, geom), img in images.items():
+    rel, flips, same = [], [], 0
+    for (model, light, geom), (key, img) in images.items():
         ref = refs.get((model, light, "high" if high_mesh else geom))
         if ref is None or (high_mesh and geom == "high"):
             continue
-        rel.append(float(difference(img, ref).metrics["rel_rmse"]))
-        flips.append(_flip(img, ref))
+        if key == ref[0]:
+            same += 1
+            continue
+        rel.append(float(difference(img, ref[1]).metrics["rel_rmse"]))
+        flips.append(_flip(img, ref[1]))
     if not rel:
-        return {"rel_rmse": None, "flip": None, "images": 0}
+        zero = 0.0 if same else None
+        return {"rel_rmse": zero, "rel_rmse_max": zero, "flip": zero, "images": 0,
+                "images_unchanged": same}
     return {"rel_rmse": float(np.mean(rel)), "rel_rmse_max": float(np.max(rel)),
-            "flip": float(np.mean(flips)), "images": len(rel)}
+            "flip": float(np.mean(flips)), "images": len(rel), "images_unchanged": same}
 
 
 def _varying(summaries: list) -> set[str]:
@@ -332,7 +382,12 @@ def run_sweep(scene_path, *, cache, out_dir=None, workers: int = 1, scheduler: s
                           '[sweep.knobs] "bssrdf.epsilon" = [1.0, 0.5, 0.2]')
     spec = parse_sweep(table.pop("sweep"), where)
     points = sweep_points(table, where, spec)
-    graphs = [build_graph(p.scene) for p in points]
+    # only the images are scored: the images / differences / report nodes of every point
+    # would be work (and failure modes) the sweep never reads
+    graphs = []
+    for p in points:
+        nodes, _ = build_graph(p.scene)
+        graphs.append((nodes, [nid for nid, n in nodes.items() if n.stage in IMAGE_STAGES]))
     summaries, stats = run_graphs(graphs, cache, workers=workers, scheduler=scheduler,
                                   device=device, progress=progress, warm=WARM_IMPORTS)
     store = Store(cache)
@@ -340,9 +395,14 @@ def run_sweep(scene_path, *, cache, out_dir=None, workers: int = 1, scheduler: s
     for i, p in enumerate(points):
         if p.role == "point":
             groups.setdefault(p.knob if spec.mode == "one_at_a_time" else "grid", []).append(i)
-    varying = {g: _varying([summaries[i] for i in idx]) for g, idx in groups.items()}
-    images = [_images(store, s) for s in summaries]
     by_role = {(p.role, p.knob): i for i, p in enumerate(points)}
+    # what a knob changes: the nodes whose keys differ among its points and its reference
+    # (with one value swept, the reference is what it is measured against)
+    varying = {g: _varying([summaries[i] for i in idx]
+                           + ([summaries[by_role[("reference", g)]]]
+                              if ("reference", g) in by_role else []))
+               for g, idx in groups.items()}
+    images = [_images(store, s) for s in summaries]
     rows = []
     for i, p in enumerate(points):
         if p.role != "point":
@@ -350,20 +410,18 @@ def run_sweep(scene_path, *, cache, out_dir=None, workers: int = 1, scheduler: s
         errs = {}
         if spec.mode == "one_at_a_time":
             knob = KNOBS[p.knob]
-            if knob.reference == "brute_force":
+            if knob.reference in ("brute_force", "monte_carlo"):
                 errs = _errors(images[i], images[by_role[("reference", p.knob)]])
             elif knob.reference == "high_mesh":
                 errs = _errors(images[i], images[0], high_mesh=True)
             else:
-                vals = spec.knobs[p.knob]
-                finest = max(vals) if knob.finer == "higher" else min(vals)
+                finest = max(spec.knobs[p.knob], key=knob.rank)
                 j = next(k for k, q in enumerate(points)
                          if q.role == "point" and q.knob == p.knob and q.values[p.knob] == finest)
                 errs = _errors(images[i], images[j])
         else:   # grid: against the most refined corner
             j = max((k for k, q in enumerate(points) if q.role == "point"),
-                    key=lambda k: sum((1 if KNOBS[n].finer == "higher" else -1) * v
-                                      for n, v in points[k].values.items()))
+                    key=lambda k: sum(KNOBS[n].rank(v) for n, v in points[k].values.items()))
             errs = _errors(images[i], images[j])
         secs = _seconds(store, summaries[i],
                         varying[p.knob if spec.mode == "one_at_a_time" else "grid"])
@@ -391,6 +449,10 @@ def run_sweep(scene_path, *, cache, out_dir=None, workers: int = 1, scheduler: s
     return result
 
 
+def _fmt(v) -> str:
+    return f"{v:g}" if isinstance(v, (int, float)) and not isinstance(v, bool) else str(v)
+
+
 def _plots(result: dict, out: Path) -> None:
     """Error-vs-time per knob with the Pareto front and the default marked; a joint plot; PDF."""
     import matplotlib
@@ -412,7 +474,7 @@ def _plots(result: dict, out: Path) -> None:
                 ax.scatter(r["seconds"], r["rel_rmse"], marker="*" if r["is_default"] else "o",
                            s=120 if r["is_default"] else 30,
                            color="C3" if r["is_default"] else "C0", zorder=3)
-                ax.annotate(",".join(f"{v:g}" for v in r["values"].values()),
+                ax.annotate(",".join(map(_fmt, r["values"].values())),
                             (r["seconds"], r["rel_rmse"]), fontsize=7, xytext=(3, 3),
                             textcoords="offset points")
             f = [k for k in front if k in sel]
@@ -459,12 +521,12 @@ def run(args) -> int:
                     workers=args.workers, scheduler=args.scheduler, device=args.device,
                     progress=progress)
     print()
-    print(f"{'knob':<28} {'value':>10} {'seconds':>9} {'rel RMSE':>9} {'FLIP':>7}")
+    print(f"{'knob':<28} {'value':>12} {'seconds':>9} {'rel RMSE':>9} {'FLIP':>7}")
     for r in res["points"]:
         for k, v in r["values"].items():
             err = "-" if r.get("rel_rmse") is None else f"{r['rel_rmse']:.4f}"
             fl = "-" if r.get("flip") is None else f"{r['flip']:.4f}"
             mark = " *" if r["is_default"] else ""
-            print(f"{k:<28} {v:>10g} {r['seconds']:>9.2f} {err:>9} {fl:>7}{mark}")
+            print(f"{k:<28} {_fmt(v):>12} {r['seconds']:>9.2f} {err:>9} {fl:>7}{mark}")
     print("recommended:", json.dumps(res["recommended"]["joint"]))
     return 0
