@@ -22,13 +22,43 @@ from typing import Any, get_type_hints
 from .errors import ConfigError
 
 __all__ = ["Scene", "load_scene", "default_scene_path", "LENGTH_UNITS", "MODELS", "ASPERITY_BASES",
+           "THESIS_MODELS", "BSSRDF_MODELS", "MODEL_LABELS", "model_label", "profile_model",
+           "profiles_node_id",
            "GEOMETRIES", "estimate_memory", "machine_memory", "resource_problems",
            "scene_warnings"]
 
 LENGTH_UNITS = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
-# The four models in the thesis's order (measured BRDF, asperity, Hanrahan-Krueger, BSSRDF):
+# The four models in the thesis's order (measured BRDF, asperity, Hanrahan-Krueger, BSSRDF),
+# then the BSSRDF with the Monte Carlo-tabulated layer profile (issue 12, docs/profiles.md):
 # scene vocabulary, plan order, contact sheets and report grids all use this one tuple.
-MODELS = ("lafortune", "asperity", "hk93", "bssrdf")
+MODELS = ("lafortune", "asperity", "hk93", "bssrdf", "bssrdf_mc")
+THESIS_MODELS = MODELS[:4]
+# BSSRDF models -> the layer-profile model their gather reads (None: the scene's [optics]
+# profile, "multipole" unless set); they share points, irradiance and visibility.
+BSSRDF_MODELS = {"bssrdf": None, "bssrdf_mc": "monte_carlo"}
+# How the images, sheets and the report name a model (the scene name where not listed).
+MODEL_LABELS = {"bssrdf_mc": "BSSRDF (Monte Carlo profile)"}
+
+
+def model_label(model: str) -> str:
+    """The name a model is shown under in the images and the report."""
+    return MODEL_LABELS.get(model, model)
+
+
+def profile_model(scene, model: str) -> str:
+    """The layer-profile model (``physics.layers.PROFILE_MODELS``) BSSRDF ``model`` reads."""
+    from dermis.physics.layers import DEFAULT_PROFILE_MODEL
+    return BSSRDF_MODELS[model] or getattr(scene.optics, "profile", DEFAULT_PROFILE_MODEL)
+
+
+def profiles_node_id(scene, profile: str) -> str:
+    """Id of the ``profiles`` node of layer-profile model ``profile``: ``profiles`` for the
+    scene's own ``[optics] profile``, ``profiles-<profile>`` for another (the ``bssrdf_mc``
+    images' Monte Carlo table beside a multipole scene).  The BSSRDF and report nodes name
+    their inputs with it."""
+    from dermis.physics.layers import DEFAULT_PROFILE_MODEL
+    own = getattr(scene.optics, "profile", DEFAULT_PROFILE_MODEL)
+    return "profiles" if profile == own else f"profiles-{profile}"
 # Models the asperity term can sit on (docs/physics.md §5); the BSSRDF is not one of them.
 ASPERITY_BASES = ("lambert", "lafortune", "hk93")
 GEOMETRIES = ("high", "low", "low_bump", "low_bump_blur")
@@ -111,8 +141,10 @@ class LightConfig:
 
 @dataclass(frozen=True)
 class RenderConfig:
-    models: tuple = spec(MODELS, choices=MODELS, doc="models to render (bssrdf is the reference "
-                                                     "of the difference images)")
+    # default: the thesis's four; bssrdf_mc costs a Monte Carlo table (docs/profiles.md)
+    models: tuple = spec(THESIS_MODELS, choices=MODELS, doc="models to render (bssrdf is the reference "
+                                                     "of the difference images; bssrdf_mc: the "
+                                                     "BSSRDF with the Monte Carlo profile)")
     lights: tuple = spec((), doc='lighting conditions to render: names of [[lights]], "a+b" '
                                 "lights several together (the thesis's two directional "
                                 "lights); empty = each light alone")
@@ -534,7 +566,7 @@ def estimate_memory(scene: Scene) -> list[tuple[str, str, int]]:
     renders = bool(scene.render.models and scene.lights and scene.render.geometries)
     if renders:
         px = cam.width * cam.height
-        per_px = (BSSRDF_BYTES_PER_PIXEL if "bssrdf" in scene.render.models
+        per_px = (BSSRDF_BYTES_PER_PIXEL if set(BSSRDF_MODELS) & set(scene.render.models)
                   else RENDER_BYTES_PER_PIXEL)
         out.append((f"rendering {cam.width} x {cam.height} pixels", "camera.width, camera.height",
                     MEMORY_BASE + RENDER_BATCH_BYTES + per_px * px))
@@ -542,7 +574,7 @@ def estimate_memory(scene: Scene) -> list[tuple[str, str, int]]:
         n = scene.bake.resolution
         out.append((f"baking {n} x {n} texels", "bake.resolution",
                     MEMORY_BASE + BAKE_BYTES_PER_TEXEL * n * n))
-    if renders and "bssrdf" in scene.render.models and scene.optics is not None:
+    if renders and set(BSSRDF_MODELS) & set(scene.render.models) and scene.optics is not None:
         pairs = [(a, s) for l in scene.optics.layers if l.thickness_mm > 0
                  for a, s in zip(l.sigma_a, l.sigma_s_prime)]
         if pairs:
@@ -586,6 +618,11 @@ def scene_warnings(scene: Scene) -> list[str]:
                              for l in dark)
             out.append(f"{where}: lighting condition {_fmt(label)} emits no light ({keys}); "
                        "its renders will be black")
+    both = [m for m in BSSRDF_MODELS if m in r.models]
+    if len(both) > 1 and len({profile_model(scene, m) for m in both}) == 1:
+        out.append(f"{where}: render.models has bssrdf and bssrdf_mc, but optics.profile = "
+                   f"{_fmt(profile_model(scene, 'bssrdf'))} makes them the same image (drop "
+                   "optics.profile to compare the multipole with the Monte Carlo profile)")
     return out
 
 

@@ -8,7 +8,7 @@ which nodes exist.
 """
 from __future__ import annotations
 
-from .config import Scene
+from .config import BSSRDF_MODELS, Scene
 from .graph import Node
 from .registry import STAGE_NAMES, stage
 
@@ -47,8 +47,9 @@ def build_graph(scene: Scene) -> tuple[dict[str, Node], list[str]]:
         add(stage("bake").node(scene), target=True)
     if scene.output.previews:
         add(stage("mesh_previews").node(scene, needs_bake), target=True)
-    if REFERENCE_MODEL in models:
-        add(stage("profiles").node(scene), target=True)
+    for model in models:   # each BSSRDF's profile model (bssrdf_mc: the Monte Carlo table)
+        if model in BSSRDF_MODELS:
+            add(stage("profiles").node(scene, BSSRDF_MODELS[model]), target=True)
 
     render_ids = []
     for model in models:
@@ -57,10 +58,10 @@ def build_graph(scene: Scene) -> tuple[dict[str, Node], list[str]]:
                 mesh_node = stage("render").GEOMETRY[geometry][0]
                 # camera and shadow rays: once per mesh x lighting, shared by every model
                 add(stage("visibility").node(scene, mesh_node, label, lights))
-                if model == REFERENCE_MODEL:
+                if model in BSSRDF_MODELS:   # points and irradiance shared by both BSSRDFs
                     add(stage("samples").node(scene, mesh_node))
                     add(stage("irradiance").node(scene, mesh_node, label, lights))
-                    node = stage("bssrdf").node(scene, label, lights, geometry)
+                    node = stage("bssrdf").node(scene, label, lights, geometry, model)
                 else:
                     node = stage("render").node(scene, model, label, lights, geometry)
                 render_ids.append(add(node).id)

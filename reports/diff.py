@@ -384,12 +384,13 @@ def _grid_image(tiles: dict, rows: list, cols: list, scales: dict, *, title: str
                 captions: dict) -> np.ndarray:
     """A labelled grid of difference images (rows x cols) with one colour bar per column
     (:mod:`dermis.reports.sheets`)."""
+    from dermis.reports.sheets import caption
     from dermis.reports.sheets import TILE_PX, colorbar, grid, hstack
 
     lut = diverging_lut()
     bars = [colorbar(lut, -scales.get(c, 1.0), scales.get(c, 1.0), f"{c}: luminance difference",
                      width=TILE_PX - 56) for c in cols]
-    return grid(tiles, rows, cols, captions={k: f"{k[0]} / {k[1]}\n{v}" for k, v in captions.items()},
+    return grid(tiles, rows, cols, captions={k: f"{caption(*k)}\n{v}" for k, v in captions.items()},
                 title=title, footer=hstack(bars, gap=56 + 8))
 
 
@@ -436,6 +437,7 @@ def write_grids(metrics: dict, tiles: dict, out_dir) -> list[Path]:
     ``tiles`` ({"model": {(m, l, g): image}, "geometry": {...}}, full size or thumbnails)."""
     from concurrent.futures import ThreadPoolExecutor
 
+    from dermis.reports.sheets import ordered_models
     from dermis.reports.sheets import save_png
 
     out_dir = Path(out_dir)
@@ -449,7 +451,8 @@ def write_grids(metrics: dict, tiles: dict, out_dir) -> list[Path]:
                    and (r["model"], r["light"], geom) in got}
             caps = {(m, l): _caption(recs[f"{m}-{l}-{geom}"]) for (m, l) in sel}
             jobs.append((out_dir / f"{prefix}-{geom}.png",
-                         _grid_image(sel, sorted({m for m, _ in sel}), sorted({l for _, l in sel}),
+                         _grid_image(sel, ordered_models(m for m, _ in sel),
+                                     sorted({l for _, l in sel}),
                                      metrics["scales"][kind],
                                      title=title(metrics.get("reference_model", "bssrdf"), geom),
                                      captions=caps)))

@@ -75,19 +75,20 @@ def write_pngs(images: dict, out_dir: Path, *, thumbnails: bool = False) -> list
 
 
 def contact_sheet_image(images: dict, mapped: dict, *, title: str = ""):
-    """A labelled grid (uint8 RGB): rows are models, columns are lights, seconds per image
+    """A labelled grid (uint8 RGB): rows are models (``bssrdf_mc`` labelled "BSSRDF (Monte
+    Carlo profile)"), columns are lights, seconds per image
     under each label (the render node's own time; the shared visibility node is timed on
     its own)."""
-    from dermis.reports.sheets import grid
+    from dermis.reports.sheets import caption, grid, ordered_models
 
     labels = {i: _label(images[i]) for i in images}
-    models = sorted({m for m, _, _ in labels.values()})
+    models = ordered_models(m for m, _, _ in labels.values())
     lights = sorted({l for _, l, _ in labels.values()})
     tiles, caps = {}, {}
     for i, (m, l, _) in labels.items():
         tiles[(m, l)] = mapped[i]
         t = images[i].timings.get("total")
-        caps[(m, l)] = f"{m} / {l}" + (f"\n{t:.1f} s" if t else "")
+        caps[(m, l)] = caption(m, l) + (f"\n{t:.1f} s" if t else "")
     return grid(tiles, models, lights, captions=caps, title=title)
 
 

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dermis.pipeline.config import MODELS
+from dermis.pipeline.config import BSSRDF_MODELS, MODELS, THESIS_MODELS, model_label
 from dermis.pipeline.errors import DermisError
 from dermis.reports.diff import (GEOMETRY_COMPARED, GEOMETRY_REFERENCE, difference, difference_image,
                           image_labels)
@@ -35,7 +35,6 @@ MIN_FONT_PT = 7
 
 # Thesis render times, 800x800, pbrt on a dual-core Xeon 2.4 GHz (2006), m:ss or h:mm:ss
 # (Arizpe 2006, transcribed in docs/physics.md §7).  mesh -> light type -> model -> time.
-THESIS_MODELS = MODELS
 THESIS_LIGHTS = ("directional", "point", "area", "environment")
 THESIS_TIMES = {
     "1M": {
@@ -88,9 +87,10 @@ def _fmt_s(s: float | None) -> str:
 
 
 def _ordered_models(models) -> list[str]:
-    """Thesis order first (Lafortune, asperity, HK, BSSRDF), then anything else."""
+    """Thesis order first (Lafortune, asperity, HK, BSSRDF), then the BSSRDF with the Monte
+    Carlo profile, then anything else."""
     models = set(models)
-    return [m for m in THESIS_MODELS if m in models] + sorted(models - set(THESIS_MODELS))
+    return [m for m in MODELS if m in models] + sorted(models - set(MODELS))
 
 
 def _ordered_geoms(geoms) -> list[str]:
@@ -114,8 +114,9 @@ def summary_text(images: dict, metrics: dict, *, timings_extra: dict | None = No
                      f"truth), on the {geom} geometry; times are seconds per image"
                      + (f", the {ref}'s including its irradiance pass." if timings_extra else "."))
         for light in sorted({r["light"] for r in mvr.values()}):
-            recs = sorted((r for r in mvr.values()
-                           if r["light"] == light and r["geometry"] == geom),
+            recs = sorted((r for r in mvr.values()   # the BSSRDF's own variants: below
+                           if r["light"] == light and r["geometry"] == geom
+                           and r["model"] not in BSSRDF_MODELS),
                           key=lambda r: r["rel_rmse"])
             if not recs:
                 continue
@@ -132,7 +133,7 @@ def summary_text(images: dict, metrics: dict, *, timings_extra: dict | None = No
             for (m, l, g), im in idx.items():
                 if l == light and g == geom and _seconds(im) is not None:
                     t = _seconds(im)
-                    if m == ref:
+                    if m == ref or m in BSSRDF_MODELS:   # every BSSRDF: its irradiance pass
                         t += _irradiance_seconds(timings_extra, l, g) or 0.0
                     times.append((t, m))
             times.sort()
@@ -147,6 +148,13 @@ def summary_text(images: dict, metrics: dict, *, timings_extra: dict | None = No
             if ref_t and times and times[0][1] != ref:
                 fast += f"; {ref} {ref_t[0]:.2f} s ({ref_t[0] / times[0][0]:.1f}x the fastest)"
             lines.append(f"{light}: {close}; {fast}.")
+        variants = sorted({r["model"] for r in mvr.values() if r["model"] in BSSRDF_MODELS})
+        for m in variants:   # the same BSSRDF with another layer profile (bssrdf_mc)
+            vals = [r["rel_rmse"] for r in mvr.values() if r["model"] == m and r["geometry"] == geom]
+            lines.append(f"{model_label(m)} vs {ref}, {geom} geometry: relative RMSE "
+                         f"{min(vals):.2g}-{max(vals):.2g} over {len(vals)} lights (what the "
+                         "diffusion profile changes on the face; the profile page compares the "
+                         "profiles themselves).")
     gvh = metrics.get("geometry_vs_high", {})
     for g in GEOMETRY_COMPARED:
         vals = [r["rel_rmse"] for r in gvh.values() if r["geometry"] == g]
@@ -242,6 +250,7 @@ def _downsample(linear: np.ndarray, px: int) -> np.ndarray:
 
 
 def _image_pages(plt, images, thumbnails=None):
+    from dermis.reports.sheets import caption
     from dermis.reports.sheets import TILE_PX, grid
     from dermis.reports.tonemap import encode_srgb8, shared_exposure
 
@@ -259,7 +268,7 @@ def _image_pages(plt, images, thumbnails=None):
             if g == geom:
                 tiles[(m, l)] = (thumbnails[(m, l, g)] if thumbnails is not None else
                                  encode_srgb8(_downsample(im.linear, TILE_PX), exposure[l]))
-                caps[(m, l)] = f"{m} / {l}\n{_fmt_s(_seconds(im))}"
+                caps[(m, l)] = f"{caption(m, l)}\n{_fmt_s(_seconds(im))}"
         yield _mosaic_page(plt, f"Images, geometry {geom}  (one exposure per light, shared by "
                                 "all models and geometries)",
                            grid(tiles, models, lights, captions=caps))
@@ -325,12 +334,13 @@ def _timing_page(plt, images, metrics, *, device, timings_extra):
                 im = idx.get((m, l, g))
                 t = _seconds(im) if im is not None else None
                 cell = _fmt_s(t)
-                irr = _irradiance_seconds(timings_extra, l, g) if m == ref else None
+                irr = (_irradiance_seconds(timings_extra, l, g)
+                       if m == ref or m in BSSRDF_MODELS else None)
                 if t is not None and irr is not None:
                     cell = f"{t:.2f} + {irr:.2f} irr"
                 row.append(cell)
             if any(c != "-" for c in row):
-                rows.append(f"{m} / {g}")
+                rows.append(f"{model_label(m)} / {g}")
                 cells.append(row)
     ax = fig.add_axes([0.02, 0.30, 0.62, 0.58])
     ax.axis("off")
@@ -378,8 +388,10 @@ def _scatter_page(plt, images, metrics, *, timings_extra):
     pts = []
     for rec in mvr.values():
         if rec.get("seconds"):
-            pts.append((rec["model"], rec["light"], rec["geometry"], rec["seconds"],
-                        rec["rel_rmse"]))
+            t = rec["seconds"] + ((_irradiance_seconds(timings_extra, rec["light"],
+                                                       rec["geometry"]) or 0.0)
+                                  if rec["model"] in BSSRDF_MODELS else 0.0)
+            pts.append((rec["model"], rec["light"], rec["geometry"], t, rec["rel_rmse"]))
     for (m, l, g), im in idx.items():  # the reference itself: zero error, its full cost
         if m == ref and l in colours and _seconds(im):
             t = _seconds(im) + (_irradiance_seconds(timings_extra, l, g) or 0.0)
@@ -394,7 +406,8 @@ def _scatter_page(plt, images, metrics, *, timings_extra):
     ax.set_ylabel(f"relative RMSE vs {ref}", fontsize=9)
     ax.tick_params(labelsize=8)
     ax.grid(True, which="both", alpha=0.3)
-    handles = [Line2D([], [], marker=marks[m], ls="", color="0.2", label=m) for m in models]
+    handles = [Line2D([], [], marker=marks[m], ls="", color="0.2", label=model_label(m))
+               for m in models]
     handles += [Line2D([], [], marker="s", ls="", color=colours[l], label=l) for l in lights]
     handles += [Line2D([], [], marker="o", ls="", color="0.2", label=GEOMETRY_REFERENCE),
                 Line2D([], [], marker="o", ls="", mfc="none", color="0.2",

@@ -35,6 +35,11 @@ def node(scene, render_ids: list[str], irradiance_ids: list[str],
         from dataclasses import asdict
         params["camera"] = asdict(scene.camera)
         deps += (GROUND_TRUTH_MESH,)
+    # the layer profiles every BSSRDF model reads: the profile page (reports/profile_pages.py)
+    from dermis.pipeline.config import BSSRDF_MODELS, profile_model, profiles_node_id
+    params["profiles"] = sorted({profiles_node_id(scene, profile_model(scene, m))
+                                 for m in scene.render.models if m in BSSRDF_MODELS})
+    deps += tuple(params["profiles"])
     return Node(NAME, NAME, __name__, params, deps, label="grids + PDF")
 
 
@@ -64,12 +69,20 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
         from dermis.reports.images import load_thumbnails
         thumbs, _ = load_thumbnails(inputs[params["images"]])
     gt_pages, gt_info = _ground_truth(params, inputs, images, extra, ctx.out_dir, files)
+    from dermis.reports.profile_pages import profile_pages
+    profiles = {nid: inputs[nid] for nid in params.get("profiles", ())}
+    added = {"profiles": 0}
+
+    def extra_pages(pdf):   # the profile page, then the ground-truth section
+        added["profiles"] = profile_pages(pdf, profiles)
+        gt_pages(pdf)
     pdf = pdf_report.write_report(images, metrics, ctx.out_dir / "report.pdf",
                                   scene_name=params["scene_name"], device=ctx.cl.description,
                                   timings_extra=extra, credits=params["credits"], tiles=tiles,
-                                  image_tiles=thumbs, extra_pages=gt_pages)
+                                  image_tiles=thumbs, extra_pages=extra_pages)
     names = [Path(f).name for f in files] + [pdf.name]
-    pages = pdf_report.report_page_count(images, metrics) + gt_info["pages"]
+    pages = (pdf_report.report_page_count(images, metrics) + added["profiles"]
+             + gt_info["pages"])
     return StageResult(files=names, info={"pages": pages, "ground_truth": gt_info})
 
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["font", "thumbnail", "grid", "colorbar", "hstack", "save_png", "TILE_PX",
-           "PNG_COMPRESS_LEVEL"]
+           "PNG_COMPRESS_LEVEL", "caption", "ordered_models"]
 
 # zlib level of the PNGs written here: 1 was ~3x faster than the default 6 on the 800 x 800
 # renders (45 vs 130 ms) for files ~4 % larger.
@@ -25,6 +25,23 @@ PNG_COMPRESS_LEVEL = 1
 # tiles; 256 keeps them as sharp.
 TILE_PX = 256
 _PAD = 8
+
+
+def caption(model: str, light: str, *, px: int = 11, width: int = TILE_PX) -> str:
+    """A tile's caption: the model's display name (``config.model_label``: "BSSRDF (Monte
+    Carlo profile)" for ``bssrdf_mc``) and the lighting condition, on one line if it fits
+    ``width`` pixels at ``px`` (the grid's caption size), else the light on a line of its own."""
+    from dermis.pipeline.config import model_label
+    text = f"{model_label(model)} / {light}"
+    return text if font(px).getlength(text) <= width else f"{model_label(model)}\n{light}"
+
+
+def ordered_models(models) -> list[str]:
+    """The scene vocabulary's order (``config.MODELS``: the thesis's four, then bssrdf_mc),
+    then anything else by name."""
+    from dermis.pipeline.config import MODELS
+    models = set(models)
+    return [m for m in MODELS if m in models] + sorted(models - set(MODELS))
 
 
 @functools.lru_cache(maxsize=16)

@@ -5,7 +5,9 @@ Per pixel: the surface seen by the camera (shared with the BRDF renderer,
 gather over the irradiance points (:mod:`dermis.stages.gather`), the Fresnel-weighted exit
 to radiance (:func:`dermis.stages.gather.exitance_to_radiance`), and the surface reflection
 term (Lafortune's specular lobes with rho_d = 0, so the images compare with the BRDF
-models').  One node per lighting condition and geometry; pass 1 is the ``irradiance`` stage.
+models').  One node per BSSRDF model (``bssrdf``: the scene's profile model; ``bssrdf_mc``: the
+Monte Carlo-tabulated profile), lighting condition and geometry; pass 1 is the
+``irradiance`` stage.
 """
 from __future__ import annotations
 
@@ -24,18 +26,25 @@ from dermis.physics.lights import light_params
 NAME = "bssrdf"
 VERSION = 2   # 2: optics-resolved near field, entry/exit transmittance
 KERNELS = ()
-OUTPUT_FOLDER = "render"   # exported beside the BRDF images: render/bssrdf-<light>-<geometry>.exr
+OUTPUT_FOLDER = "render"   # exported beside the BRDF images: render/<model>-<light>-<geometry>.exr
 
 
-def node(scene, label: str, lights: tuple, geometry: str) -> Node:
+def node(scene, label: str, lights: tuple, geometry: str, model: str = "bssrdf") -> Node:
+    """One BSSRDF image; ``model`` (a key of ``config.BSSRDF_MODELS``) picks the profiles
+    node its gather reads: ``bssrdf`` the scene's ``[optics] profile``, ``bssrdf_mc`` the
+    Monte Carlo table.  Points, irradiance and visibility are the same for both."""
+    from dermis.pipeline.config import profile_model, profiles_node_id
     mesh_node, bump = render.GEOMETRY[geometry]
     deps = {**render.geometry_inputs(geometry, label), "points": f"samples-{mesh_node}",
-            "irradiance": f"irradiance-{mesh_node}-{label}", "profile": "profiles"}
+            "irradiance": f"irradiance-{mesh_node}-{label}",
+            "profile": profiles_node_id(scene, profile_model(scene, model))}
     params = {"label": label, "geometry": geometry, "camera": asdict(scene.camera),
               "bump": bump, "bssrdf": asdict(scene.bssrdf), **light_params(lights),
               "seed": scene.mesh.seed, "eta": scene.optics.layers[0].eta / scene.optics.eta_above}
-    return Node(f"render-bssrdf-{label}-{geometry}", NAME, __name__, params, deps,
-                label=f"bssrdf / {label} / {geometry}", locations=("lights[].map",))
+    if model != "bssrdf":
+        params["model"] = model
+    return Node(f"render-{model}-{label}-{geometry}", NAME, __name__, params, deps,
+                label=f"{model} / {label} / {geometry}", locations=("lights[].map",))
 
 
 def _surface_term(mesh, lights, camera, maps, bump, seed, samples, ctx) -> tuple[np.ndarray, dict]:
@@ -94,9 +103,11 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     timings["total"] = time.perf_counter() - t_start
     linear = image.reshape(px.height, px.width, 3)
     mask = px.mask
-    name = f"bssrdf-{params['label']}-{params['geometry']}"
+    model = params.get("model", "bssrdf")
+    name = f"{model}-{params['label']}-{params['geometry']}"
     write_exr(ctx.out_dir / f"{name}.exr", linear)
-    info = {"model": "bssrdf", "light": params["label"], "geometry": params["geometry"],
+    info = {"model": model, "light": params["label"], "geometry": params["geometry"],
+            "profile_model": profile.info.get("model", "multipole"),
             "gather": {k: v for k, v in stats.items() if isinstance(v, (int, float, str))}}
     return StageResult(RenderedImage(linear, mask, timings, info), files=[f"{name}.exr"],
                        info={"timings": timings, "kernel_seconds": timings["kernel_seconds"]})

@@ -1394,14 +1394,18 @@ def monte_carlo_profiles(stack: LayerStack, *, photons: int = DEFAULT_MC_PHOTONS
 NAME = "profiles"
 
 
-def node(scene) -> Node:
+def node(scene, model: str | None = None) -> Node:
+    """The layer profiles of the scene's stack with ``model`` (None: ``[optics] profile``);
+    the model, and for the Monte Carlo ``[optics] photons`` and ``seed``, are in the key."""
+    from dermis.pipeline.config import profiles_node_id
     optics = scene.optics
-    model = getattr(optics, "profile", DEFAULT_PROFILE_MODEL)
+    model = model or getattr(optics, "profile", DEFAULT_PROFILE_MODEL)
     params = {"stack": LayerStack.to_dict(optics), "model": model}
     if model == "monte_carlo":
         params["photons"] = int(getattr(optics, "photons", DEFAULT_MC_PHOTONS))
         params["seed"] = int(getattr(optics, "seed", DEFAULT_MC_SEED))
-    return Node(NAME, NAME, __name__, params, (), label=f"layer profiles ({model})")
+    return Node(profiles_node_id(scene, model), NAME, __name__, params, (),
+                label=f"layer profiles ({model})")
 
 
 def run(params: dict, inputs: dict, ctx) -> StageResult:

@@ -45,7 +45,7 @@ import numpy as np
 
 from dermis.pipeline.artifacts import PixelSamples, RenderedImage
 from dermis.pipeline.config import ASPERITY_BASES as SCENE_ASPERITY_BASES
-from dermis.pipeline.config import MODELS as SCENE_MODELS
+from dermis.pipeline.config import BSSRDF_MODELS, MODELS as SCENE_MODELS
 from dermis.pipeline.config import CameraConfig
 from dermis.pipeline.errors import ConfigError, DermisError
 from dermis.pipeline.graph import Node, StageResult
@@ -60,9 +60,9 @@ __all__ = ["VERSION", "KERNELS", "MODELS", "LambertParams", "LightSampling", "Re
 
 VERSION = 2
 KERNELS = ("surface.cl", "shade.cl")
-# Models this renderer shades ("bssrdf" images come from the BSSRDF stage).
+# Models this renderer shades ("bssrdf", "bssrdf_mc" images come from the BSSRDF stage).
 # lambert: a test material; "none" renders the asperity term alone.
-MODELS = ("lambert",) + tuple(m for m in SCENE_MODELS if m != "bssrdf")
+MODELS = ("lambert",) + tuple(m for m in SCENE_MODELS if m not in BSSRDF_MODELS)
 ASPERITY_BASES = ("none",) + SCENE_ASPERITY_BASES
 _BASE_CODE = {"none": -1, "lambert": 0, "lafortune": 1, "hk93": 2}
 
@@ -120,8 +120,8 @@ def _resolve_model(model: str, params, asperity_base, base_params):
     from dermis.stages.brdf_models import AsperityParams, HK93Params, LafortuneParams
 
     defaults = {"lambert": LambertParams, "lafortune": LafortuneParams, "hk93": HK93Params}
-    if model == "bssrdf":
-        raise ConfigError('model = "bssrdf": rendered by the BSSRDF stage, not the BRDF '
+    if model in BSSRDF_MODELS:
+        raise ConfigError(f'model = "{model}": rendered by the BSSRDF stage, not the BRDF '
                           'renderer; render its asperity term with model="asperity", '
                           'asperity_base="none" and add the two images')
     if model not in MODELS:

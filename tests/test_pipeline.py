@@ -24,12 +24,13 @@ def built(tmp_path_factory):
 def test01_first_run_builds_every_requested_stage(built):
     scene, root, first = built
     ran = first.ran()
-    assert ran[:6] == ["mesh_source", "mesh_high", "mesh_low", "bake", "mesh_previews",
-                       "profiles"]
+    assert ran[:7] == ["mesh_source", "mesh_high", "mesh_low", "bake", "mesh_previews",
+                       "profiles", "profiles-monte_carlo"]   # bssrdf_mc: the Monte Carlo table
     renders = [r for r in ran if r.startswith("render-")]
-    assert len(renders) == 4 * 4 * 3                    # models x lighting x geometries
+    assert len(renders) == 5 * 4 * 3                    # models x lighting x geometries
     assert "render-hk93-dir_left+dir_right-low_bump_blur" in renders
     assert "render-bssrdf-sunset-low_bump" in renders
+    assert "render-bssrdf_mc-sunset-low_bump" in renders
     # BSSRDF: points per mesh (not per light), irradiance per mesh and lighting condition
     assert sorted(r for r in ran if r.startswith("samples-")) == ["samples-mesh_high",
                                                                    "samples-mesh_low"]
@@ -62,7 +63,7 @@ def test03_one_parameter_reruns_exactly_downstream(built):
     assert "images" in s.ran() and len([r for r in s.ran() if r.startswith("differences-")]) == 4
     assert low_bump and all(r.endswith("-low_bump") or r.endswith("-low_bump_blur")
                             for r in low_bump)          # the high-mesh renders stay cached
-    assert len(low_bump) == 4 * 4 * 2
+    assert len(low_bump) == 5 * 4 * 2
 
 
 def test04_until_builds_only_what_the_stage_needs(built, tmp_path):
@@ -83,8 +84,8 @@ def test05_graph_holds_only_what_outputs_need():
     nodes, _ = build_graph(unbumped)
     assert {n for n in nodes if not n.startswith(("render-", "irradiance-", "visibility-",
                                                   "differences-"))} == {
-        "mesh_source", "mesh_high", "mesh_low", "profiles", "samples-mesh_low", "images",
-        "report"}
+        "mesh_source", "mesh_high", "mesh_low", "profiles", "profiles-monte_carlo",
+        "samples-mesh_low", "images", "report"}
     no_bssrdf = load_scene(QUICK, overrides={"render": {"models": ["lafortune", "hk93"]}})
     nodes, _ = build_graph(no_bssrdf)                   # a BRDF-only run: no points, no profiles
     assert not [n for n in nodes if n.startswith(("samples", "irradiance", "profiles"))]
@@ -97,11 +98,12 @@ def test06_cli_run_status_clean(built, capsys):
     out = capsys.readouterr().out
     assert "mesh_source" in out and "cached" in out and " ran " not in out
     assert main(["status", str(QUICK), "--cache", cache]) == 0
-    assert "0 of 78 stages stale" in capsys.readouterr().out   # 66 + 8 visibilities + 4 diffs
+    # 66 + 8 visibilities + 4 diffs + 12 bssrdf_mc images and their Monte Carlo table
+    assert "0 of 91 stages stale" in capsys.readouterr().out
     assert main(["run", str(QUICK), "--cache", cache, "--until", "nope"]) == 2
     capsys.readouterr()
     assert main(["clean", "--cache", cache, "--stage", "profiles"]) == 0
-    assert "removed 1" in capsys.readouterr().out
+    assert "removed 2" in capsys.readouterr().out        # profiles and profiles-monte_carlo
     assert main(["status", str(QUICK), "--cache", cache]) == 0
     assert "profiles" in capsys.readouterr().out
 

@@ -230,3 +230,82 @@ def test03_stage_runs_the_chosen_model(env):
     assert res.artifact.info["model"] == "monte_carlo" and res.info["kernel_seconds"] > 0
     res = P.run({"stack": PRESETS["skin2"].to_dict(), "model": "multipole"}, {}, Ctx())
     assert res.artifact.info["model"] == "multipole"
+
+
+# ---- 04 the BSSRDF with the Monte Carlo profile beside the multipole one ------------------
+def _quick(models, optics=None):
+    import tomllib
+    from dermis.pipeline.config import scene_from_dict
+    scene_file = Path(__file__).resolve().parents[1] / "scenes" / "quick.toml"
+    t = tomllib.loads(scene_file.read_text())
+    t["render"]["models"] = list(models)
+    if optics is not None:
+        t["optics"] = optics
+    return scene_from_dict(t, where=str(scene_file))
+
+
+def _keys(scene):
+    from dermis.pipeline import codehash
+    from dermis.pipeline.graph import key_parts, node_key, plan_order
+    from dermis.pipeline.plan import build_graph
+    codehash.clear()
+    nodes, targets = build_graph(scene)
+    keys = {}
+    for nid in plan_order(nodes, list(nodes)):
+        keys[nid] = node_key(key_parts(nodes[nid], keys))
+    return nodes, targets, keys
+
+
+def test04_bssrdf_mc_shares_everything_but_the_profile():
+    from dermis.pipeline.config import scene_warnings
+    scene = _quick(["lafortune", "bssrdf", "bssrdf_mc"])
+    nodes, targets, keys = _keys(scene)
+    labels = [label for label, _ in scene.light_groups()]
+    pairs = [(f"render-bssrdf-{l}-{g}", f"render-bssrdf_mc-{l}-{g}")
+             for l in labels for g in scene.render.geometries]
+    assert len(pairs) == 12
+    for a, b in pairs:
+        da, db = dict(nodes[a].deps), dict(nodes[b].deps)
+        assert da.pop("profile") == "profiles" and db.pop("profile") == "profiles-monte_carlo"
+        # the same points, irradiance, visibility (and mesh, maps) nodes: only the profile differs
+        assert da == db and {"points", "irradiance", "visibility"} <= set(da), (a, da)
+        assert nodes[b].params == {**nodes[a].params, "model": "bssrdf_mc"}
+        assert keys[a] != keys[b]
+    assert nodes["profiles"].params["model"] == "multipole"
+    mc = nodes["profiles-monte_carlo"].params
+    assert mc["model"] == "monte_carlo" and mc["photons"] == P.DEFAULT_MC_PHOTONS
+    assert keys["profiles"] != keys["profiles-monte_carlo"]
+    assert {"profiles", "profiles-monte_carlo"} <= set(targets)
+    # each shared node exists once: one per mesh (points) or mesh x lighting condition
+    assert sum(n.stage == "irradiance" for n in nodes.values()) == 2 * len(labels)
+    assert sum(n.stage == "visibility" for n in nodes.values()) == 2 * len(labels)
+    # adding bssrdf_mc leaves every other node's key as it was
+    _, _, plain = _keys(_quick(["lafortune", "bssrdf"]))
+    for nid, k in plain.items():
+        if nid not in ("images", "report") and not nid.startswith("differences-"):
+            assert keys[nid] == k, nid
+    # the images, the differences (against the multipole bssrdf) and the report list it
+    mc_ids = {b for _, b in pairs}
+    assert mc_ids <= set(nodes["images"].dep_ids)
+    for l in labels:
+        diff = nodes[f"differences-{l}"]
+        assert {b for a, b in pairs if f"-{l}-" in b} <= set(diff.dep_ids)
+    assert mc_ids <= set(nodes["report"].dep_ids)
+    assert {"profiles", "profiles-monte_carlo"} <= set(nodes["report"].dep_ids)
+    assert not scene_warnings(scene)
+    # a Monte Carlo scene profile: bssrdf_mc reads the same table (one node) and is warned of
+    same = _quick(["bssrdf", "bssrdf_mc"], optics={"preset": "two_layer",
+                                                   "profile": "monte_carlo", "photons": 1000})
+    n2, _, _ = _keys(same)
+    assert "profiles-monte_carlo" not in n2 and n2["profiles"].params["model"] == "monte_carlo"
+    assert n2["render-bssrdf_mc-point-high"].deps["profile"] == "profiles"
+    assert any("same image" in w for w in scene_warnings(same))
+
+
+def test04_bssrdf_mc_is_a_scene_model():
+    from dermis.pipeline.config import MODELS, RenderConfig, model_label
+    from dermis.pipeline.errors import ConfigError
+    assert "bssrdf_mc" in MODELS and "bssrdf_mc" not in RenderConfig().models   # opt-in
+    assert model_label("bssrdf_mc") == "BSSRDF (Monte Carlo profile)"
+    with pytest.raises(ConfigError, match=r"render\.models.*bssrdf_mc"):
+        _quick(["bssrdf_mk"])

@@ -262,3 +262,65 @@ def test_write_report_without_geometry_comparison(tmp_path):
     assert metrics["geometry_vs_high"] == {}
     pdf = write_report(images, metrics, tmp_path / "r.pdf", scene_name="s", device="d")
     assert _pdf_pages(pdf) == 1 + 1 + 1 + 3
+
+
+# ---- the BSSRDF with the Monte Carlo profile (issue 12) -----------------------------------
+def _mc_like(prof, noise=0.01, seed=0):
+    """A Monte Carlo-shaped LayerProfile from a multipole one: its ring energy on geometric
+    rings, each ring scaled by 1 + noise x N(0, 1), with that noise as the stated error."""
+    import dataclasses
+    from dermis.stages.profile_cli import ring_energy
+    edges = np.concatenate([[0.0], np.geomspace(0.02, 8.0, 60)])
+    area = np.pi * np.diff(edges**2)[:, None]
+    R = ring_energy(prof, edges) / area
+    R = R * (1 + noise * np.random.default_rng(seed).standard_normal(R.shape))
+    mid = 0.5 * (edges[1:] + edges[:-1])
+    mid[0] = 0.0
+    info = {"model": "monte_carlo", "r_edges": edges.tolist(), "R_err": (noise * R).tolist(),
+            "T_err": np.zeros_like(R).tolist(), "Rd_err": [1e-4] * 3, "Tt_err": [0.0] * 3,
+            "photons": 1000, "seed": seed, "seconds": 0.0, "noise_max_rel": [noise] * 3}
+    return dataclasses.replace(prof, r_mm=mid, R=R, T=np.zeros_like(R), info=info)
+
+
+def test_bssrdf_mc_in_sheets_differences_and_report(tmp_path):
+    """bssrdf_mc renders are compared against the multipole bssrdf like any model, named
+    "BSSRDF (Monte Carlo profile)" in the sheets and the PDF, kept out of the summary's
+    closest/farthest ranking (it is the same model) and given a line of its own; the report
+    node's profile page adds one page."""
+    from dermis.physics.layers import PRESETS
+    from dermis.reports.images import contact_sheet_image
+    from dermis.reports.sheets import caption
+    from dermis.reports.pdf_report import report_page_count, summary_text, write_report
+    from dermis.reports.profile_pages import PAGES, profile_pages
+    from dermis.stages.profiles import build_profiles
+
+    images = _scene_images(models=("bssrdf", "lafortune", "hk93", "bssrdf_mc"))
+    _, metrics = write_differences(images, tmp_path / "diff")
+    mvr = metrics["model_vs_reference"]
+    assert {k for k in mvr if k.startswith("bssrdf_mc-")} == {
+        f"bssrdf_mc-{l}-{g}" for l in ("point", "sun") for g in ("high", "low_bump")}
+    assert all(r["reference"] == "bssrdf" for r in mvr.values())
+    assert (tmp_path / "diff" / "diff-bssrdf_mc-point-high.png").is_file()
+    assert caption("bssrdf_mc", "point") == "BSSRDF (Monte Carlo profile) / point"
+    assert caption("bssrdf_mc", "dir_left+dir_right") == \
+        "BSSRDF (Monte Carlo profile)\ndir_left+dir_right"
+    sel = {k: v for k, v in images.items() if v.info["geometry"] == "high"}
+    mapped = {k: (np.clip(v.linear, 0, 1) * 255).astype(np.uint8) for k, v in sel.items()}
+    sheet = contact_sheet_image(sel, mapped)
+    assert sheet.ndim == 3 and sheet.shape[0] > 4 * 256       # four model rows
+    text = summary_text(images, metrics)
+    assert "point: lafortune closest to bssrdf" in text          # not the bssrdf variant
+    assert "BSSRDF (Monte Carlo profile) vs bssrdf, high geometry: relative RMSE" in text
+
+    mp = build_profiles(PRESETS["skin2"])
+    profiles = {"profiles": mp, "profiles-monte_carlo": _mc_like(mp)}
+    added = {}
+    pdf = write_report(images, metrics, tmp_path / "report.pdf", scene_name="s", device="d",
+                       extra_pages=lambda p: added.setdefault("n", profile_pages(p, profiles)))
+    assert added["n"] == PAGES == 1
+    assert _pdf_pages(pdf) == report_page_count(images, metrics) + 1
+    if shutil.which("pdftotext"):
+        out = subprocess.run(["pdftotext", str(pdf), "-"], capture_output=True, text=True,
+                             check=True).stdout
+        assert "BSSRDF (Monte Carlo profile)" in out and "Layer profiles" in out
+        assert "Monte Carlo table (1,000 photons/channel" in out

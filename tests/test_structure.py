@@ -110,7 +110,8 @@ def base_keys(scene):
 
 
 def _stage_of(nid: str) -> str:
-    for prefix, name in (("render-bssrdf-", "bssrdf"), ("render-", "render"),
+    for prefix, name in (("render-bssrdf-", "bssrdf"), ("render-bssrdf_mc-", "bssrdf"),
+                         ("profiles-", "profiles"), ("render-", "render"),
                          ("samples-", "samples"), ("irradiance-", "irradiance"),
                          ("visibility-", "visibility"), ("differences-", "differences")):
         if nid.startswith(prefix):
