@@ -12,7 +12,9 @@ measured errors):
 4. timing table (seconds per image; BSSRDF plus its irradiance pass) beside the thesis's
    table (docs/physics.md §7);
 5. error vs time scatter plot -- users trade speed for accuracy;
-6. geometry page: relative RMSE of the low mesh + bump maps vs the ~1M-triangle mesh.
+6. geometry page: relative RMSE of the low mesh + bump maps vs the ~1M-triangle mesh;
+7. pages the caller adds (``extra_pages``): the report node's layer-profile page
+   (:mod:`dermis.reports.profile_pages`) and the distance-to-ground-truth section.
 """
 from __future__ import annotations
 

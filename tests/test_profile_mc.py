@@ -273,7 +273,7 @@ def test04_bssrdf_mc_shares_everything_but_the_profile():
         assert keys[a] != keys[b]
     assert nodes["profiles"].params["model"] == "multipole"
     mc = nodes["profiles-monte_carlo"].params
-    assert mc["model"] == "monte_carlo" and mc["photons"] == P.DEFAULT_MC_PHOTONS
+    assert mc["model"] == "monte_carlo" and mc["photons"] == scene.optics.photons == 200_000
     assert keys["profiles"] != keys["profiles-monte_carlo"]
     assert {"profiles", "profiles-monte_carlo"} <= set(targets)
     # each shared node exists once: one per mesh (points) or mesh x lighting condition
