@@ -734,3 +734,21 @@ def test23_hk93_with_g_minus_0_99_under_the_sunset_has_no_fireflies(warm, tmp_pa
         peaks[g] = float(np.percentile(img, 99)), float(img.max())
     # measured at 160 x 160: max 25.7 at g = -0.99 against 0.48 at g = 0.8 (99th pct 0.10, 0.33)
     assert peaks[-0.99][1] <= 5 * max(peaks[0.8][1], peaks[-0.99][0]), peaks
+
+
+def test23b_the_retro_lobe_is_drawn_only_for_backward_scattering_hk93(tmp_path):
+    """The fix of test23 changes no other scene: the default scene, HK93 at g = 0.8, and a
+    g = -0.99 stack rendered without HK93 keep the plain product strategy (and their keys)."""
+    from dermis.pipeline.config import load_scene
+    from dermis.stages.visibility import retro_lobe
+    assert retro_lobe(load_scene(REPO / "scenes" / "default.toml")) is None
+    cases = {"hk93": (["hk93"], -0.99), "hk93_forward": (["hk93"], 0.8),
+             "lafortune": (["lafortune", "bssrdf"], -0.99)}
+    got = {}
+    for name, (models, g) in cases.items():
+        scene = scene_file(tmp_path, {"render": {"models": models, "lights": ["sunset"]},
+                                      "optics": _two_layer(g)}, f"{name}.toml")
+        got[name] = retro_lobe(load_scene(scene))
+    assert got["hk93_forward"] is None and got["lafortune"] is None
+    assert got["hk93"]["fraction"] == 0.25
+    assert abs(got["hk93"]["k"] - (1 - 1.4 * 0.01)) < 1e-9     # k = 1 - eta (1 - |g|)

@@ -14,9 +14,11 @@ half-plane at distance d from x holds (1/pi) int_0^{pi/2} (Rd - m(d / cos phi)) 
 radial profile whose energy within r is m(r) (the layer file, linear in r, zero beyond each
 cut-off, energy-normalised as the gather integrates it).
 
-Measured (bench/bench_bssrdf.py): 0.2 / 1.4 / 1.2 % max error (two_layer / skin1 / skin2,
-worst channel); the thesis's point gather alone at the same (old default) density: 26-41 %,
-37-52 %, 29-42 %.
+Measured (bench/bench_bssrdf.py --extra knife, bench/results/bssrdf.json "after"): 0.53 /
+0.59 / 0.66 % (two_layer R / G / B), 0.78 / 0.38 / 0.16 % (skin1), 0.72 / 0.37 / 0.37 %
+(skin2); the thesis's point gather alone at the old default (point_density 0.02 with no
+mean-free-path cap: 1.24 / 8.4 / 6.5 mm spacing, no near field): 28 / 36 / 43 %,
+36 / 46 / 51 %, 28 / 37 / 41 %.
 """
 from __future__ import annotations
 
