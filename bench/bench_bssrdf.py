@@ -15,7 +15,7 @@ numbers of bench/results/bssrdf.json came from git 6ec7c04 that way, with
 Usage: python bench/bench_bssrdf.py [--scene FILE] [--geometries high,low_bump]
        [--lights point,area,dir_left+dir_right,sunset] [--cache DIR] [--label after]
        [--out bench/results/bssrdf.json] [--skip-pipeline] [--brute-queries 4000] [--spp N]
-       [--skip-energy]
+       [--skip-energy] [--extra knife,edge,cpu,irradiance [--only-extra]]
 The 2-core machine is shared with other jobs: treat the times as noisy (+-30 %).
 """
 from __future__ import annotations
@@ -166,6 +166,157 @@ def brute_force_error(cache: Path, n_queries: int) -> dict:
     return out
 
 
+# ------------------------------------------------------------------------ knife edge, colour
+def knife_edge_table() -> dict:
+    """Max |error| / (E Rd) per channel of tests/test_knife_edge.py's knife edge per preset, at
+    the shipped settings and at the old default (point_density 0.02 with no mean-free-path
+    cap, no near field: the thesis's point gather alone)."""
+    import math
+    sys.path.insert(0, str(REPO / "tests"))
+    import test_knife_edge as K
+    from dermis.pipeline.cl import get_env
+    from dermis.pipeline.config import BssrdfConfig
+    from dermis.physics.layers import PRESETS
+    from dermis.stages import samples as S
+    from dermis.stages.profiles import build_profiles
+    env, out = get_env(), {}
+    for preset in ("two_layer", "skin1", "skin2"):
+        prof, stack = build_profiles(PRESETS[preset]), PRESETS[preset]
+        t0 = time.perf_counter()
+        new = np.abs(K.knife_edge(prof, stack, env)[0]).max(0)
+        took = time.perf_counter() - t0
+        cap, S.MFP_CAP_MM = S.MFP_CAP_MM, math.inf
+        try:
+            old_spacing = S.spacing_from_mfp(stack, 0.02)
+            old = np.abs(K.knife_edge(prof, stack, env, density=0.02, near_field=False)[0]).max(0)
+        finally:
+            S.MFP_CAP_MM = cap
+        out[preset] = {"max_err_rgb": new.round(4).tolist(), "seconds": took,
+                       "spacing_mm": S.spacing_from_mfp(stack, BssrdfConfig().point_density),
+                       "old_default_max_err_rgb": old.round(4).tolist(),
+                       "old_spacing_mm": old_spacing,
+                       "half_energy_radius_mm": K.half_energy_radius(prof).round(4).tolist()}
+        print(preset, out[preset], flush=True)
+    return out
+
+
+def shadow_edge_colour(cache: Path, exr: Path, light_name: str = "point") -> dict:
+    """Mean linear RGB of a BSSRDF image's cast-shadow pixels by their distance (mm, on the
+    surface: 3-D distance of the pixel-centre hits) to the nearest lit pixel, and of the lit
+    pixels within 1 mm of a shadowed one.  Cast shadow: facing the light (cos > 0.3) but
+    occluded (the nose's, the ears' and the eyelids' shadows under the point light)."""
+    from scipy.spatial import cKDTree
+    from dermis.pipeline import artifacts
+    from dermis.pipeline.config import load_scene
+    from dermis.pipeline.imageio import read_image
+    from dermis.physics.visibility import Visibility, camera_rays
+    mesh = artifacts.load(glob.glob(str(cache / "mesh_high" / "*"))[0])
+    scene = load_scene(str(cache.parent / "scene.toml"))
+    light = next(l for l in scene.lights if l.name == light_name)
+    vis = Visibility(mesh.vertices, mesh.faces)
+    o, d = camera_rays(scene.camera)
+    h = vis.intersect(o, d)
+    F, V, b = mesh.faces[h.tri[h.hit]], mesh.vertices, h.bary[h.hit]
+    w = np.stack([1 - b[:, 0] - b[:, 1], b[:, 0], b[:, 1]], 1)
+    pos = (V[F] * w[..., None]).sum(1)
+    ng = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    ng /= np.linalg.norm(ng, axis=1, keepdims=True)
+    ng *= np.sign(((-d[h.hit]) * ng).sum(1))[:, None]
+    if light.type == "point":
+        L = np.asarray(light.position) - pos
+        dist = np.linalg.norm(L, axis=1)
+        L /= dist[:, None]
+    else:
+        L = np.tile(np.asarray(light.direction) / np.linalg.norm(light.direction), (len(pos), 1))
+        dist = np.full(len(pos), np.inf)
+    blocked = vis.occluded(pos, ng, L.astype(np.float32), dist.astype(np.float32))
+    img = read_image(exr)[..., :3].reshape(-1, 3)[np.flatnonzero(h.hit)].astype(np.float64)
+    facing = (L * ng).sum(1) > 0.3
+    lit, shad = facing & ~blocked, facing & blocked
+    ds = cKDTree(pos[lit]).query(pos[shad])[0]
+    dl = cKDTree(pos[shad]).query(pos[lit])[0]
+    ref = img[lit][dl <= 1.0].mean(0)
+    out = {"image": str(exr), "lit_0-1mm": {"pixels": int((dl <= 1.0).sum()),
+                                             "rgb_over_G": (ref / ref[1]).round(3).tolist()}}
+    for lo, hi in ((0.0, 0.5), (0.5, 1.5), (1.5, 3.0)):
+        band = (ds > lo) & (ds <= hi)
+        m = img[shad][band].mean(0)
+        out[f"shadow_{lo}-{hi}mm"] = {"pixels": int(band.sum()),
+                                      "rgb_over_G": (m / m[1]).round(3).tolist(),
+                                      "relative_to_lit_over_G": ((m / ref) / (m / ref)[1]
+                                                                 ).round(3).tolist(),
+                                      "luminance_fraction_of_lit": float(
+                                          (m @ [0.2126, 0.7152, 0.0722])
+                                          / (ref @ [0.2126, 0.7152, 0.0722]))}
+    return out
+
+
+def image_cpu(cache: Path) -> dict:
+    """Wall and CPU seconds (all threads) of each BSSRDF image re-rendered alone in this
+    process (its inputs, the irradiance included, loaded from the cache), programs built."""
+    from dermis.pipeline import api
+    scene = api.load_scene(str(cache.parent / "scene.toml"))
+    api.run(scene, cache=cache, notice=lambda s: None, export=False)
+    out = {}
+    for label, _ in scene.light_groups():
+        for geom in scene.render.geometries:
+            nid = f"render-bssrdf-{label}-{geom}"
+            la, t0, c0 = os.getloadavg(), time.perf_counter(), time.process_time()
+            api.run(scene, cache=cache, force=[nid], notice=lambda s: None, export=False)
+            out[nid] = {"wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
+                        "loadavg": list(la)}
+            print(nid, out[nid], flush=True)
+    return out
+
+
+def irradiance_profile(cache: Path, mesh_node: str = "mesh_low", light_name: str = "sunset",
+                       ) -> dict:
+    """The irradiance pass of one mesh and light in this process: wall/CPU seconds and noise
+    (relative RMS difference of two seeds' point luminance / sqrt 2) per environment strategy,
+    and a cProfile of the default one (which part dominates: numpy sampling or Embree)."""
+    import cProfile
+    import pstats
+    from dermis.pipeline import artifacts
+    from dermis.pipeline.config import BssrdfConfig, load_scene
+    from dermis.physics.lights import LUMINANCE, irradiance
+    from dermis.physics.visibility import Visibility
+    from dermis.stages.brdf_models import Transmittance
+    ld = lambda n: artifacts.load(glob.glob(str(cache / n / "*"))[0])  # noqa: E731
+    mesh, pts = ld(mesh_node), ld(f"samples-{mesh_node}")
+    scene = load_scene(str(cache.parent / "scene.toml"))
+    lights = [l for l in scene.lights if l.name == light_name]
+    vis = Visibility(mesh.vertices, mesh.faces)
+    cfg = BssrdfConfig()
+    T = Transmittance(scene.optics.layers[0].eta / scene.optics.eta_above, cfg.surface_reflection)
+    out = {"mesh": mesh_node, "light": light_name, "points": int(len(pts.positions)),
+           "samples": cfg.irradiance_samples}
+    for strategy in ("product", "mis"):
+        lum = []
+        for seed in (0, 1):
+            prof = cProfile.Profile() if (strategy, seed) == ("product", 0) else None
+            la, t0, c0 = os.getloadavg(), time.perf_counter(), time.process_time()
+            if prof:
+                prof.enable()
+            E = irradiance(pts.positions, pts.normals, lights, vis.occluded,
+                           samples=cfg.irradiance_samples, seed=seed, transmittance=T,
+                           env_strategy=strategy)
+            if prof:
+                prof.disable()
+                st = pstats.Stats(prof).stats
+                cum = {f"{k[0].split('/')[-1]}:{k[2]}": v[3] for k, v in st.items()}
+                out["profile_cumulative_s"] = {k: round(v, 2) for k, v in sorted(
+                    cum.items(), key=lambda kv: -kv[1])[:14]}
+            out[f"{strategy}_seed{seed}"] = {"wall_s": time.perf_counter() - t0,
+                                             "cpu_s": time.process_time() - c0, "loadavg": list(la)}
+            lum.append(E @ LUMINANCE)
+        a, b = lum
+        m = 0.5 * (a + b)
+        ok = m > 1e-3 * m.max()
+        out[f"{strategy}_rel_noise"] = float(np.sqrt(np.mean(((a - b)[ok] / m[ok]) ** 2) / 2))
+        print(strategy, {k: v for k, v in out.items() if k.startswith(strategy)}, flush=True)
+    return out
+
+
 # ------------------------------------------------------------------------ energy, HK93
 def energy_table() -> dict:
     """Max over texture albedos in [0, 1] of each model's directional albedo (as cl/shade.cl
@@ -258,10 +409,31 @@ def main():
     ap.add_argument("--spp", type=int, default=None,
                     help="[render] spp of the variant (default: the scene's)")
     ap.add_argument("--skip-energy", action="store_true")
+    ap.add_argument("--extra", default="",
+                    help="comma list of knife,edge,cpu,irradiance: also run these measurements "
+                         "(edge/cpu/irradiance read the --cache of an earlier run)")
+    ap.add_argument("--only-extra", action="store_true",
+                    help="run only the --extra measurements; merge them into the label's entry")
     args = ap.parse_args()
     args.geometries = args.geometries.split(",")
     args.lights = args.lights.split(",")
     import dermis
+    extra = [e for e in args.extra.split(",") if e]
+    if args.only_extra:
+        cache = Path(args.cache).resolve() / "cache"
+        out = Path(args.out)
+        old = json.loads(out.read_text()) if out.is_file() else {}
+        entry = old.setdefault(args.label, {})
+        runs = {"knife": lambda: knife_edge_table(),
+                "edge": lambda: shadow_edge_colour(
+                    cache, cache.parent / "out" / "bench_bssrdf" / "render" / "bssrdf-point-high.exr"),
+                "cpu": lambda: image_cpu(cache), "irradiance": lambda: irradiance_profile(cache)}
+        for e in extra:
+            la = list(os.getloadavg())
+            entry[{"knife": "knife_edge", "edge": "shadow_edge_colour", "cpu": "image_cpu",
+                   "irradiance": "irradiance_pass"}[e]] = {"loadavg_start": la, **runs[e]()}
+            out.write_text(json.dumps(old, indent=1))
+        return
     res = {"label": args.label, "dermis": str(Path(dermis.__file__).parent), "spp": args.spp,
            "loadavg_start": list(os.getloadavg()),
            "note": "2-core shared machine, other jobs running: times noisy (+-30 %)"}
