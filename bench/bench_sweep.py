@@ -1,19 +1,23 @@
-"""Benchmark: a sweep serial vs on a 2-worker Dask LocalCluster; task statistics; scaling estimate.
+"""Benchmark: a sweep serial vs on Dask LocalClusters of 1 and 2 workers; task statistics;
+the wall time of a 1,000-point sweep on 50 machines estimated from them.
 
 Scene: the quick scene cut to the BSSRDF and Lafortune models under the point and area lights
 on the high mesh, sweeping the gather epsilon and the light samples (one knob at a time).  Each
 configuration runs from an empty cache after a warm-up sweep in a throw-away cache (so disk and
-import caches are warm for both).  Reported: wall seconds, speed-up, task count, mean task
+import caches are warm for all).  Reported: wall seconds, speed-up, task count, mean task
 duration, scheduler overhead per task (wall time not explained by node work at perfect
-packing), and from them the wall time of a 1,000-point sweep on 50 two-core machines.
+packing), the critical path (longest dependency chain of node seconds: the serial fraction),
+the serial run's CPU seconds per wall second (how many cores one process already keeps busy:
+PoCL and numpy threads), and the machine load before and after each configuration.
 
-    python3 bench/bench_sweep.py [--out bench/results/sweep.json]
+    python3 bench/bench_sweep.py [--out bench/results/sweep_dask.json]
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import re
 import shutil
 import tempfile
 import time
@@ -30,57 +34,108 @@ targets = [0.01, 0.05]
 """
 
 
-def scene(tmp: Path) -> Path:
+SMOKE = """
+[sweep]
+[sweep.knobs]
+"bssrdf.epsilon" = [1.0]
+"""
+
+
+def scene(tmp: Path, smoke: bool = False) -> Path:
     src = (REPO / "scenes" / "quick.toml").read_text()
-    for a, b in (('models = ["lafortune", "hk93", "bssrdf", "asperity"]',
-                  'models = ["lafortune", "bssrdf"]'),
-                 ('lights = ["point", "area", "dir_left+dir_right", "sunset"]',
-                  'lights = ["point", "area"]'),
-                 ('geometries = ["high", "low_bump", "low_bump_blur"]', 'geometries = ["high"]'),
-                 ("width = 160", "width = 320"), ("height = 160", "height = 320"),
-                 ("previews = true", "previews = false"),
-                 ('output_dir = "out"', f'output_dir = "{tmp / "out"}"')):
-        src = src.replace(a, b)
+    for a, b in ((r"^models = .*$", 'models = ["lafortune", "bssrdf"]'),
+                 (r"^lights = .*$", 'lights = ["point", "area"]'),
+                 (r"^geometries = .*$", 'geometries = ["high"]'),
+                 (r"^width = 160$", "width = 160" if smoke else "width = 320"),
+                 (r"^height = 160$", "height = 160" if smoke else "height = 320"),
+                 (r"^previews = true$", "previews = false"),
+                 (r'^output_dir = "out"$', f'output_dir = "{tmp / "out"}"')):
+        src, n = re.subn(a, b, src, count=1, flags=re.M)
+        assert n == 1, a
     path = tmp / "sweep.toml"
-    path.write_text(src + SWEEP)
+    path.write_text(src + (SMOKE if smoke else SWEEP))
     return path
 
 
+def base_tasks(path: Path) -> int:
+    """Tasks of the scene as written (what every point shares unless its knob changes it)."""
+    import tomllib
+    from dermis.pipeline.config import scene_from_dict
+    from dermis.pipeline.graph import plan_order
+    from dermis.pipeline.plan import build_graph
+    from dermis.reports.sweep import IMAGE_STAGES
+    table = tomllib.loads(path.read_text())
+    table.pop("sweep")
+    nodes, _ = build_graph(scene_from_dict(table, where=str(path)))
+    return len(plan_order(nodes, [n for n, v in nodes.items() if v.stage in IMAGE_STAGES]))
+
+
 def main() -> None:
+    from distributed import LocalCluster
+
     from dermis.reports.sweep import run_sweep
 
     ap = argparse.ArgumentParser()
-    ap.add_argument("--out", default=str(REPO / "bench" / "results" / "sweep.json"))
+    ap.add_argument("--out", default=str(REPO / "bench" / "results" / "sweep_dask.json"))
+    ap.add_argument("--smoke", action="store_true", help="one point, 160x160 (checks the script)")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench_sweep_"))
-    path = scene(tmp)
+    path = scene(tmp, args.smoke)
+    load0 = os.getloadavg()
     run_sweep(path, cache=tmp / "warm", out_dir=tmp / "warm_res")          # warm-up
     res = {}
-    for workers in (1, 2):
-        cache = tmp / f"cache{workers}"
+    for label, workers in (("serial", 1), ("dask_1_worker", 1), ("dask_2_workers", 2)):
+        cache = tmp / f"cache_{label}"
+        before = os.getloadavg()
+        cluster, startup = None, 0.0
+        if label != "serial":   # started before the clock (run_sweep --workers 1 is serial)
+            t0 = time.perf_counter()
+            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                   dashboard_address=None)
+            startup = time.perf_counter() - t0
         t0 = time.perf_counter()
-        r = run_sweep(path, cache=cache, out_dir=tmp / f"res{workers}", workers=workers)
-        res[workers] = {"wall_seconds": time.perf_counter() - t0, **r["distributed"],
-                        "points": len(r["points"])}
+        r = run_sweep(path, cache=cache, out_dir=tmp / f"res_{label}", workers=workers,
+                      scheduler=cluster.scheduler_address if cluster else None)
+        wall = time.perf_counter() - t0
+        if cluster is not None:
+            cluster.close()
+        res[label] = {"wall_seconds": wall, **r["distributed"], "workers": workers,
+                      "cluster_startup_seconds": startup, "points": len(r["points"]),
+                      "loadavg_before": before, "loadavg_after": os.getloadavg()}
+        print(label, json.dumps(res[label]), flush=True)
         shutil.rmtree(cache)
-    one, two = res[1], res[2]
-    speedup = one["wall_seconds"] / two["wall_seconds"]
-    # A 1,000-point sweep of this kind: per point, the tasks the knob changes (the rest is
-    # shared and runs once); on M machines x C workers, at the measured mean task time and
-    # per-task scheduler overhead.
+    one, dask1, two = res["serial"], res["dask_1_worker"], res["dask_2_workers"]
+    # A 1,000-point sweep of this kind: the tasks every point shares run once (their critical
+    # path), then per point the tasks its knob changes, spread over M machines x C workers at
+    # the measured mean task time plus the measured per-task scheduler overhead.
     points = one["points"]
-    tasks_per_point = (one["tasks"] - one["tasks"] / (points + 1)) / points
+    shared = base_tasks(path)
+    tasks_per_point = (one["tasks"] - shared) / points
     mean_task = one["mean_task_seconds"]
-    overhead = two["overhead_per_task_seconds"]
+    # Dask's own cost per task: the 1-worker cluster runs the same tasks one at a time as the
+    # serial run does, plus submission, scheduling, pickling and the worker round trip
+    overhead = max(dask1["wall_seconds"] - one["wall_seconds"], 0.0) / one["tasks"]
     machines, cores = 50, 2
-    est = 1000 * tasks_per_point * (mean_task + overhead) / (machines * cores)
-    out = {"scene": "quick (lafortune + bssrdf, point + area, high, 320x320)",
-           "serial": one, "dask_2_workers": two, "speedup_2_workers": speedup,
+    est = one["critical_path_seconds"] + 1000 * tasks_per_point * (mean_task + overhead) / (
+        machines * cores)
+    out = {"scene": "quick (lafortune + bssrdf, point + area, high, 320x320), "
+                    "bssrdf.epsilon x3 + lights.samples x3",
+           "serial": one, "dask_1_worker": dask1, "dask_2_workers": two,
+           "speedup_2_workers_vs_serial": one["wall_seconds"] / two["wall_seconds"],
+           "speedup_2_workers_vs_1_worker": dask1["wall_seconds"] / two["wall_seconds"],
+           "serial_cores_busy": one["process_cpu_seconds"] / one["wall_seconds"],
+           "scheduler_overhead_per_task_seconds": overhead,
+           "note": "clusters started before the clock (startup listed); overhead per task = "
+                   "(1-worker Dask wall - serial wall) / tasks; bound_speedup = task seconds / "
+                   "max(critical path, task seconds / workers); serial_cores_busy = CPU s / wall"
+                   " s of the serial process (> 1: PoCL/numpy threads already use 2 cores)",
            "estimate_1000_points_50_machines_seconds": est,
-           "estimate_inputs": {"tasks_per_point": tasks_per_point, "mean_task_seconds": mean_task,
-                               "overhead_per_task_seconds": overhead, "machines": machines,
-                               "workers_per_machine": cores},
-           "cpu_count": os.cpu_count(), "loadavg": os.getloadavg()}
+           "estimate_inputs": {"shared_tasks": shared, "tasks_per_point": tasks_per_point,
+                               "mean_task_seconds": mean_task,
+                               "overhead_per_task_seconds": overhead,
+                               "shared_critical_path_seconds": one["critical_path_seconds"],
+                               "machines": machines, "workers_per_machine": cores},
+           "cpu_count": os.cpu_count(), "loadavg_start": load0, "loadavg_end": os.getloadavg()}
     print(json.dumps(out, indent=1))
     Path(args.out).write_text(json.dumps(out, indent=1))
     shutil.rmtree(tmp, ignore_errors=True)

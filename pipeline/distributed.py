@@ -31,6 +31,8 @@ class DistributedStats:
     wall_seconds: float = 0.0
     task_seconds: list = field(default_factory=list)    # node seconds of the tasks that ran
     workers: int = 1
+    critical_path_seconds: float = 0.0   # longest dependency chain of node seconds
+    cpu_seconds: float = 0.0             # this process's CPU seconds (serial: all the work)
 
     @property
     def overhead_per_task(self) -> float:
@@ -42,10 +44,17 @@ class DistributedStats:
 
     def to_dict(self) -> dict:
         n = len(self.task_seconds)
+        busy = sum(self.task_seconds)
         return {"tasks": self.tasks, "ran": self.ran, "workers": self.workers,
                 "wall_seconds": self.wall_seconds,
-                "mean_task_seconds": sum(self.task_seconds) / n if n else 0.0,
-                "overhead_per_task_seconds": self.overhead_per_task}
+                "task_seconds_total": busy,
+                "mean_task_seconds": busy / n if n else 0.0,
+                "overhead_per_task_seconds": self.overhead_per_task,
+                "critical_path_seconds": self.critical_path_seconds,
+                # the best wall time any number of workers could reach with these task times
+                "bound_speedup": (busy / max(self.critical_path_seconds, busy / self.workers)
+                                  if busy else 0.0),
+                "process_cpu_seconds": self.cpu_seconds}
 
 
 def _keys(nodes: dict[str, Node], order: list[str]) -> dict[str, str]:
@@ -97,7 +106,7 @@ def run_graphs(graphs: list[tuple[dict[str, Node], list[str]]], cache_root, *,
     progress : callable(done, running, failed, total), optional
     warm : module names each worker imports before timing a node
     """
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     store = Store(cache_root)
     plans = []
     tasks: dict[str, tuple] = {}          # task name -> (nodes subgraph, node id, dep task names)
@@ -116,6 +125,12 @@ def run_graphs(graphs: list[tuple[dict[str, Node], list[str]]], cache_root, *,
     else:
         results = _run_dask(tasks, str(store.root), device, workers, scheduler, progress, warm)
     stats.wall_seconds = time.perf_counter() - t0
+    stats.cpu_seconds = time.process_time() - c0
+    finish: dict[str, float] = {}
+    for name, (_, _, deps) in tasks.items():       # topological order
+        finish[name] = results[name]["seconds"] * (results[name]["status"] == "ran") + max(
+            (finish[d] for d in deps), default=0.0)
+    stats.critical_path_seconds = max(finish.values(), default=0.0)
     stats.ran = sum(1 for r in results.values() if r["status"] == "ran")
     stats.task_seconds = [r["seconds"] for r in results.values() if r["status"] == "ran"]
     summaries = []
