@@ -73,11 +73,16 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     # entry transmittance the irradiance stage applied (stages/gather.py "near field")
     from dermis.physics.visibility import shared as shared_embree
     transmit = gather.Transmittance(params["eta"], b["surface_reflection"])
+    # the mesh's Embree scene only where the near field traces it (point/directional lights'
+    # shadow edges): building it for the 1M-triangle scan took 3.5 s of a 10.5 s image
+    # re-rendered alone (bench/results/bssrdf.json), unused by area and environment light
+    vis_embree = (shared_embree(mesh, ctx.memo)
+                  if any(l.type in gather.SHARP_LIGHTS for l in lights) else None)
     M, stats = gather.exitance(inputs["points"], inputs["irradiance"].irradiance, profile,
                                surf["position"][front],
                                shading_normals=surf["shading_normal"][front],
                                geo_normals=surf["geo_normal"][front], lights=lights,
-                               visibility=shared_embree(mesh, ctx.memo), epsilon=b["epsilon"],
+                               visibility=vis_embree, epsilon=b["epsilon"],
                                transmittance=transmit, normalisation=b["normalisation"],
                                leaf_size=b["leaf_size"], brute_force=b["brute_force"],
                                env=ctx.cl, memo=ctx.memo, progress=ctx.progress,
