@@ -362,6 +362,44 @@ def recommend(points: list[dict], targets, budget_s) -> dict:
     return out
 
 
+def combine(rows: list[dict], targets, budget_s, base_seconds: float) -> dict:
+    """Settings of every knob together (one-at-a-time sweeps): the cheapest combination of
+    swept values predicted to reach each error target, and the most accurate within the budget.
+
+    Model (first order, stated in sweep.json): each knob's error is independent of the others',
+    so errors add in quadrature, sqrt(sum e_k^2); its time adds to the scene's, T = T_base +
+    sum (t_k(v) - t_k(default)) with t_k the seconds of the nodes knob k changes.  A knob whose
+    default is not among its values counts its full t_k(v)."""
+    by: dict[str, list] = {}
+    for r in rows:
+        if r.get("rel_rmse") is not None and r["knob"] and len(r["values"]) == 1:
+            by.setdefault(r["knob"], []).append(r)
+    names = sorted(by)
+    if not names or math.prod(len(by[k]) for k in names) > 500_000:
+        return {}
+    dflt = {k: next((r["seconds"] for r in by[k] if r["is_default"]), 0.0) for k in names}
+    cands = []
+    for combo in itertools.product(*(by[k] for k in names)):
+        t = base_seconds + sum(r["seconds"] - dflt[k] for k, r in zip(names, combo))
+        e = math.sqrt(sum(r["rel_rmse"] ** 2 for r in combo))
+        cands.append((t, e, {k: r["values"][k] for k, r in zip(names, combo)},
+                      all(r["is_default"] for r in combo)))
+
+    def pick(c):
+        return None if c is None else {"values": c[2], "predicted_seconds": c[0],
+                                       "predicted_rel_rmse": c[1]}
+    out = {"model": "errors in quadrature, times added to the scene's (base_seconds)",
+           "base_seconds": base_seconds,
+           "defaults": pick(next((c for c in cands if c[3]), None))}
+    for t in targets:
+        ok = [c for c in cands if c[1] <= t]
+        out[f"rel_rmse<={t:g}"] = pick(min(ok, key=lambda c: (c[0], c[1])) if ok else None)
+    if budget_s is not None:
+        ok = [c for c in cands if c[0] <= budget_s]
+        out[f"seconds<={budget_s:g}"] = pick(min(ok, key=lambda c: (c[1], c[0])) if ok else None)
+    return out
+
+
 def run_sweep(scene_path, *, cache, out_dir=None, workers: int = 1, scheduler: str | None = None,
               device: str | None = None, progress=None) -> dict:
     """Run every point of the scene's ``[sweep]``; write and return the results."""
@@ -427,7 +465,8 @@ def run_sweep(scene_path, *, cache, out_dir=None, workers: int = 1, scheduler: s
                         varying[p.knob if spec.mode == "one_at_a_time" else "grid"])
         default = all(_current(table, points[0].scene, k) == v for k, v in p.values.items())
         rows.append({"knob": p.knob, "values": p.values, "seconds": secs["changed"],
-                     "seconds_shared": secs["shared"], "kernel_seconds": secs["kernel"],
+                     "seconds_shared": secs["shared"], "seconds_total": secs["total"],
+                     "kernel_seconds": secs["kernel"],
                      "is_default": default, **errs})
     result = {"scene": where, "mode": spec.mode, "targets": list(spec.targets),
               "budget_s": spec.budget_s, "points": rows, "fronts": {}, "recommended": {},
@@ -439,8 +478,14 @@ def run_sweep(scene_path, *, cache, out_dir=None, workers: int = 1, scheduler: s
         result["fronts"][name or "grid"] = [sel[k] for k in front]
         result["recommended"][name or "grid"] = recommend([rows[k] for k in sel], spec.targets,
                                                           spec.budget_s)
-    result["fronts"]["joint"] = pareto_front(rows)
-    result["recommended"]["joint"] = recommend(rows, spec.targets, spec.budget_s)
+    # across knobs only whole-scene times compare: each point's total node seconds
+    total = [{**r, "seconds": r["seconds_total"]} for r in rows]
+    result["fronts"]["joint"] = pareto_front(total)
+    result["recommended"]["joint"] = recommend(total, spec.targets, spec.budget_s)
+    base_total = _seconds(store, summaries[0], set())["total"]
+    result["base_seconds"] = base_total
+    if spec.mode == "one_at_a_time":
+        result["combined"] = combine(rows, spec.targets, spec.budget_s, base_total)
     out = Path(out_dir) if out_dir else Path(points[0].scene.output.output_dir) / \
         points[0].scene.scene.name / "sweep"
     out.mkdir(parents=True, exist_ok=True)
@@ -469,8 +514,9 @@ def _plots(result: dict, out: Path) -> None:
             if not sel:
                 continue
             fig, ax = plt.subplots(figsize=(7, 4.5))
+            joint = name in ("joint",)
             for k in sel:
-                r = rows[k]
+                r = {**rows[k], "seconds": rows[k]["seconds_total"]} if joint else rows[k]
                 ax.scatter(r["seconds"], r["rel_rmse"], marker="*" if r["is_default"] else "o",
                            s=120 if r["is_default"] else 30,
                            color="C3" if r["is_default"] else "C0", zorder=3)
@@ -478,11 +524,13 @@ def _plots(result: dict, out: Path) -> None:
                             (r["seconds"], r["rel_rmse"]), fontsize=7, xytext=(3, 3),
                             textcoords="offset points")
             f = [k for k in front if k in sel]
-            ax.plot([rows[k]["seconds"] for k in f], [rows[k]["rel_rmse"] for k in f], "-",
+            tkey = "seconds_total" if joint else "seconds"
+            ax.plot([rows[k][tkey] for k in f], [rows[k]["rel_rmse"] for k in f], "-",
                     color="C1", label="Pareto front")
             for t in result["targets"]:
                 ax.axhline(t, color="0.6", lw=0.8, ls=":")
-            ax.set_xlabel("seconds of the nodes the knob changes (from stage metadata)")
+            ax.set_xlabel("seconds of all the point's nodes (from stage metadata)" if joint else
+                          "seconds of the nodes the knob changes (from stage metadata)")
             ax.set_ylabel("relative RMSE against the reference")
             ax.set_yscale("log") if all(rows[k]["rel_rmse"] > 0 for k in sel) else None
             ax.set_title(f"{name}  (reference: {result['reference_rules'].get(name, 'per knob')})"

@@ -71,6 +71,22 @@ def test02_pareto_and_recommendations_follow_their_definitions():
                    "seconds<=2.5": {"k": 2}}
 
 
+def test02b_combined_settings_follow_the_quadrature_model():
+    from dermis.reports.sweep import combine
+    rows = [{"knob": "a", "values": {"a": 1}, "seconds": 1.0, "rel_rmse": 0.03, "is_default": True},
+            {"knob": "a", "values": {"a": 2}, "seconds": 3.0, "rel_rmse": 0.0, "is_default": False},
+            {"knob": "b", "values": {"b": 1}, "seconds": 2.0, "rel_rmse": 0.04, "is_default": False},
+            {"knob": "b", "values": {"b": 2}, "seconds": 5.0, "rel_rmse": 0.0, "is_default": True}]
+    out = combine(rows, (0.01, 0.05), 8.0, base_seconds=10.0)
+    assert out["defaults"]["values"] == {"a": 1, "b": 2}
+    assert out["defaults"]["predicted_seconds"] == 10.0
+    # 5 %: a=1, b=1 (sqrt(0.03^2 + 0.04^2) = 0.05) for 10 - 3 = 7 s
+    assert out["rel_rmse<=0.05"]["values"] == {"a": 1, "b": 1}
+    assert abs(out["rel_rmse<=0.05"]["predicted_seconds"] - 7.0) < 1e-12
+    assert out["rel_rmse<=0.01"]["values"] == {"a": 2, "b": 2}      # 12 s, error 0
+    assert out["seconds<=8"]["values"] == {"a": 1, "b": 1}
+
+
 def _artifact_sums(cache: Path) -> dict:
     """(node, key) -> the recorded checksums of its data files (meta.json itself excluded)."""
     out = {}
