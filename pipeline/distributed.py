@@ -15,6 +15,7 @@ import time
 from dataclasses import dataclass, field
 
 from .graph import Node, NodeReport, RunSummary, execute, key_parts, node_key, plan_order
+from .errors import DermisError
 from .store import Store
 
 __all__ = ["run_graphs", "DistributedStats"]
@@ -75,7 +76,7 @@ def _ancestors(nodes: dict[str, Node], nid: str) -> dict[str, Node]:
 
 
 def _run_task(nodes: dict[str, Node], nid: str, cache_root: str, device: str | None,
-              warm: tuple = (), *_deps_done) -> dict:
+              warm: tuple = (), planned: str | None = None, *_deps_done) -> dict:
     """One Dask task: run node ``nid`` (its inputs are already in the cache).
 
     ``warm`` names modules imported before the node is timed (first imports of heavy
@@ -88,6 +89,12 @@ def _run_task(nodes: dict[str, Node], nid: str, cache_root: str, device: str | N
     with store.locked():
         summary = execute(nodes, [nid], store, RunContext(device=device))
     rep = next(r for r in summary.nodes if r.id == nid)
+    if planned is not None and rep.key != planned:
+        # the worker hashed other code than the planner did (sources edited during the run,
+        # or a worker with another checkout): its artifact is not the one the sweep reads
+        raise DermisError(f"{nid}: cache key planned {planned} but the worker computed "
+                          f"{rep.key}: the code it runs differs from the code that planned the "
+                          "run (files edited meanwhile, or another checkout); run again")
     return {"id": nid, "key": rep.key, "status": rep.status, "seconds": rep.seconds,
             "kernel_seconds": rep.kernel_seconds, "reasons": rep.reasons, "path": rep.path}
 
@@ -147,7 +154,7 @@ def run_graphs(graphs: list[tuple[dict[str, Node], list[str]]], cache_root, *,
 def _run_serial(tasks, cache_root, device, progress, warm) -> dict:
     results, done = {}, 0
     for name, (sub, nid, _) in tasks.items():      # insertion order is topological
-        results[name] = _run_task(sub, nid, cache_root, device, warm)
+        results[name] = _run_task(sub, nid, cache_root, device, warm, name.rsplit("-", 1)[1])
         done += 1
         if progress:
             progress(done, 0, 0, len(tasks))
@@ -166,6 +173,7 @@ def _run_dask(tasks, cache_root, device, workers, scheduler, progress, warm) -> 
         futures = {}
         for name, (sub, nid, deps) in tasks.items():   # topological: deps submitted first
             futures[name] = client.submit(_run_task, sub, nid, cache_root, device, warm,
+                                          name.rsplit("-", 1)[1],
                                           *(futures[d] for d in deps), key=name,
                                           retries=TASK_RETRIES, pure=False)
         results, failed = {}, 0
