@@ -32,7 +32,7 @@ Per-layer diffusion (``diffusion="pbd"``, the default; why each choice: docs/pro
   boundaries (Donner & Jensen 2005), n per channel so the first omitted pair is damped by
   e^{-20}.  Weakly absorbing layers (sigma_a = 0 included), whose images decay only
   algebraically, stop their field where its lowest slab mode has decayed by e^{-30}, run
-  the images to 8x that radius and add the rest as their integral (``POLE_REACH``).
+  the images to 10x that radius and add the rest as their integral (``POLE_REACH``).
 * **Collimated light at a mismatched boundary** (ballistic + forward) reflects with the
   normal-incidence Fresnel factor (forward light: averaged over a once-scattered HG lobe;
   diffuse light: 2 C1); the reflected light re-enters the layer from that side and is
@@ -118,17 +118,17 @@ POLE_DAMPING = 20.0
 # at least as its lowest slab mode K0(kappa r), kappa = sqrt(sigma_tr^2 + (pi / L)^2),
 # L = d + z_b,t + z_b,b: beyond POLE_REACH / kappa it holds a fraction
 # sqrt(pi kappa r / 2) e^{-kappa r} = 6e-13 of its energy and is set to zero (the cumulative
-# energy held at its value there).  Images run out to POLE_FAR x that reach (39 pairs at
+# energy held at its value there).  Images run out to POLE_FAR x that reach (48 pairs at
 # most: kappa L >= pi), the omitted ones are added as their integral (2-point Gauss over
 # each end's width) plus the midpoint rule's first Euler-Maclaurin term; with sigma_a = 0
 # the totals are then exact ((d + z_b,b - t) / L through the top).  Used where it needs
 # fewer images than the e^{-20} damping (never for the presets: their layers are damped
 # first, and their tables are byte-identical).  Measured (bench/bench_profiles_extreme.py,
-# bench/results/profiles_extreme.json): cumulative energy within 8e-10 of the sources'
-# energy of the same sum with 4000 pairs (the 200 mm images of 5e8c639: 5e-7); sigma_a = 0
-# two_layer 42 s -> 8 s.
+# bench/results/profiles_extreme.json): cumulative energy within 3e-10 of the sources'
+# energy of the same sum with 4000 pairs (error ~ POLE_FAR^-6: 8e-10 at 8, 4e-9 at 6; the
+# 200 mm images of 5e8c639: up to 7e-4); sigma_a = 0 two_layer 47 s -> 7 s.
 POLE_REACH = 30.0
-POLE_FAR = 8.0
+POLE_FAR = 10.0
 # Gauss-Legendre nodes along the beam (u = 1 - e^{-sigma_t t}, split where the displaced
 # sources leave the layer).  Measured (tests/test_profiles.py::test03_beam_convergence):
 # 16 -> 64 nodes changes the epidermis R(r) by < 1e-6 and the semi-infinite dermis by
