@@ -1175,7 +1175,10 @@ def _combine(stack: LayerStack, chans, nq: int, h: float, n: int, lobes: _Lobes,
             if k == 0:
                 R_delta = Rdl
             else:
-                B["Rc"] += Rdl
+                # not in place: spectrum() hands out one shared zero grid for layers without
+                # a diffusion shape (sigma_s' = 0), and += on it leaked this delta into every
+                # later layer and channel (Rd + Tt up to 1.33, test_stability test11)
+                B["Rc"] = B["Rc"] + Rdl
                 dd = _response(ch, nq, diffuse=True)
                 Rf, Rdl, Tf, Tdl, sc = _scaled(dd, ex and ex.Rd, ex and ex.Td, True)
                 B["Rd"] = spectrum(dd.terms_R, Rf, dict(w, light="diffuse", field="R")) + Rdl
