@@ -191,6 +191,16 @@ def _frames(axes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return t, bt
 
 
+
+def _about_axis(axis: np.ndarray, cos_a: np.ndarray, phi: np.ndarray) -> np.ndarray:
+    """(N, S, 3) unit directions at polar cosine ``cos_a`` and azimuth ``phi`` (N, S) about
+    the (N, 3) unit ``axis``."""
+    sin_a = np.sqrt(np.maximum(1.0 - cos_a * cos_a, 0.0))
+    t, b = _frames(axis)
+    d = ((sin_a * np.cos(phi))[..., None] * t[:, None] + (sin_a * np.sin(phi))[..., None]
+         * b[:, None] + cos_a[..., None] * axis[:, None])
+    return _normalize(d)
+
 def cosine_hemisphere(u: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Cosine-weighted directions about each normal (Malley's method, concentric disc).
 
@@ -420,12 +430,7 @@ class GlossyLobe:
         """(N, S, 3) directions for uniform (N, S, 2) numbers."""
         a = self.axis()
         cos_a = u[..., 0] ** (1.0 / (self.exponent + 1.0))
-        sin_a = np.sqrt(np.maximum(1.0 - cos_a * cos_a, 0.0))
-        phi = _TWO_PI * u[..., 1]
-        t, b = _frames(a)
-        d = ((sin_a * np.cos(phi))[..., None] * t[:, None] + (sin_a * np.sin(phi))[..., None]
-             * b[:, None] + cos_a[..., None] * a[:, None])
-        return _normalize(d)
+        return _about_axis(a, cos_a, _TWO_PI * u[..., 1])
 
     def pdf(self, directions: np.ndarray) -> np.ndarray:
         """(N, S) solid-angle density of (N, S, 3) directions."""
@@ -475,12 +480,7 @@ class RetroLobe:
         else:
             sq = (1.0 - k * k) / (1.0 - k + 2.0 * k * u[..., 0])
             cos_a = np.clip((1.0 + k * k - sq * sq) / (2.0 * k), -1.0, 1.0)
-        sin_a = np.sqrt(np.maximum(1.0 - cos_a * cos_a, 0.0))
-        phi = _TWO_PI * u[..., 1]
-        t, b = _frames(a)
-        d = ((sin_a * np.cos(phi))[..., None] * t[:, None] + (sin_a * np.sin(phi))[..., None]
-             * b[:, None] + cos_a[..., None] * a[:, None])
-        return _normalize(d)
+        return _about_axis(a, cos_a, _TWO_PI * u[..., 1])
 
     def pdf(self, directions: np.ndarray) -> np.ndarray:
         """(N, S) solid-angle density of (N, S, 3) directions."""

@@ -170,38 +170,16 @@ def test05_flat_slab_exitance_with_entry_fresnel(cl_env):
     (irradiance with entry transmittance, then :func:`gather.exitance`): M = E cos T(cos) Rd
     within the flat slab's 1 % (tests/test_gather.py); plain E cos Rd (no entry loss) is
     outside that bound."""
-    from dermis.physics.lights import irradiance
-    from dermis.physics.visibility import Visibility
-    from dermis.stages import samples as S
     from dermis.stages.profiles import build_profiles
     stack = PRESETS["skin2"]
     prof = build_profiles(stack)
-    cfg = BssrdfConfig()
-    spacing = S.spacing_from_mfp(stack, cfg.point_density)
-    reach = float(prof.cutoff_mm.max()) + G.BLUR_REACH * spacing
-    half = reach + 2 * spacing + S.POU_RADIUS * spacing
-    v = np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0.0]])
-    f = np.array([[0, 1, 2], [0, 2, 3]])
-    sp = S.sample_points(v, f, spacing_mm=spacing, seed=4)
-    vis = Visibility(v, f)
-    eta = stack.layers[0].eta
-    t = G.Transmittance(eta, cfg.surface_reflection)
-    for theta in (0.0, 60.0):
-        d = (math.sin(math.radians(theta)), 0.0, math.cos(math.radians(theta)))
-        light = LightConfig(name="d", type="directional", direction=d, intensity=(2.0,) * 3)
-        E = irradiance(sp.positions, sp.normals, [light], vis.occluded, transmittance=t)
-        inner = half - reach - 1.0
-        q = np.zeros((300, 3))
-        q[:, :2] = np.random.default_rng(5).uniform(-inner, inner, (300, 2))
-        nrm = np.tile([0.0, 0.0, 1.0], (len(q), 1))
-        m, st = G.exitance(sp, E, prof, q, shading_normals=nrm, geo_normals=nrm, lights=[light],
-                           visibility=vis, epsilon=0.2, transmittance=t, env=cl_env)
+    t = G.Transmittance(stack.layers[0].eta, BssrdfConfig().surface_reflection)
+    for theta, got, st in _flat_slab_exitance(cl_env, stack, prof, (0.0, 60.0)):
         assert st["near_field"]
-        c = d[2]
-        want = 2.0 * c * t(np.array([c]))[0] * prof.Rd
-        assert np.abs(m / want - 1).max() < 0.01, (theta, np.abs(m / want - 1).max(0))
-        plain = 2.0 * c * prof.Rd
-        assert np.abs(m / plain - 1).max() > 0.015, (theta, m.mean(0) / plain)
+        assert np.abs(got / prof.Rd - 1).max() < 0.01, (theta, np.abs(got / prof.Rd - 1).max(0))
+        c = math.cos(math.radians(theta))
+        plain = got * t(np.array([c]))[0]       # M / (E cos): no entry loss
+        assert np.abs(plain / prof.Rd - 1).max() > 0.015, (theta, plain.mean(0) / prof.Rd)
 
 
 def _flat_slab_exitance(cl_env, stack, prof, thetas, n_query=300):
