@@ -650,6 +650,10 @@ def sample_lights(lights, points: np.ndarray, normals: np.ndarray | None = None,
     return LightSamples(wi, w, dist)
 
 
+# Batches of the irradiance pass run on this many threads (results independent of it).
+IRRADIANCE_THREADS = 2
+
+
 def irradiance(points: np.ndarray, normals: np.ndarray, light,
                occlusion_fn: Callable | None, *, samples: int | None = None,
                seed: int = 0, env: "EnvironmentMap | None" = None,
@@ -693,7 +697,9 @@ def irradiance(points: np.ndarray, normals: np.ndarray, light,
     if n is None:
         raise DermisError("irradiance: normals are required")
     out = np.zeros((len(p), 3), dtype=np.float32)
-    for c, start in enumerate(range(0, len(p), chunk)):
+
+    def batch(c: int) -> None:
+        start = c * chunk
         ps, ns = p[start:start + chunk], n[start:start + chunk]
         ls = sample_lights(light, ps, ns, samples=samples, seed=(seed, c), env=env,
                            env_strategy=env_strategy, horizon=False)
@@ -714,6 +720,17 @@ def irradiance(points: np.ndarray, normals: np.ndarray, light,
         if transmittance is not None:
             w = w * np.asarray(transmittance(np.maximum(cos, 0.0)), dtype=np.float32)
         out[start:start + chunk] = np.einsum("ns,nsk->nk", factor, w)
+
+    batches = range(-(-len(p) // chunk))
+    if IRRADIANCE_THREADS > 1 and len(batches) > 1:
+        # batches are independent (own seed, own rows of ``out``): the result does not depend
+        # on the thread count; numpy and the ray caster release the GIL for their bulk work
+        from concurrent.futures import ThreadPoolExecutor
+        with ThreadPoolExecutor(IRRADIANCE_THREADS) as pool:
+            list(pool.map(batch, batches))
+    else:
+        for c in batches:
+            batch(c)
     return out
 
 
