@@ -212,9 +212,14 @@ def test_hk93_directional_albedo_at_most_one(cl_env, stack):
     from dermis.stages.brdf_models import evaluate
     p = _hk93_params(stack)
     assert np.isfinite(p.multiple_scattering).all() and (p.multiple_scattering >= 0).all()
-    a = _albedo_quadrature(lambda wo, wi: evaluate("hk93", wo, wi, p, env=cl_env), COS_O)
+    # the Henyey-Greenstein peak is ~(1 - |g|) wide: the midpoint rule needs cells narrower
+    # than that (g = -0.99, a white blue channel: 48 cells read 1.28, 192 0.96, 768 0.95 —
+    # found by the thorough profile; the kernel itself stays below 1)
+    g = max(abs(l.g) for l in stack.layers)
+    n = int(min(768, max(48, math.ceil(6.0 / max(1.0 - g, 1e-3)))))
+    a = _albedo_quadrature(lambda wo, wi: evaluate("hk93", wo, wi, p, env=cl_env), COS_O, n=n)
     assert np.isfinite(a).all() and (a >= 0).all()
-    assert (a <= 1.0 + 1e-2).all(), f"directional albedo {a.max():.4f} > 1"
+    assert (a <= 1.0 + 1e-2).all(), f"directional albedo {a.max():.4f} > 1 (n = {n})"
 
 
 @given(seed=st.integers(0, 2**31 - 1),
