@@ -369,33 +369,60 @@ def _profile_rd(layers: Sequence[HK93Layer], eta_below: float = 1.0) -> np.ndarr
     return _PROFILE_RD[key]
 
 
-# Outgoing cosines at which the single-scattering albedo's maximum is sought (it peaks at
-# grazing for eta = 1, near normal incidence for eta > 1 where Fresnel cuts grazing light),
-# and the midpoint quadrature resolution over (cos theta_i, phi).  Resolution 96 was compared
-# with 384: the maxima agree to 2e-3 (the 1/(mu_i + mu_o) peak at grazing is the worst case),
-# which SS_ALBEDO_TOL absorbs.
-_SS_COS_GRID = np.array([1.0, 0.9, 0.75, 0.5, 0.3, 0.15, 0.07, 0.03, 0.01, 0.003, 0.001])
-_SS_QUAD_N = 96
+# Outgoing cosines at which the single-scattering albedo's maximum is sought: it peaks at
+# grazing for eta = 1 (a forward lobe g > 0 reaches alpha / 2 only as cos theta_o -> 0:
+# 0.325 at 1e-3, 0.50 at 1e-7 for g = 0.99), near normal incidence for eta > 1 where
+# Fresnel cuts grazing light.
+_SS_COS_GRID = np.array([1.0, 0.9, 0.75, 0.5, 0.3, 0.15, 0.07, 0.03, 0.01, 0.003, 0.001,
+                         1e-5, 1e-7])
+# Quadrature: midpoint in (theta_i, phi) - uniform in theta, not cos theta, so a peak at the
+# pole (the backward lobe g < 0 at normal view) is resolved as well as one at the horizon.
+# The Henyey-Greenstein peak is ~(1 - |g|) rad wide, so the cells are sized to it:
+# n = 5 / (1 - |g|) per axis, at least 96 (skin g = 0.8: 96 and 384 agree to 2e-3, the
+# 1/(mu_i + mu_o) peak at grazing the worst case, which SS_ALBEDO_TOL absorbs) and at most
+# 512 (|g| = 0.99: 512 and 1024 agree to < 3e-3 at every cosine of the grid,
+# tests/test_brdf_models.py test_hk93_single_scattering_quadrature_converges).
+_SS_QUAD_MIN, _SS_QUAD_MAX = 96, 512
 SS_ALBEDO_TOL = 5e-3
 
 
-def hk93_single_scattering_albedo(layers, cos_theta_o) -> np.ndarray:
+def _ss_quad_n(layers) -> int:
+    g = max(abs(float(l.g)) for l in layers)
+    return int(min(_SS_QUAD_MAX, max(_SS_QUAD_MIN, math.ceil(5.0 / max(1.0 - g, 1e-6)))))
+
+
+def hk93_single_scattering_albedo(layers, cos_theta_o, n: int | None = None) -> np.ndarray:
     """Directional albedo of HK93's single-scattering part, (len(cos_theta_o), 3) float64.
 
-    Midpoint quadrature of the float64 reference over (cos theta_i, phi); ``layers`` are
+    Midpoint quadrature of the float64 reference over (theta_i, phi) with ``n`` cells per
+    axis (None: sized to the layers' Henyey-Greenstein peak, ``_ss_quad_n``); ``layers`` are
     validated HK93Layer objects (``HK93Params(...).layers``).
     """
-    n = _SS_QUAD_N
-    mu = (np.arange(n) + 0.5) / n
+    n = _ss_quad_n(layers) if n is None else int(n)
+    cos_o = np.atleast_1d(np.asarray(cos_theta_o, np.float64))
+    key = (tuple((float(l.thickness_mm), float(l.eta), tuple(np.asarray(l.sigma_a, float)),
+                  tuple(np.asarray(l.sigma_s_prime, float)), float(l.g)) for l in layers),
+           tuple(cos_o), n)
+    if key not in _SS_ALBEDO:          # seconds at |g| = 0.99 (n = 500), so kept per process
+        _SS_ALBEDO[key] = _ss_albedo_quadrature(layers, cos_o, n)
+    return _SS_ALBEDO[key].copy()
+
+
+_SS_ALBEDO: dict = {}
+
+
+def _ss_albedo_quadrature(layers, cos_o: np.ndarray, n: int) -> np.ndarray:
+    theta = (np.arange(n) + 0.5) / n * (0.5 * np.pi)
     phi = (np.arange(n) + 0.5) / n * np.pi          # f is even in phi: integrate [0, pi] twice
-    m, p = (a.ravel() for a in np.meshgrid(mu, phi, indexing="ij"))
-    s = np.sqrt(1.0 - m * m)
+    t, p = (a.ravel() for a in np.meshgrid(theta, phi, indexing="ij"))
+    m, s = np.cos(t), np.sin(t)
     wi = np.stack([s * np.cos(p), s * np.sin(p), m], axis=1)
+    weight = (m * s)[:, None] * (2.0 * np.pi * 0.5 * np.pi / (n * n))
     out = []
-    for c in np.atleast_1d(np.asarray(cos_theta_o, np.float64)):
+    for c in cos_o:
         wo = np.broadcast_to([math.sqrt(max(0.0, 1.0 - c * c)), 0.0, c], wi.shape)
         f = _hk93_single_np(wo, wi, layers)
-        out.append((f * m[:, None]).sum(axis=0) * (2.0 * np.pi / (n * n)))
+        out.append((f * weight).sum(axis=0))
     return np.array(out)
 
 

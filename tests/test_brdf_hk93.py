@@ -246,3 +246,26 @@ def test05_grazing_and_backfacing_finite(cl_env, rng):
             assert np.all(np.isfinite(f)) and np.all(f >= 0)
             on_or_below = (wo[:, 2] <= 0) | (wi[:, 2] <= 0)
             assert np.all(f[on_or_below] == 0)
+
+
+@pytest.mark.parametrize("g", [-0.99, 0.99])
+@pytest.mark.parametrize("eta", [1.0, 1.4])
+def test06_single_scattering_quadrature_converges(g, eta):
+    """HK93Params' maximum single-scattering albedo (which caps rho_ms) is converged for the
+    sharpest Henyey-Greenstein lobes: its own grid against 1024 cells per axis within
+    SS_ALBEDO_TOL; for eta = 1 the grazing limit alpha / 2 (for a horizontal view direction
+    the phase function's integral over the upper hemisphere is 1/2 by mirror symmetry, and
+    mu_i / (mu_i + mu_o) -> 1) is reached.  Before: 96 cells uniform in cos theta and a grid
+    ending at 1e-3 read 0.325 for g = 0.99, so rho_ms = 0.675 and the albedo 1.18 at grazing."""
+    from dermis.stages.brdf_models import SS_ALBEDO_TOL, _SS_COS_GRID, _max_single_scattering_albedo
+    alpha = 1.0 - 1e-7
+    lay = Layer(math.inf, eta, (1e-7,) * 3, (1e-3 * (1 - g),) * 3, g)   # sigma_s = 1e-3
+    p = HK93Params([lay], multiple_scattering=(0.0, 0.0, 0.0))
+    got = _max_single_scattering_albedo(p.layers)
+    ref = hk93_single_scattering_albedo(p.layers, _SS_COS_GRID, n=1024).max(axis=0)
+    np.testing.assert_allclose(got, ref, atol=SS_ALBEDO_TOL)
+    if eta == 1.0:
+        np.testing.assert_allclose(got, alpha / 2, atol=SS_ALBEDO_TOL)
+    # and the derived rho_ms keeps the whole directional albedo <= 1 at every grid cosine
+    q = HK93Params([lay], diffuse_reflectance=(0.97,) * 3)
+    assert np.all(ref + q.multiple_scattering <= 1.0 + SS_ALBEDO_TOL)
