@@ -17,7 +17,11 @@
  *
  * SIMD layout (why: PoCL vectorises across work-items only for loop-free kernels, and a
  * photon is a loop; architecture.md "what was measured").  Each work-item carries LANES
- * photons (LANES = 16 fills one AVX-512 register; 8 is allowed and ran at half the speed)
+ * photons (LANES = 8 fills one AVX2 register, 16 one AVX-512 register; the host picks by
+ * the device's preferred float vector width, stages/mc_slab.py lanes_for.  On a 2-core
+ * AVX-512 machine the first loop, without splitting, ran 8 lanes at half the speed of 16;
+ * on the 2-core AVX2 machine the present one, whose window and splitting keep ~20 vectors
+ * live, spills at 16 and ran 8 lanes 1.25x faster, A/B on two_layer)
  * as floatN state and runs one event per lane per loop trip: a free flight that ends
  * either in an interaction or on a boundary.  Lanes are masked with select(); a lane
  * whose photon died is refilled with the work-item's next photon in the same trip, so
@@ -28,7 +32,7 @@
  * kept as a length in the current layer (rescaled by sigma_t / sigma_t' on entering
  * another layer), and the boundary test |s uz| >= |zb - z| needs no division.
  *
- * Random numbers: one Philox4x32-10 block per lane per trip (rng.h), counter (trip,
+ * Random numbers: one Philox4x32 block (PHILOX_ROUNDS rounds) per lane per trip (rng.h), counter (trip,
  * work-item * LANES + lane, channel, trip carry), key (seed, "mc_s").  Its four words
  * are used as: u0 free path, u1 HG cosine, u2 azimuth, u3 Fresnel (boundary event) or
  * roulette (interaction event) - an event is one or the other, so no word is used twice.
@@ -83,7 +87,20 @@
 #define N_TOTALS 7
 
 #ifndef LANES
-#define LANES 16
+#define LANES 8
+#endif
+/* Philox rounds of the tracer: 7 (Philox4x32-7, the fewest that pass BigCrush in Salmon et
+ * al. 2011, Table 2) or 10 (the paper's safety margin).  A/B on two_layer (2-core AVX2
+ * machine, PoCL): 10 -> 7 rounds 1.12x faster (docs/profiles.md "Monte Carlo speed"). */
+#ifndef PHILOX_ROUNDS
+#define PHILOX_ROUNDS 7
+#endif
+#if PHILOX_ROUNDS == 7
+#define PHILOX_TRACE PHILOX4X32_7
+#elif PHILOX_ROUNDS == 10
+#define PHILOX_TRACE PHILOX4X32_10
+#else
+#error "PHILOX_ROUNDS must be 7 or 10"
 #endif
 /* entries of the per-work-item stack of split photons; floats per entry:
  * x, y, z, ux, uy, uz, w, ln w, remaining path, layer */
@@ -185,7 +202,8 @@ inline void azimuth(vf u, vf *cph, vf *sph) {
 
 __kernel void mc_slab(__global const float *layers, const int n_layers,
                       const float eta_above, const float eta_below,
-                      const uint seed, const int photons_per_item,
+                      const uint seed,
+                      __global const int *photons_per_item,  /* [3]: per channel */
                       const int n_bins, __global const float *edges, /* [n_bins + 1] */
                       const float ln_w_min,   /* roulette below W_MIN W: ln W_MIN */
                       __global const float *window,  /* [3][4]: kappa, rho0, rho1, lambda */
@@ -205,13 +223,13 @@ __kernel void mc_slab(__global const float *layers, const int n_layers,
     const int windowed = kappa > 0.0f || lambda > 0.0f;
     /* at most MAX_SPLITS_PER_PHOTON splits per launched photon per work-item: bounds the
      * work if the window falls faster than the light (skipping a split is unbiased) */
-    const long max_splits = (long)MAX_SPLITS_PER_PHOTON * photons_per_item;
+    const int budget = photons_per_item[ch];
+    const long max_splits = (long)MAX_SPLITS_PER_PHOTON * budget;
     long splits = 0;
     const float r_last = edges[n_bins];
     int bank_n = 0;
     const vi lane = LANE_IDS;
     const vu stream = cvt_u(item * LANES + lane);
-    const int budget = photons_per_item;
     uint trip = 0u, trip_hi = 0u;
 
     /* all lanes start a photon (lanes beyond the budget start dead) */
@@ -233,7 +251,7 @@ __kernel void mc_slab(__global const float *layers, const int n_layers,
 
     while (any_lane(alive) || bank_n > 0) {
         vu c0 = (vu)(trip), c1 = stream, c2 = (vu)((uint)ch), c3 = (vu)(trip_hi);
-        PHILOX4X32_10(vu, MULHILO, c0, c1, c2, c3, seed, 0x6d635f73u);
+        PHILOX_TRACE(vu, MULHILO, c0, c1, c2, c3, seed, 0x6d635f73u);
         if (++trip == 0u) ++trip_hi;
         vf u0 = PHILOX_UNIFORM(c0, cvt_f), u1 = PHILOX_UNIFORM(c1, cvt_f);
         vf u2 = PHILOX_UNIFORM(c2, cvt_f), u3 = PHILOX_UNIFORM(c3, cvt_f);
@@ -472,7 +490,8 @@ __kernel void mc_slab(__global const float *layers, const int n_layers,
 }
 
 /* Self-test for tests/test_mc_slab.py: Philox known answers (Random123 kat_vectors) from
- * the scalar form and from lanes 2 and 3 of the vector form, and the cheap math of the
+ * the scalar form (10 rounds) and from lanes 2 and 3 of the vector form (the tracer's
+ * PHILOX_ROUNDS), and the cheap math of the
  * tracer (neg_log, azimuth) on given uniforms u (n a multiple of LANES).
  * kat: [0..3] scalar ctr 0, key 0; [4..7] lane 2: ctr all ones, key all ones; [8..11]
  * lane 3: ctr (243f6a88 85a308d3 13198a2e 03707344), key (a4093822 299f31d0).
@@ -490,8 +509,8 @@ __kernel void mc_selftest(__global uint *kat, __global const float *u, __global 
         vu c2 = select((vu)(0xffffffffu), (vu)(0x13198a2eu), as_vu(three));
         vu c3 = select((vu)(0xffffffffu), (vu)(0x03707344u), as_vu(three));
         vu d0 = c0, d1 = c1, d2 = c2, d3 = c3;
-        PHILOX4X32_10(vu, MULHILO, c0, c1, c2, c3, 0xffffffffu, 0xffffffffu);
-        PHILOX4X32_10(vu, MULHILO, d0, d1, d2, d3, 0xa4093822u, 0x299f31d0u);
+        PHILOX_TRACE(vu, MULHILO, c0, c1, c2, c3, 0xffffffffu, 0xffffffffu);
+        PHILOX_TRACE(vu, MULHILO, d0, d1, d2, d3, 0xa4093822u, 0x299f31d0u);
         kat[4] = c0.s2; kat[5] = c1.s2; kat[6] = c2.s2; kat[7] = c3.s2;
         kat[8] = d0.s3; kat[9] = d1.s3; kat[10] = d2.s3; kat[11] = d3.s3;
     }

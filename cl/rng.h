@@ -59,6 +59,20 @@
         PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 9u * PHILOX_W0, pk1_ + 9u * PHILOX_W1); \
     } while (0)
 
+/* Seven rounds: Philox4x32-7, the fewest rounds the paper found to pass TestU01's BigCrush
+ * (its Table 2; ten keep a safety margin).  Used by the photon tracer, where the generator
+ * is half the time per event (cl/mc_slab.cl). */
+#define PHILOX4X32_7(T, MULHILO, c0, c1, c2, c3, key0, key1) do {                      \
+        const uint pk0_ = (key0), pk1_ = (key1);                                       \
+        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_, pk1_);                          \
+        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 1u * PHILOX_W0, pk1_ + 1u * PHILOX_W1); \
+        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 2u * PHILOX_W0, pk1_ + 2u * PHILOX_W1); \
+        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 3u * PHILOX_W0, pk1_ + 3u * PHILOX_W1); \
+        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 4u * PHILOX_W0, pk1_ + 4u * PHILOX_W1); \
+        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 5u * PHILOX_W0, pk1_ + 5u * PHILOX_W1); \
+        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 6u * PHILOX_W0, pk1_ + 6u * PHILOX_W1); \
+    } while (0)
+
 /* Scalar form: counter c, key k (the paper's Philox4x32-10). */
 inline uint4 philox4x32_10(uint4 c, uint2 k) {
     uint c0 = c.x, c1 = c.y, c2 = c.z, c3 = c.w;

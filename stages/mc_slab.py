@@ -19,13 +19,16 @@ import numpy as np
 from dermis.pipeline.errors import DermisError
 from dermis.physics.layers import LayerStack
 
-__all__ = ["VERSION", "KERNELS", "McResult", "simulate"]
+__all__ = ["VERSION", "KERNELS", "McResult", "simulate", "combine"]
 
 VERSION = 3   # 3: ring edges of any spacing, radial splitting (weight window), log weights
 KERNELS = ("mc_slab.cl",)
 
-# Photons in flight per work-item (float16 lanes: one AVX-512 register; see cl/mc_slab.cl).
-LANES = 16
+# Photons in flight per work-item: 8 (one AVX2 register) unless the device prefers float16
+# vectors (AVX-512); measured in cl/mc_slab.cl's header.  None: by the device (lanes_for).
+LANES: int | None = None
+# Philox rounds of the tracer (cl/mc_slab.cl PHILOX_ROUNDS): 7 or 10.
+PHILOX_ROUNDS = 7
 # Work-items per channel = batches * k with k the largest value <= MAX_ITEMS_PER_BATCH that
 # leaves every lane at least MIN_PHOTONS_PER_LANE photons: a work-item ends with idle lanes
 # while its last photons finish (up to ~1e4 steps in high-albedo media), so lanes need many
@@ -45,6 +48,19 @@ BANK_FLOATS = 10
 W_MIN = 1e-4
 
 
+def lanes_for(env) -> int:
+    """Photons per work-item on ``env``'s device: LANES if set, else 16 where the device
+    prefers float16 vectors (AVX-512), 8 otherwise."""
+    if LANES is not None:
+        return int(LANES)
+    return 16 if env.queue.device.preferred_vector_width_float >= 16 else 8
+
+
+def kernel_defines(env) -> dict:
+    """Build defines of cl/mc_slab.cl for ``env``."""
+    return {"LANES": lanes_for(env), "BANK": BANK, "PHILOX_ROUNDS": PHILOX_ROUNDS}
+
+
 @dataclass
 class McResult:
     """Monte Carlo estimate on rings [r_edges[k], r_edges[k+1]).
@@ -53,7 +69,8 @@ class McResult:
     R, T, R_err, T_err : (B, 3) 1/mm^2 ring averages and their standard errors
     Rd, Tt, absorbed, lost : (3,) totals per entered photon (lost: photons cut at the step cap)
     Rd_err, Tt_err, absorbed_err : (3,) standard errors (from ``batches`` independent batches)
-    photons : int per channel; seconds : kernel time; photons_per_second : 3 * photons / seconds
+    photons : int per channel (the mean if they differ; info["photons_per_channel"]);
+    seconds : kernel time; photons_per_second : all photons traced / seconds
     info : device, items (work-items per channel), lanes (photons in flight per work-item),
         batches, seed, wall_seconds, interactions_per_second, lane_occupancy (fraction of
         lane-trips with a live photon), layers
@@ -104,8 +121,9 @@ def simulate(stack: LayerStack, *, photons: int, r_max_mm: float | None = None,
     ----------
     stack : LayerStack
         Layers top to bottom; zero-thickness layers are dropped (they are the identity).
-    photons : int
-        Photons per channel (rounded up to a multiple of the work-item count).
+    photons : int or (3,) ints
+        Photons per channel, one for all or one each (rounded up to a multiple of the
+        work-item count).
     r_max_mm, bins : float, int
         Radial histogram: ``bins`` rings of equal width over [0, r_max_mm).
     edges : (B+1,) array_like, optional
@@ -132,8 +150,11 @@ def simulate(stack: LayerStack, *, photons: int, r_max_mm: float | None = None,
     from dermis.pipeline import cl as dcl
     import pyopencl as cl
 
-    if photons < 1:
-        raise DermisError(f"mc_slab: photons = {photons}: must be >= 1")
+    want = np.broadcast_to(np.asarray(photons), (3,))
+    if not (np.all(np.isfinite(want.astype(np.float64))) and np.all(want >= 1)):
+        raise DermisError(f"mc_slab: photons = {photons}: must be >= 1 (one int, or one per "
+                          "channel)")
+    want = want.astype(np.int64)
     if edges is None:
         if r_max_mm is None or bins is None or not (r_max_mm > 0 and math.isfinite(r_max_mm)) \
                 or bins < 1:
@@ -157,18 +178,20 @@ def simulate(stack: LayerStack, *, photons: int, r_max_mm: float | None = None,
         raise DermisError(f"mc_slab: seed = {seed}: must be in 0 .. 2**32 - 1")
     stack = stack.nonzero()
     env = env or dcl.get_env()
-    k = photons // (batches * LANES * MIN_PHOTONS_PER_LANE)
+    lanes = lanes_for(env)
+    k = int(want.max()) // (batches * lanes * MIN_PHOTONS_PER_LANE)
     items = batches * max(1, min(MAX_ITEMS_PER_BATCH, k))
-    per_item = int(math.ceil(photons / items))
-    n_total = per_item * items
+    per_item = np.ceil(want / items).astype(np.int32)      # per channel
+    n_total = per_item.astype(np.int64) * items
     tab = _layer_table(stack)
     # a fresh Kernel object: no pyopencl retrieval warning
-    knl = cl.Kernel(env.program("mc_slab.cl", {"LANES": LANES, "BANK": BANK}), "mc_slab")
+    knl = cl.Kernel(env.program("mc_slab.cl", kernel_defines(env)), "mc_slab")
     mf = cl.mem_flags
     d_tab = cl.Buffer(env.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=tab)
     d_edges = cl.Buffer(env.context, mf.READ_ONLY | mf.COPY_HOST_PTR,
                         hostbuf=edges.astype(np.float32))
     d_win = cl.Buffer(env.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=win)
+    d_budget = cl.Buffer(env.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=per_item)
     d_bank = cl.Buffer(env.context, mf.READ_WRITE, 3 * items * BANK * BANK_FLOATS * 4)
     hist = np.zeros((3, items, 2, bins), np.float32)
     tots = np.zeros((3, items, N_TOTALS), np.float32)
@@ -177,7 +200,7 @@ def simulate(stack: LayerStack, *, photons: int, r_max_mm: float | None = None,
     t0 = time.perf_counter()
     ev = knl(env.queue, (items, 3), (1, 1), d_tab, np.int32(len(stack.layers)),
              np.float32(stack.eta_above), np.float32(stack.eta_below), np.uint32(seed),
-             np.int32(per_item), np.int32(bins), d_edges, np.float32(math.log(w_min)), d_win,
+             d_budget, np.int32(bins), d_edges, np.float32(math.log(w_min)), d_win,
              d_bank, d_hist, d_tots)
     ev.wait()
     wall = time.perf_counter() - t0
@@ -186,11 +209,11 @@ def simulate(stack: LayerStack, *, photons: int, r_max_mm: float | None = None,
     cl.enqueue_copy(env.queue, tots, d_tots)
 
     # batch b holds work-items b, b + batches, ...: per-batch means, then mean +- s.e.
-    per_batch = n_total // batches
+    per_batch = (n_total // batches).astype(np.float64)
     hb = hist.astype(np.float64).reshape(3, items // batches, batches, 2, bins).sum(1)
     tb = tots[..., :4].astype(np.float64).reshape(3, items // batches, batches, 4).sum(1)
-    hb /= per_batch
-    tb /= per_batch
+    hb /= per_batch[:, None, None, None]
+    tb /= per_batch[:, None, None]
     area = np.pi * np.diff(edges**2)
 
     def mean_err(a, axis=1):
@@ -210,10 +233,54 @@ def simulate(stack: LayerStack, *, photons: int, r_max_mm: float | None = None,
         r_edges=edges, r_centres=0.5 * (edges[1:] + edges[:-1]), R=R, T=T, R_err=R_err,
         T_err=T_err, Rd=t_mean[:, 0], Tt=t_mean[:, 1], absorbed=t_mean[:, 2],
         lost=t_mean[:, 3], Rd_err=t_err[:, 0], Tt_err=t_err[:, 1], absorbed_err=t_err[:, 2],
-        photons=n_total, seconds=seconds, photons_per_second=3 * n_total / seconds,
-        info={"device": env.description, "items": items, "lanes": LANES, "batches": batches,
-              "seed": seed, "wall_seconds": wall, "window": win.tolist(),
+        photons=int(round(n_total.mean())), seconds=seconds,
+        photons_per_second=float(n_total.sum() / seconds),
+        info={"device": env.description, "items": items, "lanes": lanes, "philox_rounds": PHILOX_ROUNDS,
+              "batches": batches,
+              "seed": seed, "wall_seconds": wall,
+              "photons_per_channel": n_total.tolist(), "window": win.tolist(),
+              "interactions": float(counts[0]),
               "interactions_per_second": float(counts[0] / seconds),
+              # loop trips per channel: the channels' shares of the kernel time
+              "trips_per_channel": tots[..., 6].astype(np.float64).sum(1).tolist(),
               # fraction of lane-trips that carried a live photon (the rest is the idle tail)
-              "lane_occupancy": float(counts[1] / max(counts[2] * LANES, 1.0)),
+              "lane_occupancy": float(counts[1] / max(counts[2] * lanes, 1.0)),
               "layers": stack.to_dict()})
+
+
+def combine(a: McResult, b: McResult) -> McResult:
+    """Two independent runs on the same rings as one: per channel the photon-weighted mean,
+    standard errors added in quadrature with the same weights (both are means of independent
+    photons, so this is the estimate of the pooled photons)."""
+    if not np.array_equal(a.r_edges, b.r_edges):
+        raise DermisError("mc_slab.combine: the runs have different rings")
+    na = np.asarray(a.info["photons_per_channel"], np.float64)
+    nb = np.asarray(b.info["photons_per_channel"], np.float64)
+    wa, wb = na / (na + nb), nb / (na + nb)
+
+    def mean(x, y):
+        return wa * x + wb * y
+
+    def err(x, y):
+        return np.hypot(wa * x, wb * y)
+
+    seconds = a.seconds + b.seconds
+    n = (na + nb).astype(np.int64)
+    interactions = a.info["interactions"] + b.info["interactions"]
+    info = dict(b.info)
+    info.update(photons_per_channel=n.tolist(), wall_seconds=a.info["wall_seconds"]
+                + b.info["wall_seconds"], interactions=interactions,
+                interactions_per_second=interactions / seconds,
+                trips_per_channel=(np.add(a.info["trips_per_channel"],
+                                          b.info["trips_per_channel"])).tolist(),
+                lane_occupancy=(a.info["lane_occupancy"] * a.seconds
+                                + b.info["lane_occupancy"] * b.seconds) / seconds,
+                runs=[{"seed": r.info["seed"], "photons_per_channel": r.info["photons_per_channel"],
+                       "seconds": r.seconds} for r in (a, b)])
+    return McResult(
+        r_edges=a.r_edges, r_centres=a.r_centres, R=mean(a.R, b.R), T=mean(a.T, b.T),
+        R_err=err(a.R_err, b.R_err), T_err=err(a.T_err, b.T_err), Rd=mean(a.Rd, b.Rd),
+        Tt=mean(a.Tt, b.Tt), absorbed=mean(a.absorbed, b.absorbed), lost=mean(a.lost, b.lost),
+        Rd_err=err(a.Rd_err, b.Rd_err), Tt_err=err(a.Tt_err, b.Tt_err),
+        absorbed_err=err(a.absorbed_err, b.absorbed_err), photons=int(round(n.mean())),
+        seconds=seconds, photons_per_second=float(n.sum() / seconds), info=info)

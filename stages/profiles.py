@@ -1311,17 +1311,48 @@ MC_MIN_RMAX = 5.5
 # two_layer by the figure of merit 1 / (max relative ring noise^2 x kernel time) over
 # [0.05, 5] mm (analog tracer: infinite, the blue tail is empty): roulette at 0.25 instead of
 # MCML's 1e-4 x 3.5, depth term x 2.2, boost/cap 1.1/1.25 x 1.5 (1.2/1.4 multiplied the
-# copies: x 6.5 in time).
+# copies: x 6.5 in time).  With the photons allocated per channel (MC_PILOT below) each
+# channel may converge at its own rate, and boost/cap 1.0/1.0 - the window never falls
+# faster than the light - took 0.26-0.30 G loop trips to 1 % against 0.33 for 1.1/1.25 with
+# equal shares (trips: the machine-independent cost; bench/results/profiles_table.json).
 MC_SPLIT = True
 # Points per half-width of the diffusion guide (rings, window): half the layer file's.
 MC_GUIDE_POINTS = 512
-# Independent batches behind the per-ring standard errors (32: the error of an error is
-# 1 / sqrt(2 x 31) = 13 %).
-MC_BATCHES = 32
-MC_KAPPA_BOOST = 1.1
-MC_KAPPA_CAP = 1.25
+# Independent batches behind the per-ring standard errors: 128, the error of an error
+# 1 / sqrt(2 x 127) = 6 % (32 batches: 13 %, and the largest of ~60 such estimates, the
+# noise the table reports, then read ~25 % above the true largest error).  Batches only
+# group the work-items (cl/mc_slab.cl), so they cost nothing.
+MC_BATCHES = 128
+MC_KAPPA_BOOST = 1.0
+MC_KAPPA_CAP = 1.0
 MC_W_MIN = 0.25
 MC_DEPTH = 0.5
+
+
+# Photon allocation among the channels: a pilot of MC_PILOT x photons per channel (seed
+# _pilot_seed(seed)) measures each channel's largest relative ring noise over NOISE_BAND_MM;
+# the rest of the 3 x photons goes to the channels in proportion to noise^2 x photons, so
+# all three end with about the same noise (the pilot's photons are kept: mc_slab.combine).
+# Without it every channel gets the same photons and the slowest-converging channel sets the
+# count: on two_layer the blue far tail needs 3x the red's photons (bench/results/
+# profiles_table.json "allocation").  Below MC_PILOT_MIN pilot photons: equal shares.
+MC_PILOT = 0.1
+MC_PILOT_MIN = 2000
+NOISE_BAND_MM = (0.05, 5.0)
+
+
+def _pilot_seed(seed: int) -> int:
+    """The pilot run's seed: another Philox key, so its photons are independent of the
+    main run's."""
+    return (int(seed) ^ 0x9E3779B9) & 0xFFFFFFFF
+
+
+def _band_noise(mc, band: np.ndarray) -> np.ndarray:
+    """(3,) the largest relative R error per channel over the rings in ``band`` (inf where a
+    ring there is empty, 0 without rings in the band)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rel = np.where(mc.R > 0, mc.R_err / mc.R, np.inf)
+    return rel[band].max(axis=0) if band.any() else np.zeros(3)
 
 
 @lru_cache(maxsize=8)
@@ -1389,7 +1420,9 @@ def monte_carlo_profiles(stack: LayerStack, *, photons: int = DEFAULT_MC_PHOTONS
     stack : LayerStack
         The scene's layers (the same stack the multipole model would use).
     photons : int
-        Photons launched per colour channel.
+        Photons launched per colour channel on average: 3 x photons in all, shared among the
+        channels by a pilot run so that they reach the same noise (with ``split``; module
+        notes at MC_PILOT), else the same in each.
     seed : int
         Random seed (0 .. 2**32 - 1): the same seed gives the same table on the same device.
     env : pipeline.cl.ClEnv, optional
@@ -1428,24 +1461,42 @@ def monte_carlo_profiles(stack: LayerStack, *, photons: int = DEFAULT_MC_PHOTONS
         edges = mc_bin_edges(st, reach)
     edges = np.asarray(edges, np.float64)
     window = _mc_window(st, diff, edges, reach) if split else None
-    mc = mc_slab.simulate(st, photons=int(photons), edges=edges, seed=int(seed),
-                          batches=batches, env=env, window=window, w_min=MC_W_MIN)
+    mid = 0.5 * (edges[1:] + edges[:-1])
+    band = (mid >= NOISE_BAND_MM[0]) & (mid <= NOISE_BAND_MM[1])
+    run = dict(edges=edges, batches=batches, env=env, window=window, w_min=MC_W_MIN)
+    budget = 3 * int(photons)
+    pilot_n = int(MC_PILOT * photons)
+    if split and pilot_n >= MC_PILOT_MIN:
+        # a pilot run measures each channel's noise per photon; the rest of the budget goes
+        # where it equalises the channels' final noise (docs/profiles.md "allocation")
+        pilot = mc_slab.simulate(st, photons=pilot_n, seed=_pilot_seed(seed), **run)
+        n_pilot = np.asarray(pilot.info["photons_per_channel"], np.float64)
+        per_photon = n_pilot * np.square(_band_noise(pilot, band))   # noise^2 x photons
+        if np.all(np.isfinite(per_photon)) and np.all(per_photon > 0):
+            want = budget * per_photon / per_photon.sum() - n_pilot
+        else:
+            want = np.full(3, budget / 3.0) - n_pilot
+        rest = np.maximum(want, MC_PILOT_MIN).round().astype(np.int64)
+        mc = mc_slab.combine(pilot, mc_slab.simulate(st, photons=rest, seed=int(seed), **run))
+    else:
+        mc = mc_slab.simulate(st, photons=int(photons), seed=int(seed), **run)
     ring_area = np.pi * np.diff(edges**2)
     r_mm = 0.5 * (edges[1:] + edges[:-1])
     r_mm[0] = 0.0
-    mid = 0.5 * (edges[1:] + edges[:-1])
-    band = (mid >= 0.05) & (mid <= 5.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        rel = np.where(mc.R > 0, mc.R_err / mc.R, np.inf)
-    noise = [float(rel[band, c].max()) if band.any() else 0.0 for c in range(3)]
+    noise = _band_noise(mc, band).tolist()
     info = {"model": "monte_carlo", "layers": stack.to_dict(), "convention": RD_CONVENTION,
             "r_edges": edges.tolist(), "R_err": mc.R_err.tolist(), "T_err": mc.T_err.tolist(),
             "Rd_err": mc.Rd_err.tolist(), "Tt_err": mc.Tt_err.tolist(),
             "absorbed": mc.absorbed.tolist(), "lost": mc.lost.tolist(),
-            "photons": int(mc.photons), "seed": int(seed), "kernel_seconds": mc.seconds,
+            "photons": int(mc.photons),
+            "photons_per_channel": mc.info["photons_per_channel"], "seed": int(seed),
+            "runs": mc.info.get("runs", [{"seed": int(seed),
+                                          "photons_per_channel": mc.info["photons_per_channel"],
+                                          "seconds": mc.seconds}]), "kernel_seconds": mc.seconds,
             "photons_per_second": mc.photons_per_second, "device": mc.info["device"],
             "window": mc.info["window"], "noise_max_rel": noise,
-            "noise_band_mm": [0.05, 5.0], "batches": batches,
+            "noise_band_mm": list(NOISE_BAND_MM), "batches": batches,
+            "trips_per_channel": mc.info["trips_per_channel"],
             "lane_occupancy": mc.info["lane_occupancy"],
             "interactions_per_second": mc.info["interactions_per_second"],
             "T_ballistic": [math.exp(-sum((l.sigma_a[c] + l.sigma_s[c]) * l.thickness_mm

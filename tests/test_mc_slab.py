@@ -80,10 +80,18 @@ def test04_extremes_finite(env, lay):
 
 
 def test05_philox_known_answers_and_cheap_math(env):
-    # Philox4x32-10 known-answer vectors (Random123 kat_vectors; Salmon et al. 2011) from
-    # the scalar and the vector (uint16 lanes) forms in cl/rng.h.
+    # Philox4x32 known-answer vectors (Random123 kat_vectors; Salmon et al. 2011) from
+    # the scalar form (10 rounds) and the vector (uint8/uint16 lanes) form in cl/rng.h with
+    # the tracer's rounds (7 and 10 both checked).
     import pyopencl as cl
-    knl = cl.Kernel(env.program("mc_slab.cl", {"LANES": M.LANES}), "mc_selftest")
+    for rounds in (7, 10):
+        _check_philox_and_cheap_math(env, cl, rounds)
+
+
+def _check_philox_and_cheap_math(env, cl, rounds):
+    lanes = M.lanes_for(env)
+    knl = cl.Kernel(env.program("mc_slab.cl", dict(M.kernel_defines(env), PHILOX_ROUNDS=rounds)),
+                    "mc_selftest")
     n = 1 << 16
     # u = (k + 1) / 2^24: the tracer's uniforms, k spread over [0, 2^24) plus both ends
     k = (np.arange(n, dtype=np.uint64) * 2654435761) % (1 << 24)
@@ -93,14 +101,16 @@ def test05_philox_known_answers_and_cheap_math(env):
     d_kat = cl.Buffer(env.context, mf.READ_WRITE, 12 * 4)
     d_u = cl.Buffer(env.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=u)
     d_m = cl.Buffer(env.context, mf.READ_WRITE, 3 * n * 4)
-    knl(env.queue, (n // M.LANES,), None, d_kat, d_u, d_m)
+    knl(env.queue, (n // lanes,), None, d_kat, d_u, d_m)
     kat = np.zeros(12, np.uint32)
     m = np.zeros(3 * n, np.float32)
     cl.enqueue_copy(env.queue, kat, d_kat)
     cl.enqueue_copy(env.queue, m, d_m)
-    want = [0x6627e8d5, 0xe169c58d, 0xbc57ac4c, 0x9b00dbd8,
-            0x408f276d, 0x41c83b0e, 0xa20bc7c6, 0x6d5451fd,
-            0xd16cfe09, 0x94fdcceb, 0x5001e420, 0x24126ea1]
+    want = [0x6627e8d5, 0xe169c58d, 0xbc57ac4c, 0x9b00dbd8]      # scalar, 10 rounds, zeros
+    want += {10: [0x408f276d, 0x41c83b0e, 0xa20bc7c6, 0x6d5451fd,   # all ones
+                  0xd16cfe09, 0x94fdcceb, 0x5001e420, 0x24126ea1],  # digits of pi
+             7: [0x5207ddc2, 0x45165e59, 0x4d8ee751, 0x8c52f662,
+                 0x4dfccaba, 0x190a87f0, 0xc47362ba, 0xb6b5242a]}[rounds]
     assert [int(v) for v in kat] == want
     # -ln u: series error < 7e-10 plus float32 rounding of the result (|ln u| <= 16.7,
     # 2^-24 relative -> 1e-6) and of the intermediate (a few ulp): 2e-6 absolute.
@@ -143,3 +153,24 @@ def test07_ballistic_two_layer_absorber(env):
     Rd = R * (1 - R) * e**2 / (1 - R**2 * e**2)
     assert np.all(np.abs(r.Tt - T) < 5 * r.Tt_err + 1e-4), (r.Tt, T)
     assert np.all(np.abs(r.Rd - Rd) < 5 * r.Rd_err + 1e-4), (r.Rd, Rd)
+
+
+def test10_combine_pools_runs_and_per_channel_budgets(env):
+    # per-channel photon budgets are honoured; pooling a run with itself keeps the means and
+    # divides the standard errors by sqrt(2) (equal weights); pooling unequal runs weights by
+    # photons per channel
+    st = LayerStack((Layer(math.inf, 1.4, (0.1, 0.3, 1.0), (2.0, 2.0, 2.0), 0.5),))
+    a = M.simulate(st, photons=(4000, 8000, 16000), r_max_mm=5, bins=10, seed=1, env=env)
+    n = np.asarray(a.info["photons_per_channel"])
+    want = np.array([4000, 8000, 16000])
+    assert np.all(n >= want) and np.all(n < want + a.info["items"])   # rounded up per item
+    c = M.combine(a, a)
+    np.testing.assert_allclose(c.R, a.R, rtol=1e-12)
+    np.testing.assert_allclose(c.Rd_err, a.Rd_err / math.sqrt(2), rtol=1e-12)
+    assert c.info["photons_per_channel"] == (2 * n).tolist()
+    b = M.simulate(st, photons=(12000, 8000, 4000), r_max_mm=5, bins=10, seed=2, env=env)
+    nb = np.asarray(b.info["photons_per_channel"])
+    d = M.combine(a, b)
+    np.testing.assert_allclose(d.Rd, (n * a.Rd + nb * b.Rd) / (n + nb), rtol=1e-12)
+    # and the pooled estimate agrees with both within their errors (5 sigma)
+    assert np.all(np.abs(a.Rd - b.Rd) < 5 * np.hypot(a.Rd_err, b.Rd_err))

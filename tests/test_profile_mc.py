@@ -152,11 +152,18 @@ def test02_table_is_a_layer_file(mc_tables):
 
 
 def test02_table_Rd_is_the_monte_carlo_total(mc_tables, env):
-    # the table's totals are those of the run it came from (same seed, rings and window)
+    # the table's totals are those of the runs it came from (the pilot and the main run:
+    # same seeds, photons per channel, rings and window), pooled
     st, a, _ = mc_tables
-    mc = M.simulate(st, photons=30000, edges=np.asarray(a.info["r_edges"]), seed=11,
-                    window=a.info["window"], batches=a.info["batches"], env=env,
-                    w_min=P.MC_W_MIN)
+    runs = a.info["runs"]
+    assert len(runs) == 2 and runs[1]["seed"] == 11 and runs[0]["seed"] != 11
+    # the budget: 3 x 30000 photons in all, shared unequally
+    assert abs(sum(np.sum(r["photons_per_channel"]) for r in runs) - 90000) < 0.02 * 90000
+    assert len(set(runs[1]["photons_per_channel"])) > 1
+    mc = [M.simulate(st, photons=r["photons_per_channel"], edges=np.asarray(a.info["r_edges"]),
+                     seed=r["seed"], window=a.info["window"], batches=a.info["batches"],
+                     env=env, w_min=P.MC_W_MIN) for r in runs]
+    mc = M.combine(*mc)
     np.testing.assert_array_equal(a.Rd, mc.Rd)
     np.testing.assert_array_equal(a.Tt, mc.Tt)
     np.testing.assert_array_equal(a.R, mc.R)
