@@ -1,4 +1,5 @@
-"""Benchmark: a sweep serial vs on Dask LocalClusters of 1 and 2 workers; task statistics;
+"""Benchmark: a sweep serial vs on Dask LocalClusters of 1 worker (all cores, or one) and 2
+workers (one core each: pipeline/distributed.py local_cluster); task statistics;
 the wall time of a 1,000-point sweep on 50 machines estimated from them.
 
 Scene: the quick scene cut to the BSSRDF and Lafortune models under the point and area lights
@@ -71,8 +72,7 @@ def base_tasks(path: Path) -> int:
 
 
 def main() -> None:
-    from distributed import LocalCluster
-
+    from dermis.pipeline.distributed import local_cluster
     from dermis.reports.sweep import run_sweep
 
     ap = argparse.ArgumentParser()
@@ -84,14 +84,18 @@ def main() -> None:
     load0 = os.getloadavg()
     run_sweep(path, cache=tmp / "warm", out_dir=tmp / "warm_res")          # warm-up
     res = {}
-    for label, workers in (("serial", 1), ("dask_1_worker", 1), ("dask_2_workers", 2)):
+    cores = os.cpu_count() or 1
+    # (label, workers, threads per worker): the 1-worker cluster with all cores is the serial
+    # run's equal; with one core it is the unit the 2-worker cluster (one core each) scales
+    configs = (("serial", 1, cores), ("dask_1_worker", 1, cores),
+               ("dask_1_worker_1_thread", 1, 1), ("dask_2_workers", 2, max(1, cores // 2)))
+    for label, workers, threads in configs:
         cache = tmp / f"cache_{label}"
         before = os.getloadavg()
         cluster, startup = None, 0.0
         if label != "serial":   # started before the clock (run_sweep --workers 1 is serial)
             t0 = time.perf_counter()
-            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                   dashboard_address=None)
+            cluster = local_cluster(workers, threads)
             startup = time.perf_counter() - t0
         t0 = time.perf_counter()
         r = run_sweep(path, cache=cache, out_dir=tmp / f"res_{label}", workers=workers,
@@ -100,11 +104,13 @@ def main() -> None:
         if cluster is not None:
             cluster.close()
         res[label] = {"wall_seconds": wall, **r["distributed"], "workers": workers,
+                      "threads_per_worker": threads,
                       "cluster_startup_seconds": startup, "points": len(r["points"]),
                       "loadavg_before": before, "loadavg_after": os.getloadavg()}
         print(label, json.dumps(res[label]), flush=True)
         shutil.rmtree(cache)
     one, dask1, two = res["serial"], res["dask_1_worker"], res["dask_2_workers"]
+    dask1t = res["dask_1_worker_1_thread"]
     # A 1,000-point sweep of this kind: the tasks every point shares run once (their critical
     # path), then per point the tasks its knob changes, spread over M machines x C workers at
     # the measured mean task time plus the measured per-task scheduler overhead.
@@ -115,12 +121,14 @@ def main() -> None:
     # Dask's own cost per task: the 1-worker cluster runs the same tasks one at a time as the
     # serial run does, plus submission, scheduling, pickling and the worker round trip
     overhead = max(dask1["wall_seconds"] - one["wall_seconds"], 0.0) / one["tasks"]
-    machines, cores = 50, 2
+    machines, cores = 50, 2   # the estimate's machines: 2 cores each, like this one
     est = one["critical_path_seconds"] + 1000 * tasks_per_point * (mean_task + overhead) / (
         machines * cores)
     out = {"scene": "quick (lafortune + bssrdf, point + area, high, 320x320), "
                     "bssrdf.epsilon x3 + lights.samples x3",
-           "serial": one, "dask_1_worker": dask1, "dask_2_workers": two,
+           "serial": one, "dask_1_worker": dask1, "dask_1_worker_1_thread": dask1t,
+           "dask_2_workers": two,
+           "speedup_2_workers_vs_1_worker_1_thread": dask1t["wall_seconds"] / two["wall_seconds"],
            "speedup_2_workers_vs_serial": one["wall_seconds"] / two["wall_seconds"],
            "speedup_2_workers_vs_1_worker": dask1["wall_seconds"] / two["wall_seconds"],
            "serial_cores_busy": one["process_cpu_seconds"] / one["wall_seconds"],

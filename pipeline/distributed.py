@@ -11,6 +11,7 @@ is retried and, stages being deterministic, writes the same bytes.
 """
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field
 
@@ -161,13 +162,37 @@ def _run_serial(tasks, cache_root, device, progress, warm) -> dict:
     return results
 
 
+# Thread pools a node's libraries start, each told its share of the cores through the worker
+# process's environment: OpenMP (open3d's ray casting), OpenBLAS/MKL, and PoCL's pthread
+# device (its compute units).  Dask's nanny starts workers with OMP_NUM_THREADS=1
+# (distributed.nanny.pre-spawn-environ): a 1-worker cluster then cast rays on one core and
+# took 46.5 s where the serial run took 24.6 s (bench/results/sweep_dask.json rerun_quiet).
+THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
+              "POCL_MAX_PTHREAD_COUNT")
+
+
+def worker_environment(threads: int) -> dict[str, str]:
+    """Environment of a worker process that may use ``threads`` cores."""
+    return {name: str(int(threads)) for name in THREAD_ENV}
+
+
+def local_cluster(workers: int, threads: int | None = None):
+    """A Dask LocalCluster of ``workers`` processes, one task at a time each, every worker's
+    libraries sized to ``threads`` cores (default: this machine's cores / workers, >= 1), so
+    that the workers share the cores instead of oversubscribing or idling them."""
+    from dask.distributed import LocalCluster
+    if threads is None:
+        threads = max(1, (os.cpu_count() or 1) // max(1, workers))
+    return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                        dashboard_address=None, env=worker_environment(threads))
+
+
 def _run_dask(tasks, cache_root, device, workers, scheduler, progress, warm) -> dict:
-    from dask.distributed import Client, LocalCluster, as_completed
+    from dask.distributed import Client, as_completed
 
     cluster = None
     if scheduler is None:
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                               dashboard_address=None)
+        cluster = local_cluster(workers)
     client = Client(scheduler or cluster)
     try:
         futures = {}

@@ -212,3 +212,26 @@ def test08_profile_knobs_are_scored_against_the_monte_carlo_profile(tmp_path):
     # the photons point is the same scene as the monte_carlo point (20k photons either way)
     (ph,) = [p for p in res["points"] if p["knob"] == "optics.photons"]
     assert ph["rel_rmse"] == 0.0
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test09_local_workers_share_the_cores(workers):
+    # each worker's OpenMP, BLAS and PoCL pools get cores / workers threads (Dask's nanny
+    # would otherwise start them all at OMP_NUM_THREADS=1), and PoCL in a worker honours it
+    import os
+    distributed = pytest.importorskip("distributed")
+    from dermis.pipeline.distributed import THREAD_ENV, local_cluster
+    want = str(max(1, (os.cpu_count() or 1) // workers))
+
+    def probe():
+        import pyopencl as cl
+        units = [d.max_compute_units for p in cl.get_platforms() if "Portable" in p.name
+                 for d in p.get_devices()]
+        return {k: os.environ.get(k) for k in THREAD_ENV}, units
+
+    with local_cluster(workers) as cluster, distributed.Client(cluster) as client:
+        got = client.run(probe)
+    assert len(got) == workers
+    for env, units in got.values():
+        assert env == {k: want for k in THREAD_ENV}
+        assert all(u == int(want) for u in units)
