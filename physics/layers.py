@@ -106,10 +106,11 @@ PROFILE_KEYS = ("profile", "photons", "seed")
 # Diffusion stays the default: it needs no OpenCL device and takes ~1-3 s; the Monte Carlo
 # table is the reference (docs/profiles.md: where diffusion is still off, and by how much).
 DEFAULT_PROFILE_MODEL = "multipole"
-# Photons per channel of the Monte Carlo table: bench/bench_profile_table.py measured
-# <= 1 % relative noise per ring over [0.05, 5] mm on two_layer (all channels) with this many
-# (bench/results/profiles_table.json), in <= 15 s on a 2-core PoCL CPU.
-DEFAULT_MC_PHOTONS = 2_000_000
+# Photons per channel of the Monte Carlo table, on average (the channels share 3 x this by a
+# pilot run, stages/profiles.py MC_PILOT): bench/bench_profile_table.py measured <= 1 %
+# relative noise per ring over [0.05, 5] mm on two_layer in all channels with this many
+# (bench/results/profiles_table.json; 0.95 % at most).
+DEFAULT_MC_PHOTONS = 2_400_000
 DEFAULT_MC_SEED = 0
 MAX_MC_PHOTONS = 2_000_000_000
 
