@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dermis.pipeline.errors import DermisError
+from dermis.pipeline.reuse import RecentResults, content_key
 
 __all__ = ["Visibility", "Hits", "OFFSET_FRACTION", "MISS", "camera_rays", "camera_vectors",
            "subpixel_offsets"]
@@ -174,15 +175,21 @@ def _rays(origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
     return rays
 
 
-def shared(mesh, memo: dict) -> "Visibility":
-    """One Embree scene per mesh object per run, shared by every node that traces that mesh.
+# Embree scenes kept by this process beyond one run, by mesh content (pipeline/reuse.py):
+# an image re-rendered alone in a new run otherwise rebuilds its mesh's scene (~1 s for the
+# 1.13M-triangle scan).  Two: the high and the low mesh of a scene.
+_SCENES = RecentResults(2)
 
-    ``memo`` is the run's scratch dict (``RunContext.memo``); the mesh is kept alive in it so
-    its ``id`` cannot be reused while the entry exists.
-    """
+
+def shared(mesh, memo: dict) -> "Visibility":
+    """One Embree scene per mesh, shared by every node that traces that mesh: per mesh object
+    in a run (``memo``, the run's ``RunContext.memo``; the mesh is kept alive in it so its
+    ``id`` cannot be reused while the entry exists), and across runs of this process per mesh
+    content (the last two meshes)."""
     key = ("visibility", id(mesh))
     if key not in memo:
-        memo[key] = (mesh, Visibility(mesh.vertices, mesh.faces))
+        v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+        memo[key] = (mesh, _SCENES.get(content_key(v, f), lambda: Visibility(v, f)))
     return memo[key][1]
 
 

@@ -77,6 +77,7 @@ import numpy as np
 
 from dermis.pipeline.config import BssrdfConfig
 from dermis.pipeline.errors import DermisError
+from dermis.pipeline.reuse import RecentResults, content_key
 from dermis.physics.fresnel import diffuse_fresnel_external, fresnel_transmittance
 from dermis.stages.brdf_models import Transmittance  # entry/exit transmittance (re-exported)
 
@@ -633,13 +634,11 @@ def gather(octree: Octree, profile, query_positions: np.ndarray, *, epsilon: flo
         return np.zeros((0, 3), np.float32), {"kernel_seconds": 0.0, "wall_seconds": 0.0}
     run = _prepare(octree, profile, env or get_env(), normalisation=normalisation,
                    tuning=tuning, progress=progress, part=part)
-    perm = _query_order(qp, brute_force=brute_force, tuning=tuning)
-    q4 = np.zeros((nq, 4), np.float32)
-    q4[:, :3] = qp[perm]
+    perm, q4, tiles = _ordered_queries(qp, brute_force=brute_force, tuning=tuning)
     if brute_force:
         out, visits, events = _walk_brute(run, q4)
     elif tuning.tile > 1:
-        out, visits, events = _walk_tiles(run, q4, octree, epsilon)
+        out, visits, events = _walk_tiles(run, q4, tiles, octree, epsilon)
     else:
         out, visits, events = _walk_queries(run, q4, octree, epsilon)
     run.env.queue.finish()
@@ -714,9 +713,10 @@ class _Run:
         return events
 
 
-# Device tables per (profile object, normalisation, cut-off, sigma, part): the profile is
-# kept alive with them so its id cannot be reused while the entry exists.
-_TABLES: dict = {}
+# Device tables per (profile content, normalisation, cut-off, sigma, part), kept across
+# runs of this process (pipeline/reuse.py): the blur costs ~0.3 s and every image of a mesh
+# uses the same tables.
+_TABLES = RecentResults(8)
 
 
 def _prepare(octree: Octree, profile, env, *, normalisation: str, tuning: GatherTuning,
@@ -731,18 +731,16 @@ def _prepare(octree: Octree, profile, env, *, normalisation: str, tuning: Gather
     if part != "all" and (normalisation != "energy" or not sigma > 0):
         raise DermisError("gather: a near/far part needs the 'energy' normalisation and a "
                           "reconstruction width > 0")
-    key = (id(profile), normalisation, tuning.cutoff_mm, sigma, part)
-    if key not in _TABLES:   # the blur costs ~0.8 s; images of one run share the tables
+
+    def tables():
         src = profile
         if part != "all":
             split = split_profile(profile, sigma, cutoff_mm=tuning.cutoff_mm)
             src = split.far if part == "far" else split.near
-        if len(_TABLES) >= 8:
-            _TABLES.pop(next(iter(_TABLES)))
-        _TABLES[key] = (profile, profile_table(src, normalisation=normalisation,
-                                               cutoff_mm=tuning.cutoff_mm, sigma_mm=sigma,
-                                               taylor=True))
-    tab, h, cmax, deriv, taytab = _TABLES[key][1]
+        return profile_table(src, normalisation=normalisation, cutoff_mm=tuning.cutoff_mm,
+                             sigma_mm=sigma, taylor=True)
+    key = (_profile_key(profile), normalisation, tuning.cutoff_mm, sigma, part)
+    tab, h, cmax, deriv, taytab = _TABLES.get(key, tables)
     rd = np.zeros(4, np.float32)
     rd[:3] = np.asarray(profile.Rd, np.float32)
     pts_pa = np.zeros((len(octree.positions), 4), np.float32)
@@ -758,12 +756,41 @@ def _prepare(octree: Octree, profile, env, *, normalisation: str, tuning: Gather
                 defines=defines, chunks=16 if progress is not None else 1, progress=progress)
 
 
+def _profile_key(profile) -> str:
+    """Content key of a layer profile (what the tables are made of)."""
+    return content_key(*(np.asarray(getattr(profile, f), np.float64)
+                         for f in ("r_mm", "R", "Rd", "cutoff_mm")))
+
+
 def _query_order(qp: np.ndarray, *, brute_force: bool, tuning: GatherTuning) -> np.ndarray:
     """Launch order of the queries: Morton (results are returned in the input order).  The
     tile walk always forms its tiles along the Morton curve (unsorted tiles span the scene:
     measured 40x slower for random order); ``sort_queries`` applies to the other walks."""
     tiled = not brute_force and tuning.tile > 1
     return morton_order(qp) if (tuning.sort_queries or tiled) else np.arange(len(qp))
+
+
+# Query orders and tiles of the last shading points (pipeline/reuse.py): every image of a
+# geometry shades the same points (~0.6 s of sorting and tiling for 1.2M camera samples).
+_QUERY_TILES = RecentResults(2)
+
+
+def _ordered_queries(qp: np.ndarray, *, brute_force: bool, tuning: GatherTuning):
+    """The launch order ``perm`` (:func:`_query_order`), the ordered queries (Q, 4) float32
+    and, for the tile walk, their tiles (:func:`_tile_queries`; else None)."""
+    tiled = not brute_force and tuning.tile > 1
+    use_sub = tiled and tuning.tile == 16 and bool(tuning.subtiles)
+
+    def make():
+        perm = _query_order(qp, brute_force=brute_force, tuning=tuning)
+        q4 = np.zeros((len(qp), 4), np.float32)
+        q4[:, :3] = qp[perm]
+        tiles = _tile_queries(q4, tuning.tile, use_sub) if tiled else ()
+        for a in (perm, q4, *tiles):
+            a.setflags(write=False)   # shared by later images
+        return perm, q4, tiles or None
+    return _QUERY_TILES.get(content_key(qp, brute_force, tuning.sort_queries,
+                                        tuning.tile if tiled else 1, use_sub), make)
 
 
 def _part(buf, whole: bool, a: int, b: int, item_bytes: int):
@@ -842,10 +869,10 @@ def _untile(planar: np.ndarray, tile: int, use_sub: bool, nq: int) -> np.ndarray
     return outt[:nq]
 
 
-def _walk_tiles(run: _Run, q4: np.ndarray, octree: Octree, epsilon: float):
+def _walk_tiles(run: _Run, q4: np.ndarray, tiles, octree: Octree, epsilon: float):
     """One walk per tile of Morton-adjacent queries in vector lanes (gather_tile_v), with the
-    far-field expansion about the tile and (tile 16) its sub-tiles.  (out (Q, 4), visits
-    (Q,): the tile's, events)"""
+    far-field expansion about the tile and (tile 16) its sub-tiles; ``tiles`` are the
+    queries' (:func:`_tile_queries`).  (out (Q, 4), visits (Q,): the tile's, events)"""
     import pyopencl as cl
     from dermis.pipeline.cl import to_device
 
@@ -853,7 +880,7 @@ def _walk_tiles(run: _Run, q4: np.ndarray, octree: Octree, epsilon: float):
     tile = tn.tile
     use_sub = tile == 16 and bool(tn.subtiles)
     sub_rt = tn.expand_rt if tn.expand_sub_rt is None else tn.expand_sub_rt
-    qt, sph, ssph = _tile_queries(q4, tile, use_sub)
+    qt, sph, ssph = tiles
     ntiles = len(qt)
     d_qt, d_sph, d_ssph = to_device(env, qt), to_device(env, sph), to_device(env, ssph)
     d_node = to_device(env, _node_records(octree, epsilon, run.cmax, distances=True))
@@ -1580,18 +1607,24 @@ def exitance(points, irradiance: np.ndarray, profile, queries: np.ndarray, *,
         stats.update(st)
         stats["seconds"] = time.perf_counter() - t0
         return m, stats
-    t1 = time.perf_counter()
     ek = ("edges",) + key
-    if ek not in memo:   # a condition of one light: the irradiance stage's is that light's
-        own = E if len(lights) == 1 else None
-        memo[ek] = (points, irradiance, [shadow_edges(points.positions, points.normals, l,
-                                                      visibility, spacing,
-                                                      transmittance=transmittance,
-                                                      irradiance=own)
-                                         for l in sharp])
-    edges = memo[ek][2]
-    t_edges = time.perf_counter() - t1
+    pending = None
+    if ek not in memo:
+        # the shadow edges (host numpy and Embree, one thread each) are located while this
+        # thread builds the octree and the device gathers the far part: independent work
+        # whose results do not depend on the overlap
+        from concurrent.futures import ThreadPoolExecutor
+        own = E if len(lights) == 1 else None   # a condition of one light: E is that light's
+        pool = ThreadPoolExecutor(max_workers=len(sharp))
+        pending = [pool.submit(shadow_edges, points.positions, points.normals, l, visibility,
+                               spacing, transmittance=transmittance, irradiance=own)
+                   for l in sharp]
+        pool.shutdown(wait=False)
     m_far, st = gather(tree("all", E), profile, queries, part="far", **gkw)
+    if pending is not None:
+        memo[ek] = (points, irradiance, [f.result() for f in pending])
+    edges = memo[ek][2]
+    t_edges = sum(ed.info["seconds"] for ed in edges)
     stats.update(st)
     M = m_far.astype(np.float64)
     if soft:

@@ -113,3 +113,30 @@ def test07_metadata_has_timing_and_device(built):
     rep = {r.id: r for r in first.nodes}["mesh_high"]
     meta = json.loads((Path(rep.path) / "meta.json").read_text())
     assert meta["seconds"] > 0 and meta["parts"]["params"]["target_triangles"] == 60_000
+
+
+def test08_results_kept_across_runs_by_content():
+    """pipeline/reuse.py: keys follow content (dtype, shape, bytes), the oldest result goes
+    first, and an equal mesh loaded again (a new run) finds its Embree scene."""
+    import numpy as np
+    from dermis.pipeline.reuse import RecentResults, content_key
+    from dermis.physics import visibility
+    a = np.arange(6, dtype=np.float32)
+    assert content_key(a) == content_key(a.copy())
+    assert len({content_key(a), content_key(a.astype(np.float64)), content_key(a.reshape(2, 3)),
+                content_key(a + 1), content_key(a, 1)}) == 5
+    made = []
+    keep = RecentResults(2)
+    for k in (1, 2, 1, 3, 1, 2):
+        keep.get(k, lambda: made.append(k))
+    assert made == [1, 2, 3, 2]                 # 2 was dropped when 3 came (1 used since)
+
+    class Mesh:                                 # what shared() reads of a mesh
+        def __init__(self):
+            self.vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float64)
+            self.faces = np.array([[0, 1, 2]], np.int32)
+    first = visibility.shared(Mesh(), {})
+    assert visibility.shared(Mesh(), {}) is first
+    other = Mesh()
+    other.vertices = other.vertices * 2.0
+    assert visibility.shared(other, {}) is not first
