@@ -18,10 +18,19 @@ Also here, for the renderer: :func:`triangle_tangent_frames` and :func:`bump_sha
 Everything is numpy/scipy plus Embree through open3d's ``RaycastingScene``: the rasteriser is
 a vectorised scanline fill (no per-texel Python loop) and measured fast enough
 (bench/bench_bake.py), so no OpenCL kernel is used.
+
+Two threads share the work (the result does not depend on it: every thread writes its own
+texels).  The texels are cast in chunks taken by two threads, so one chunk's numpy steps run
+while Embree casts another's rays (Embree holds the GIL but uses every core); what needs only
+the coverage mask (the dilation band's distance transform, the blur's denominator) runs on a
+second thread meanwhile, and after the cast the albedo's miss fill runs there while the bump
+is blurred.  On the default scene (4096^2, 1.1M triangles, 2 cores) that took the node from
+28 s to 18.5 s wall (bench/bench_stages.py, bench/results/stage_speed.json).
 """
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from typing import Callable
 
@@ -53,6 +62,9 @@ MAX_RESOLUTION = 16384
 # Texels per ray-casting chunk: bounds the per-chunk arrays (2 rays per texel, ~150 B per
 # texel in flight) to ~150 MB while keeping Embree's per-call overhead negligible.
 CHUNK_TEXELS = 1 << 20
+# Threads that take the chunks (see _cast_texels): two overlap one chunk's numpy steps with
+# another's ray casting on the 2-core reference machine.
+CHUNK_THREADS = 2
 # Tolerance of the inside test, in texels: texel centres lying on a shared UV edge are taken
 # by both triangles (no cracks); the duplicate is dropped afterwards.
 EDGE_EPS_PX = 1e-4
@@ -210,8 +222,10 @@ def _bilinear(image: np.ndarray, uv: np.ndarray, lut: np.ndarray | None = None) 
     fx, fy = x - x0, y - y0
     x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
 
+    texels = image.reshape(h * w, *image.shape[2:])   # one flat take: 3x faster than [yy, xx]
+
     def at(yy, xx):
-        v = image[yy, xx]
+        v = texels[yy * w + xx]
         return lut[v] if lut is not None else v.astype(np.float32)
 
     if image.ndim == 3:
@@ -221,15 +235,22 @@ def _bilinear(image: np.ndarray, uv: np.ndarray, lut: np.ndarray | None = None) 
     return (top * (1 - fy) + bottom * fy).astype(np.float32)
 
 
-def _masked_blur(image: np.ndarray, mask: np.ndarray, sigma: float) -> np.ndarray:
+def _blur_weights(mask: np.ndarray, sigma: float) -> np.ndarray:
+    """G * mask, the denominator of :func:`_masked_blur` (it depends on the mask only)."""
+    return ndimage.gaussian_filter(mask.astype(np.float32), sigma, mode="constant", cval=0.0)
+
+
+def _masked_blur(image: np.ndarray, mask: np.ndarray, sigma: float,
+                 den: np.ndarray | None = None) -> np.ndarray:
     """Gaussian blur over the ``mask`` texels only (normalised convolution G*(x m) / G*m);
-    zero outside the mask; sigma 0 returns a copy."""
+    zero outside the mask; sigma 0 returns a copy.  ``den``: ``_blur_weights(mask, sigma)``
+    when already computed."""
     if sigma <= 0:
         return image.copy()
-    m = mask.astype(np.float32)
-    num = ndimage.gaussian_filter(image * m, sigma, mode="constant", cval=0.0)
-    den = ndimage.gaussian_filter(m, sigma, mode="constant", cval=0.0)
-    del m
+    num = ndimage.gaussian_filter(image * mask.astype(np.float32), sigma, mode="constant",
+                                  cval=0.0)
+    if den is None:
+        den = _blur_weights(mask, sigma)
     # A convex mix of covered values: the clip removes only float rounding beyond their range.
     lo, hi = (float(image[mask].min()), float(image[mask].max())) if mask.any() else (0.0, 0.0)
     ratio = np.clip(num / np.maximum(den, 1e-12), lo, hi)
@@ -435,40 +456,43 @@ def _nearest_hits(ans, nrm: np.ndarray, backoff: float, max_distance: float):
 def _cast_texels(scene, tf: _TriangleFrames, flat, tri, resolution, reference, max_distance,
                  texture: _HighTexture | None, timings: dict, report):
     """Steps 2-4 in chunks of ``CHUNK_TEXELS``: heights, hit flags, linear albedo per texel
-    and the count of back-facing rejections."""
+    and the count of back-facing rejections.  Chunks are independent and write disjoint
+    slices, so ``CHUNK_THREADS`` threads take them: one chunk's numpy steps (which release
+    the GIL) run while another's rays are cast (Embree on every core; it holds the GIL)."""
     import open3d.core as o3c
     n_cov = len(flat)
     height = np.zeros(n_cov, dtype=np.float32)
     hit = np.zeros(n_cov, dtype=bool)
     albedo_lin = np.zeros((n_cov, 3), dtype=np.float32)
-    t_interp = t_cast = t_shade = 0.0
     backoff = RAY_BACKOFF_FRACTION * max_distance
-    rejected_backfacing = 0
-    for s in range(0, n_cov, CHUNK_TEXELS):
+
+    def chunk(s: int):
+        """Cast chunk ``[s, s + CHUNK_TEXELS)``; returns (rejected rays, seconds per step)."""
         e = min(s + CHUNK_TEXELS, n_cov)
         t0 = time.perf_counter()
         p, nrm, h_ref = _texel_points(tf, tri[s:e], flat[s:e], resolution, reference)
         rays = _rays_both_ways(p, nrm, backoff)
         del p
-        t_interp += time.perf_counter() - t0
-
-        t0 = time.perf_counter()
+        t1 = time.perf_counter()
         ans = scene.cast_rays(o3c.Tensor(rays))
-        t_cast += time.perf_counter() - t0
-
-        t0 = time.perf_counter()
+        t2 = time.perf_counter()
         signed_t, got, use_f, rejected = _nearest_hits(ans, nrm, backoff, max_distance)
-        rejected_backfacing += rejected
         height[s:e] = np.where(got, signed_t - h_ref, 0.0)
         hit[s:e] = got
         if texture is not None and got.any():
             sel = np.nonzero(got)[0]
             albedo_lin[s + sel] = texture.at_hits(ans, np.where(use_f[sel], sel, sel + (e - s)))
-        t_shade += time.perf_counter() - t0
-        report(0.05 + 0.75 * e / n_cov)
-    timings["interpolate_s"] = t_interp
-    timings["raycast_s"] = t_cast
-    timings["hit_lookup_s"] = t_shade
+        return rejected, (t1 - t0, t2 - t1, time.perf_counter() - t2), e
+
+    rejected_backfacing = 0
+    seconds = np.zeros(3)
+    with ThreadPoolExecutor(max_workers=CHUNK_THREADS) as pool:
+        for rejected, step_seconds, e in pool.map(chunk, range(0, n_cov, CHUNK_TEXELS)):
+            rejected_backfacing += rejected
+            seconds += step_seconds
+            report(0.05 + 0.75 * e / n_cov)
+    # summed over the chunks (so over both threads: they can add up to more than the wall time)
+    timings["interpolate_s"], timings["raycast_s"], timings["hit_lookup_s"] = seconds.tolist()
     return height, hit, albedo_lin, rejected_backfacing
 
 
@@ -499,31 +523,41 @@ def _albedo_image(albedo_cov: np.ndarray, flat, resolution: int, hit) -> np.ndar
     return albedo
 
 
+def _coverage(flat, resolution: int) -> np.ndarray:
+    """(R, R) bool mask of the texels some low triangle covers."""
+    coverage = np.zeros(resolution * resolution, dtype=bool)
+    coverage[flat] = True
+    return coverage.reshape(resolution, resolution)
+
+
 def _normalised_bump(height: np.ndarray, flat, resolution: int):
-    """Step 6: (bump in [0, 1], coverage, h_min, h_max, neutral bump of 0 mm) over covered texels."""
-    n_pix = resolution * resolution
+    """Step 6: (bump in [0, 1], h_min, h_max, neutral bump of 0 mm) over covered texels."""
     h_min, h_max = float(height.min()), float(height.max())
     h_range = h_max - h_min
-    coverage = np.zeros(n_pix, dtype=bool)
-    coverage[flat] = True
-    bump = np.zeros(n_pix, dtype=np.float32)
+    bump = np.zeros(resolution * resolution, dtype=np.float32)
     if h_range > 0:
         bump[flat] = (height - np.float32(h_min)) / np.float32(h_range)
     neutral = float(np.clip((0.0 - h_min) / h_range, 0.0, 1.0)) if h_range > 0 else 0.0
-    return (bump.reshape(resolution, resolution), coverage.reshape(resolution, resolution),
-            h_min, h_max, neutral)
+    return bump.reshape(resolution, resolution), h_min, h_max, neutral
 
 
-def _dilate(coverage: np.ndarray, dilate_px: int, maps_and_far_values) -> int:
-    """Step 8, in place: texels within ``dilate_px`` of a chart take the nearest covered
-    texel's value, farther ones the given neutral value.  Returns the band's texel count."""
+def _dilation_band(coverage: np.ndarray, dilate_px: int):
+    """Texels within ``dilate_px`` outside the charts and the covered texel each copies:
+    (band mask, source rows, source columns), or None when everything is covered."""
     if coverage.all():
-        return 0
+        return None
     idx = _nearest_fill_indices(coverage)
     band = _squared_distance(idx) <= dilate_px * dilate_px
     band &= ~coverage
-    src_y, src_x = idx[0][band], idx[1][band]
-    del idx
+    return band, idx[0][band], idx[1][band]
+
+
+def _dilate(coverage: np.ndarray, dilation_band, maps_and_far_values) -> int:
+    """Step 8, in place: texels of the band (:func:`_dilation_band`) take the nearest covered
+    texel's value, farther ones the given neutral value.  Returns the band's texel count."""
+    if dilation_band is None:
+        return 0
+    band, src_y, src_x = dilation_band
     for image, _ in maps_and_far_values:
         image[band] = image[src_y, src_x]
     far = ~(band | coverage)
@@ -535,6 +569,12 @@ def _dilate(coverage: np.ndarray, dilate_px: int, maps_and_far_values) -> int:
 # ----------------------------------------------------------------------------------------
 # The bake
 # ----------------------------------------------------------------------------------------
+def _timed(fn, *args):
+    """(fn(*args), its wall seconds): the timing of a step run on the second thread."""
+    t0 = time.perf_counter()
+    return fn(*args), time.perf_counter() - t0
+
+
 def bake_maps(low: Mesh, high: Mesh, *, resolution: int = 4096, max_distance_mm: float | None = None,
               blur_sigma_px: float = 8.0, dilate_px: int = 16, reference: str = "phong",
               progress: Callable[[float], None] | None = None) -> BakedMaps:
@@ -611,38 +651,54 @@ def bake_maps(low: Mesh, high: Mesh, *, resolution: int = 4096, max_distance_mm:
         raise DermisError(f"bake: low.uv covers no texel centre of a {resolution}^2 map; "
                           "UVs must lie inside [0, 1]^2 and the resolution must be large enough")
     report(0.05)
-    t0 = time.perf_counter()
-    scene = _raycasting_scene(high)
-    timings["scene_build_s"] = time.perf_counter() - t0
-    texture = _HighTexture.of(high)
-    frames = _TriangleFrames.of(vertices, faces, renormalise_f64(low.vertex_normals()), coef,
-                                low.uv, np.asarray(low.uv_faces), resolution)
-    height, hit, albedo_lin, rejected_backfacing = _cast_texels(
-        scene, frames, flat, tri, resolution, reference, max_distance, texture, timings, report)
-    del scene, coef, frames
-    n_hit = int(hit.sum())
+    # Work that needs only the coverage mask (the dilation band and the blur's denominator,
+    # scipy, GIL released) runs on a second thread while the rays are cast.
+    coverage = _coverage(flat, resolution)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        band_job = pool.submit(_timed, _dilation_band, coverage, dilate_px)
+        weights_job = (pool.submit(_timed, _blur_weights, coverage, blur_sigma_px)
+                       if blur_sigma_px > 0 else None)
+        t0 = time.perf_counter()
+        scene = _raycasting_scene(high)
+        timings["scene_build_s"] = time.perf_counter() - t0
+        texture = _HighTexture.of(high)
+        frames = _TriangleFrames.of(vertices, faces, renormalise_f64(low.vertex_normals()), coef,
+                                    low.uv, np.asarray(low.uv_faces), resolution)
+        height, hit, albedo_lin, rejected_backfacing = _cast_texels(
+            scene, frames, flat, tri, resolution, reference, max_distance, texture, timings,
+            report)
+        del scene, coef, frames
+        n_hit = int(hit.sum())
+
+        # The albedo's miss fill (a distance transform of the hit mask) on the second thread,
+        # the bump and its blur here.
+        t0 = time.perf_counter()
+        albedo_source = _albedo_without_texture_or_hits(albedo_lin, texture, n_hit)
+        albedo_cov = _encode_srgb8(albedo_lin)
+        del albedo_lin
+        mean_albedo = _encode_srgb8(_SRGB8_TO_LINEAR[albedo_cov].mean(0))
+        albedo_job = pool.submit(_timed, _albedo_image, albedo_cov, flat, resolution,
+                                 hit if texture is not None else None)
+        timings["albedo_encode_s"] = time.perf_counter() - t0
+        report(0.85)
+
+        bump, h_min, h_max, neutral_bump = _normalised_bump(height, flat, resolution)
+        del height
+        t0 = time.perf_counter()
+        weights = None
+        if weights_job is not None:
+            weights, timings["blur_weights_s"] = weights_job.result()
+        bump_blur = _masked_blur(bump, coverage, blur_sigma_px, den=weights)
+        del weights
+        timings["blur_s"] = time.perf_counter() - t0
+        report(0.9)
+        albedo, timings["miss_fill_s"] = albedo_job.result()
+        albedo = albedo.reshape(resolution, resolution, 3)
+        dilation_band, timings["dilation_band_s"] = band_job.result()
 
     t0 = time.perf_counter()
-    albedo_source = _albedo_without_texture_or_hits(albedo_lin, texture, n_hit)
-    albedo_cov = _encode_srgb8(albedo_lin)
-    del albedo_lin
-    mean_albedo = _encode_srgb8(_SRGB8_TO_LINEAR[albedo_cov].mean(0))
-    albedo = _albedo_image(albedo_cov, flat, resolution,
-                           hit if texture is not None else None).reshape(resolution, resolution, 3)
-    del albedo_cov
-    timings["miss_fill_s"] = time.perf_counter() - t0
-    report(0.85)
-
-    bump, coverage, h_min, h_max, neutral_bump = _normalised_bump(height, flat, resolution)
-    del height
-    t0 = time.perf_counter()
-    bump_blur = _masked_blur(bump, coverage, blur_sigma_px)
-    timings["blur_s"] = time.perf_counter() - t0
-    report(0.9)
-
-    t0 = time.perf_counter()
-    n_band = _dilate(coverage, dilate_px, [(albedo, mean_albedo), (bump, neutral_bump),
-                                           (bump_blur, neutral_bump)])
+    n_band = _dilate(coverage, dilation_band, [(albedo, mean_albedo), (bump, neutral_bump),
+                                                (bump_blur, neutral_bump)])
     timings["dilate_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
     report(1.0)
