@@ -171,6 +171,13 @@ THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
               "POCL_MAX_PTHREAD_COUNT")
 
 
+# The nanny also sets MALLOC_TRIM_THRESHOLD_=65536 (to hand freed memory back to the system
+# early); setting it at all switches off glibc's adaptive mmap threshold, so every large numpy
+# array is a fresh mmap and page faults: node work ran ~1.5x slower in a worker than in the
+# serial process (bench/results/sweep_dask.json).  Unset for local clusters.
+UNSET_ENV = ("MALLOC_TRIM_THRESHOLD_",)
+
+
 def worker_environment(threads: int) -> dict[str, str]:
     """Environment of a worker process that may use ``threads`` cores."""
     return {name: str(int(threads)) for name in THREAD_ENV}
@@ -179,12 +186,17 @@ def worker_environment(threads: int) -> dict[str, str]:
 def local_cluster(workers: int, threads: int | None = None):
     """A Dask LocalCluster of ``workers`` processes, one task at a time each, every worker's
     libraries sized to ``threads`` cores (default: this machine's cores / workers, >= 1), so
-    that the workers share the cores instead of oversubscribing or idling them."""
+    that the workers share the cores instead of oversubscribing or idling them; and glibc's
+    allocator left as in a plain process (the nanny's MALLOC_TRIM_THRESHOLD_ unset, see
+    UNSET_ENV)."""
+    import dask
     from dask.distributed import LocalCluster
     if threads is None:
         threads = max(1, (os.cpu_count() or 1) // max(1, workers))
-    return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                        dashboard_address=None, env=worker_environment(threads))
+    unset = {f"distributed.nanny.pre-spawn-environ.{k}": None for k in UNSET_ENV}
+    with dask.config.set(unset):       # read when the nannies are made, below
+        return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                            dashboard_address=None, env=worker_environment(threads))
 
 
 def _run_dask(tasks, cache_root, device, workers, scheduler, progress, warm) -> dict:
