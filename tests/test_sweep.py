@@ -217,21 +217,22 @@ def test08_profile_knobs_are_scored_against_the_monte_carlo_profile(tmp_path):
 @pytest.mark.parametrize("workers", [1, 2])
 def test09_local_workers_share_the_cores(workers):
     # each worker's OpenMP, BLAS and PoCL pools get cores / workers threads (Dask's nanny
-    # would otherwise start them all at OMP_NUM_THREADS=1), and PoCL in a worker honours it
+    # would otherwise start them all at OMP_NUM_THREADS=1), PoCL in a worker honours it, and
+    # the nanny's MALLOC_TRIM_THRESHOLD_ is not set
     import os
     distributed = pytest.importorskip("distributed")
-    from dermis.pipeline.distributed import THREAD_ENV, local_cluster
+    from dermis.pipeline.distributed import THREAD_ENV, UNSET_ENV, local_cluster
     want = str(max(1, (os.cpu_count() or 1) // workers))
 
     def probe():
         import pyopencl as cl
         units = [d.max_compute_units for p in cl.get_platforms() if "Portable" in p.name
                  for d in p.get_devices()]
-        return {k: os.environ.get(k) for k in THREAD_ENV}, units
+        return {k: os.environ.get(k) for k in THREAD_ENV + UNSET_ENV}, units
 
     with local_cluster(workers) as cluster, distributed.Client(cluster) as client:
         got = client.run(probe)
     assert len(got) == workers
     for env, units in got.values():
-        assert env == {k: want for k in THREAD_ENV}
+        assert env == {**{k: want for k in THREAD_ENV}, **{k: None for k in UNSET_ENV}}, env
         assert all(u == int(want) for u in units)
