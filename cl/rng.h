@@ -1,4 +1,4 @@
-/* rng.h - counter-based random numbers: Philox4x32-10 (Salmon, Moraes, Dror, Shaw 2011,
+/* rng.h - counter-based random numbers: Philox4x32-10 and -7 (Salmon, Moraes, Dror, Shaw 2011,
  * "Parallel random numbers: as easy as 1, 2, 3", SC11).  Stateless: the output is a pure
  * function of (counter, key), so a photon's random stream depends only on the seed, the
  * stream id and its own draw count, and results repeat exactly on any device.
@@ -43,34 +43,32 @@
         c0 = hi1_ ^ (c1) ^ (k0); c1 = lo1_; c2 = hi0_ ^ (c3) ^ (k1); c3 = lo0_;         \
     } while (0)
 
-/* Ten rounds in place: c0..c3 become the four output words.  The key schedule is scalar
- * (the same seed for every lane), so it costs nothing per lane. */
-#define PHILOX4X32_10(T, MULHILO, c0, c1, c2, c3, key0, key1) do {                     \
-        const uint pk0_ = (key0), pk1_ = (key1);                                       \
-        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_, pk1_);                          \
-        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 1u * PHILOX_W0, pk1_ + 1u * PHILOX_W1); \
-        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 2u * PHILOX_W0, pk1_ + 2u * PHILOX_W1); \
-        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 3u * PHILOX_W0, pk1_ + 3u * PHILOX_W1); \
-        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 4u * PHILOX_W0, pk1_ + 4u * PHILOX_W1); \
-        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 5u * PHILOX_W0, pk1_ + 5u * PHILOX_W1); \
-        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 6u * PHILOX_W0, pk1_ + 6u * PHILOX_W1); \
-        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 7u * PHILOX_W0, pk1_ + 7u * PHILOX_W1); \
-        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 8u * PHILOX_W0, pk1_ + 8u * PHILOX_W1); \
-        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 9u * PHILOX_W0, pk1_ + 9u * PHILOX_W1); \
-    } while (0)
+/* Round r (0-based) of the key schedule: round keys key + r x Weyl increment. */
+#define PHILOX_ROUND_R(T, MULHILO, c0, c1, c2, c3, key0, key1, r)                        \
+    PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, (key0) + (r) * PHILOX_W0, (key1) + (r) * PHILOX_W1)
 
-/* Seven rounds: Philox4x32-7, the fewest rounds the paper found to pass TestU01's BigCrush
- * (its Table 2; ten keep a safety margin).  Used by the photon tracer, where the generator
- * is half the time per event (cl/mc_slab.cl). */
+/* Seven rounds in place: Philox4x32-7, the fewest rounds the paper found to pass TestU01's
+ * BigCrush (its Table 2; ten keep a safety margin).  Used by the photon tracer, where the
+ * generator is half the time per event (cl/mc_slab.cl).  The key schedule is scalar (the same
+ * seed for every lane), so it costs nothing per lane. */
 #define PHILOX4X32_7(T, MULHILO, c0, c1, c2, c3, key0, key1) do {                      \
         const uint pk0_ = (key0), pk1_ = (key1);                                       \
-        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_, pk1_);                          \
-        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 1u * PHILOX_W0, pk1_ + 1u * PHILOX_W1); \
-        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 2u * PHILOX_W0, pk1_ + 2u * PHILOX_W1); \
-        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 3u * PHILOX_W0, pk1_ + 3u * PHILOX_W1); \
-        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 4u * PHILOX_W0, pk1_ + 4u * PHILOX_W1); \
-        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 5u * PHILOX_W0, pk1_ + 5u * PHILOX_W1); \
-        PHILOX_ROUND(T, MULHILO, c0, c1, c2, c3, pk0_ + 6u * PHILOX_W0, pk1_ + 6u * PHILOX_W1); \
+        PHILOX_ROUND_R(T, MULHILO, c0, c1, c2, c3, pk0_, pk1_, 0u);                    \
+        PHILOX_ROUND_R(T, MULHILO, c0, c1, c2, c3, pk0_, pk1_, 1u);                    \
+        PHILOX_ROUND_R(T, MULHILO, c0, c1, c2, c3, pk0_, pk1_, 2u);                    \
+        PHILOX_ROUND_R(T, MULHILO, c0, c1, c2, c3, pk0_, pk1_, 3u);                    \
+        PHILOX_ROUND_R(T, MULHILO, c0, c1, c2, c3, pk0_, pk1_, 4u);                    \
+        PHILOX_ROUND_R(T, MULHILO, c0, c1, c2, c3, pk0_, pk1_, 5u);                    \
+        PHILOX_ROUND_R(T, MULHILO, c0, c1, c2, c3, pk0_, pk1_, 6u);                    \
+    } while (0)
+
+/* Ten rounds in place (the paper's Philox4x32-10): the seven, then rounds 7-9. */
+#define PHILOX4X32_10(T, MULHILO, c0, c1, c2, c3, key0, key1) do {                     \
+        const uint qk0_ = (key0), qk1_ = (key1);                                       \
+        PHILOX4X32_7(T, MULHILO, c0, c1, c2, c3, qk0_, qk1_);                          \
+        PHILOX_ROUND_R(T, MULHILO, c0, c1, c2, c3, qk0_, qk1_, 7u);                    \
+        PHILOX_ROUND_R(T, MULHILO, c0, c1, c2, c3, qk0_, qk1_, 8u);                    \
+        PHILOX_ROUND_R(T, MULHILO, c0, c1, c2, c3, qk0_, qk1_, 9u);                    \
     } while (0)
 
 /* Scalar form: counter c, key k (the paper's Philox4x32-10). */
