@@ -8,6 +8,7 @@ recommended settings (cheapest point reaching 1 % and 5 %, best within the time 
 for each knob whether the scene default is on the front and what the data recommends.
 
     python3 bench/bench_sweep_default.py [--cache DIR] [--out bench/results/sweep_default.json]
+    python3 bench/bench_sweep_default.py --only geometry --out bench/results/sweep_default_geometry.json
 """
 from __future__ import annotations
 
@@ -19,7 +20,8 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 SCENES = {"point_area": REPO / "scenes" / "sweep_default.toml",
-          "sunset": REPO / "scenes" / "sweep_default_sunset.toml"}
+          "sunset": REPO / "scenes" / "sweep_default_sunset.toml",
+          "geometry": REPO / "scenes" / "sweep_default_geometry.toml"}
 
 
 def summarise(res: dict) -> dict:
@@ -104,7 +106,9 @@ def main() -> None:
            "cut": "the default scan (scenes/default.toml) cut to fit one evening on the shared "
                   "2-core machine: geometry high only, 400x400 instead of 800x800; point_area: "
                   "lights point + area, models lafortune + bssrdf; sunset: the environment "
-                  "light, bssrdf only; errors are means over the images the knob changes "
+                  "light, bssrdf only; geometry: point + area, lafortune + bssrdf on the low "
+                  "mesh with its baked maps (low_bump), the mesh, bake and optics knobs; "
+                  "errors are means over the images the knob changes "
                   "(relative RMSE in linear radiance, FLIP LDR)",
            "time_rule": "seconds = stage-metadata seconds of the nodes the knob changes "
                         "(build seconds excluded), summed over both lights and models; the "

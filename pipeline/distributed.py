@@ -194,9 +194,22 @@ def local_cluster(workers: int, threads: int | None = None):
     if threads is None:
         threads = max(1, (os.cpu_count() or 1) // max(1, workers))
     unset = {f"distributed.nanny.pre-spawn-environ.{k}": None for k in UNSET_ENV}
-    with dask.config.set(unset):       # read when the nannies are made, below
-        return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                            dashboard_address=None, env=worker_environment(threads))
+    # The nannies run in this process and write their pre-spawn variables into os.environ,
+    # which the workers inherit (and any later cluster's workers too): keep UNSET_ENV out of
+    # it while they spawn and give this process its own environment back afterwards.
+    saved = dict(os.environ)
+    for k in UNSET_ENV:
+        os.environ.pop(k, None)
+    try:
+        with dask.config.set(unset):       # read when the nannies are made, below
+            return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                dashboard_address=None, env=worker_environment(threads))
+    finally:
+        for k in set(os.environ) | set(saved):     # only what changed
+            if k not in saved:
+                del os.environ[k]
+            elif os.environ.get(k) != saved[k]:
+                os.environ[k] = saved[k]
 
 
 def _run_dask(tasks, cache_root, device, workers, scheduler, progress, warm) -> dict:

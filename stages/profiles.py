@@ -319,7 +319,7 @@ def _sources(ch: _Chan, nq: int = NQ_BEAM, diffuse: bool = False,
         if U_in > 0.0:
             u = 0.5 * U_in * (x + 1.0)
             w = 0.5 * U_in * wq * (ss_star / st) * wm_
-            s = -np.log1p(-u) / st * mu                 # depth of the first collision
+            s = -np.log1p(-np.minimum(u, U_BELOW_ONE)) / st * mu   # depth of the first collision
             ts.append(np.maximum(s + shift, 0.0))       # g < 0 displaces upwards: at most to the top
             ws.append(w)
         if finite:
@@ -332,11 +332,18 @@ def _sources(ch: _Chan, nq: int = NQ_BEAM, diffuse: bool = False,
                 # mean cosine g* mu from the collision to the bottom
                 u = U_in + 0.5 * (U - U_in) * (xf + 1.0)
                 w = 0.5 * (U - U_in) * wf * (ss_star / st) * wm_
-                s = -np.log1p(-u) / st * mu
+                s = np.minimum(-np.log1p(-np.minimum(u, U_BELOW_ONE)) / st * mu, ch.d)
                 fwd += float(np.sum(w * np.exp(-ch.sa * (ch.d - s) / (max(g_star, 1e-3) * mu))))
     if not ts:
         ts, ws = [np.zeros(0)], [np.zeros(0)]
     return _Sources(np.concatenate(ts), np.concatenate(ws), bal, fwd, nq)
+
+
+# The largest float below 1: a beam fraction u that rounds to 1 (an optically thick layer,
+# 1 - e^{-sigma_t d} = 1.0 in float64 beyond sigma_t d ~ 37) would put the collision at
+# infinite depth and the forward sum at e^{+inf} (found by the thorough stability profile:
+# a 11 mm layer with sigma_t d = 147, issue 16); capped, it lands at the layer's bottom.
+U_BELOW_ONE = float(np.nextafter(1.0, 0.0))
 
 
 def _heights(ch: _Chan, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -291,3 +291,17 @@ def test05_extremes_are_finite_and_nonnegative(lay):
     # coarse grid keeps the test fast; positivity must hold on any grid
     two = P.build_profiles(LayerStack((Layer(0.2, 1.4, (0.3,) * 3, (4.0,) * 3), lay)), grid=(0.05, 8.0))
     assert np.all(np.isfinite(two.R)) and np.all(two.R >= 0) and np.all(two.T >= 0)
+
+
+def test_optically_thick_forward_scattering_layer_stays_finite():
+    # a 11 mm, g = 0.99 layer (sigma_t d = 147 in blue, so 1 - e^{-sigma_t d} is 1.0 in
+    # float64) under a pure absorber: the collision depth of the beam's last quadrature node
+    # was infinite and the forward sum e^{+inf} (the thorough stability profile, issue 16).
+    # The pure absorbers' transmission is e^{-sum sigma_a d} exactly (eta = 1: no Fresnel).
+    from dermis.stages.profiles import build_profiles
+    st = LayerStack((Layer(1.0, 1.0, (1.0, 1.0, 1.0), (0.0, 0.0, 0.0), -0.99),
+                     Layer(11.0, 1.0, (1.0, 1.0, 0.875), (0.0, 0.0, 0.125), 0.99)), 1.0, 1.0)
+    p = build_profiles(st)
+    assert np.isfinite(p.R).all() and np.isfinite(p.T).all()
+    np.testing.assert_allclose(p.Tt[:2], math.exp(-12.0), rtol=1e-6)
+    assert (p.Rd + p.Tt <= 1.0).all() and p.Rd[2] > 0

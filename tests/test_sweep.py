@@ -230,8 +230,22 @@ def test09_local_workers_share_the_cores(workers):
                  for d in p.get_devices()]
         return {k: os.environ.get(k) for k in THREAD_ENV + UNSET_ENV}, units
 
-    with local_cluster(workers) as cluster, distributed.Client(cluster) as client:
-        got = client.run(probe)
+    # as after another cluster made with Dask's defaults in this process (its nannies leave
+    # their variables in os.environ)
+    polluted = {"MALLOC_TRIM_THRESHOLD_": "65536", "OMP_NUM_THREADS": "1"}
+    saved = {k: os.environ.get(k) for k in polluted}
+    os.environ.update(polluted)
+    try:
+        with local_cluster(workers) as cluster, distributed.Client(cluster) as client:
+            got = client.run(probe)
+        # and this process's environment is as it was
+        assert {k: os.environ.get(k) for k in polluted} == polluted
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
     assert len(got) == workers
     for env, units in got.values():
         assert env == {**{k: want for k in THREAD_ENV}, **{k: None for k in UNSET_ENV}}, env
