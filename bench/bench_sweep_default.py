@@ -106,7 +106,7 @@ def main() -> None:
            "cut": "the default scan (scenes/default.toml) cut to fit one evening on the shared "
                   "2-core machine: geometry high only, 400x400 instead of 800x800; point_area: "
                   "lights point + area, models lafortune + bssrdf; sunset: the environment "
-                  "light, bssrdf only; geometry: point + area, lafortune + bssrdf on the low "
+                  "light, bssrdf only; geometry: point + area, lafortune + bssrdf on the high and the low "
                   "mesh with its baked maps (low_bump), the mesh, bake and optics knobs; "
                   "errors are means over the images the knob changes "
                   "(relative RMSE in linear radiance, FLIP LDR)",
