@@ -32,6 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
+from labelled import read_labelled, save_labelled
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -429,7 +431,7 @@ def main():
     if args.only_extra:
         cache = Path(args.cache).resolve() / "cache"
         out = Path(args.out)
-        old = json.loads(out.read_text()) if out.is_file() else {}
+        old = read_labelled(out)
         entry = old.setdefault(args.label, {})
         runs = {"knife": lambda: knife_edge_table(),
                 "edge": lambda: shadow_edge_colour(
@@ -456,10 +458,7 @@ def main():
         res["energy"] = energy_table()
         print(json.dumps(res["energy"], indent=1))
     res["loadavg_end"] = list(os.getloadavg())
-    out = Path(args.out)
-    old = json.loads(out.read_text()) if out.is_file() else {}
-    old[args.label] = res
-    out.write_text(json.dumps(old, indent=1))
+    save_labelled(args.out, args.label, res)
 
 
 if __name__ == "__main__":

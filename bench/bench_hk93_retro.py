@@ -12,6 +12,7 @@ from pathlib import Path
 from scipy.ndimage import median_filter
 from test_hardening import scene_file, _two_layer, main
 from dermis.pipeline.imageio import read_image
+from labelled import save_labelled
 root = Path(sys.argv[1]); root.mkdir(exist_ok=True)
 cache = root / "cache"
 out = {"loadavg": os.getloadavg()}
@@ -32,7 +33,4 @@ for g in (0.8, -0.99):
 out["loadavg_end"] = os.getloadavg()
 print(json.dumps(out, indent=1))
 if len(sys.argv) > 2:
-    res = REPO / "bench" / "results" / "hk93_retro.json"
-    old = json.loads(res.read_text()) if res.is_file() else {}
-    old[sys.argv[2]] = out
-    res.write_text(json.dumps(old, indent=1))
+    save_labelled(REPO / "bench" / "results" / "hk93_retro.json", sys.argv[2], out)

@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from labelled import save_labelled
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -84,10 +86,7 @@ def main() -> None:
             res[f"{mesh_node}/{label}"] = entry
             print(mesh_node, label, json.dumps(entry), flush=True)
     res["loadavg_end"] = list(os.getloadavg())
-    out = Path(args.out)
-    old = json.loads(out.read_text()) if out.is_file() else {}
-    old[args.label] = res
-    out.write_text(json.dumps(old, indent=1))
+    save_labelled(args.out, args.label, res)
 
 
 if __name__ == "__main__":
