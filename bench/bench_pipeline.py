@@ -41,9 +41,9 @@ def _per_stage(summary) -> dict:
     return out
 
 
-def _run(api, scene, cache) -> tuple[float, object]:
+def _run(api, scene, cache, jobs) -> tuple[float, object]:
     t0 = time.perf_counter()
-    summary = api.run(scene, cache=cache, export=False)
+    summary = api.run(scene, cache=cache, export=False, jobs=jobs)
     return time.perf_counter() - t0, summary
 
 
@@ -56,15 +56,21 @@ def main(argv=None) -> int:
     ap.add_argument("scene", nargs="?", default=None)
     ap.add_argument("--cache", default=None, help="default: a fresh temporary directory")
     ap.add_argument("--out", default=str(REPO / "bench" / "results" / "pipeline.json"))
+    ap.add_argument("--jobs", type=int, default=None, help="nodes run at once (default: dermis's)")
+    ap.add_argument("--models", default=None,
+                    help="comma-separated [render] models instead of the scene's (e.g. the "
+                         "thesis's four: lafortune,asperity,hk93,bssrdf)")
     ap.add_argument("--warm-light", default=None,
                     help="then rerun with this light's intensity x 1.1 (warm cost of a change)")
     args = ap.parse_args(argv)
 
-    scene = load_scene(args.scene)
+    base_over = {"render": {"models": args.models.split(",")}} if args.models else {}
+    scene = load_scene(args.scene, overrides=base_over or None)
+    jobs = api.resolve_jobs(args.jobs)
     cache = args.cache or tempfile.mkdtemp(prefix="dermis-bench-")
     load0 = os.getloadavg()
     cpu0 = time.process_time()
-    wall, summary = _run(api, scene, cache)
+    wall, summary = _run(api, scene, cache, jobs)
     cpu = time.process_time() - cpu0
     nodes = {n.id: {"status": n.status, "seconds": n.seconds, "kernel_seconds": n.kernel_seconds}
              for n in summary.nodes}
@@ -86,7 +92,8 @@ def main(argv=None) -> int:
 
     result = {
         "scene": scene.path, "cache": cache, "wall_seconds": wall, "cpu_seconds": cpu,
-        "spp": scene.render.spp,
+        "spp": scene.render.spp, "jobs": jobs, "models": list(scene.render.models),
+        "images": sum(1 for n in summary.nodes if n.stage in ("render", "bssrdf")),
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "loadavg_before": load0, "loadavg_after": os.getloadavg(), "cpus": os.cpu_count(),
         "per_stage": _per_stage(summary), "nodes": nodes, "seconds_per_image": table,
@@ -96,8 +103,8 @@ def main(argv=None) -> int:
         over = {"lights": [{**_light_table(l), **({"intensity": [1.1 * x for x in l.intensity]}
                                                if l.name == light.name else {})}
                            for l in scene.lights]}
-        changed = load_scene(args.scene, overrides=over)
-        w2, s2 = _run(api, changed, cache)
+        changed = load_scene(args.scene, overrides={**base_over, **over})
+        w2, s2 = _run(api, changed, cache, jobs)
         result["warm"] = {"light": args.warm_light, "wall_seconds": w2,
                           "fraction_of_cold": w2 / wall, "ran": s2.ran(),
                           "per_stage": _per_stage(s2)}
@@ -105,8 +112,9 @@ def main(argv=None) -> int:
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(result, indent=1))
 
-    print(f"{scene.path}: {wall:.1f} s wall ({cpu:.1f} s CPU in this process), peak RSS "
-          f"{result['peak_rss_mb']:.0f} MB, load {load0[0]:.2f}, spp {scene.render.spp}")
+    print(f"{scene.path}: {result['images']} images, {wall:.1f} s wall ({cpu:.1f} s CPU in this "
+          f"process), peak RSS {result['peak_rss_mb']:.0f} MB, load {load0[0]:.2f}, "
+          f"spp {scene.render.spp}, jobs {jobs}")
     print(f"\n{'stage':<14}{'nodes':>6}{'seconds':>10}")
     for stage, rec in result["per_stage"].items():
         print(f"{stage:<14}{rec['nodes']:>6}{rec['seconds']:>10.1f}")

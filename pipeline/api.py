@@ -9,8 +9,9 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import threading
 import uuid
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -35,12 +36,21 @@ class RunContext:
     progress: object = None
     memo: dict = field(default_factory=dict)   # per-run reuse (e.g. Embree scenes per mesh key)
     _env: object = None
+    _shared: dict = field(default_factory=lambda: {"lock": threading.Lock()}, repr=False)
+
+    def for_node(self) -> "RunContext":
+        """A copy for one node (its own out_dir and progress) sharing the memo and the
+        OpenCL environment (nodes may run on several threads at once)."""
+        return replace(self, out_dir=None, progress=None)
 
     @property
     def cl(self):
         if self._env is None:
-            from .cl import get_env
-            self._env = get_env(self.device)
+            with self._shared["lock"]:     # one OpenCL context however many nodes ask at once
+                if "env" not in self._shared:
+                    from .cl import get_env
+                    self._shared["env"] = get_env(self.device)
+            self._env = self._shared["env"]
         return self._env
 
     @property
@@ -68,6 +78,29 @@ def _check_stage(name: str, what: str) -> None:
         raise DermisError(f"{what} {name!r} is not a stage{hint}; stages: {', '.join(STAGE_NAMES)}")
 
 
+JOBS_ENV_VAR = "DERMIS_JOBS"
+# Nodes run at once by default.  Measured on the 2-core machine, cold default matrix
+# (bench/results/pipeline_default.json "jobs"): see docs/architecture.md "Running nodes at once".
+DEFAULT_JOBS = 2
+
+
+def resolve_jobs(jobs=None) -> int:
+    """``jobs`` > $DERMIS_JOBS > DEFAULT_JOBS, checked: a whole number from 1 to 64."""
+    source, value = "--jobs", jobs
+    if value is None and os.environ.get(JOBS_ENV_VAR):
+        source, value = f"${JOBS_ENV_VAR}", os.environ[JOBS_ENV_VAR]
+    if value is None:
+        return DEFAULT_JOBS
+    try:
+        n = int(str(value).strip())
+    except ValueError:
+        n = None
+    if n is None or not 1 <= n <= 64 or str(value).strip() != str(n):
+        raise DermisError(f"{source} = {value!r}: the number of nodes run at once must be a "
+                          f"whole number from 1 to 64")
+    return n
+
+
 def _targets(nodes, targets, until):
     if until is None:
         return targets
@@ -80,7 +113,7 @@ def _targets(nodes, targets, until):
 
 
 def run(scene: Scene, *, cache=None, until: str | None = None, force=(), device: str | None = None,
-        progress=None, export: bool = True, notice=None) -> RunSummary:
+        progress=None, export: bool = True, notice=None, jobs: int | None = None) -> RunSummary:
     """Build everything the scene asks for that is not cached; return the per-stage summary.
 
     Parameters
@@ -100,7 +133,11 @@ def run(scene: Scene, *, cache=None, until: str | None = None, force=(), device:
         One-line notices, e.g. a corrupted cache entry being rebuilt (default: stderr).
     export : bool
         Copy file outputs (previews, images) into ``output_dir/<scene name>/``.
+    jobs : int, optional
+        Nodes run at once (threads of this process): the argument > $DERMIS_JOBS >
+        :data:`DEFAULT_JOBS`.  Any value gives the same artifacts.
     """
+    jobs = resolve_jobs(jobs)
     for f in force:
         if f not in STAGE_NAMES and "-" not in f:
             _check_stage(f, "--force")
@@ -119,7 +156,7 @@ def run(scene: Scene, *, cache=None, until: str | None = None, force=(), device:
         notice(f"warning: {text}")
     with store.locked():
         summary = execute(nodes, targets, store, ctx, force=tuple(force), progress=progress,
-                          notice=notice)
+                          notice=notice, jobs=jobs)
         dark = dark_renders(scene, summary)
         for text in dark:
             notice(f"warning: {text}")

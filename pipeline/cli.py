@@ -48,7 +48,8 @@ def cmd_run(args) -> int:
     print(f"scene {scene.path}  cache {api.cache_dir_for(scene, args.cache).resolve()}",
           file=sys.stderr)
     summary = api.run(scene, cache=args.cache, until=args.until, force=tuple(args.force or ()),
-                      device=args.device, progress=None if args.quiet else _progress_bars())
+                      device=args.device, progress=None if args.quiet else _progress_bars(),
+                      jobs=args.jobs)
     print(summary.table())
     print(f"outputs in {os.path.join(scene.output.output_dir, scene.scene.name)}")
     return 0
@@ -59,7 +60,7 @@ def cmd_report(args) -> int:
     from . import api
     scene = _scene(args)
     summary = api.run(scene, cache=args.cache, until="report", device=args.device,
-                      progress=None if args.quiet else _progress_bars())
+                      progress=None if args.quiet else _progress_bars(), jobs=args.jobs)
     print(summary.table())
     out = os.path.join(scene.output.output_dir, scene.scene.name, "report", "report.pdf")
     print(f"report: {out}")
@@ -108,6 +109,11 @@ def build_parser() -> argparse.ArgumentParser:
         "Render faces with classic skin models side by side and measure them."))
     sub = p.add_subparsers(dest="command", required=True)
 
+    def jobs(sp):
+        sp.add_argument("-j", "--jobs", default=None, metavar="N",
+                        help="nodes run at once on threads (or $DERMIS_JOBS; default 2); "
+                             "the results are the same for any N")
+
     def common(sp, scene_optional=True):
         sp.add_argument("scene", nargs="?" if scene_optional else None, default=None,
                         help="scene TOML (default: the embedded procedural-head scene)")
@@ -115,6 +121,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     r = sub.add_parser("run", help="build what is stale for a scene")
     common(r)
+    jobs(r)
     r.add_argument("--until", choices=STAGE_NAMES, metavar="STAGE",
                    help="build only what STAGE needs: " + ", ".join(STAGE_NAMES))
     r.add_argument("--force", action="append", metavar="STAGE", help="recompute STAGE (repeatable)")
@@ -124,6 +131,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     rp = sub.add_parser("report", help="build the renders, difference images and PDF report")
     common(rp)
+    jobs(rp)
     rp.add_argument("--device", default=None, help="OpenCL device: P:D, P, or a name substring")
     rp.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     rp.set_defaults(func=cmd_report)

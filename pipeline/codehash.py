@@ -41,23 +41,45 @@ def read_source(path: Path) -> bytes:
 
 
 @functools.lru_cache(maxsize=None)
+def _package_root() -> Path:
+    spec = importlib.util.find_spec(ROOT_PACKAGE)
+    return Path(list(spec.submodule_search_locations)[0])
+
+
+@functools.lru_cache(maxsize=None)
 def _module_file(name: str) -> Path | None:
-    spec = importlib.util.find_spec(name)
-    if spec is None or spec.origin is None or not spec.origin.endswith(".py"):
+    """The source file of an in-repository module, found on disk: nothing is imported (asking
+    importlib would import every parent package, and for ``pkg.module.function`` the module)."""
+    parts = name.split(".")
+    if parts[0] != ROOT_PACKAGE or not all(p.isidentifier() for p in parts):
         return None
-    return Path(spec.origin)
+    here = _package_root()
+    for part in parts[1:-1]:
+        here = here / part
+        if not (here / "__init__.py").is_file():
+            return None
+    if len(parts) == 1:
+        return here / "__init__.py"
+    for candidate in (here / parts[-1] / "__init__.py", here / f"{parts[-1]}.py"):
+        if candidate.is_file():
+            return candidate
+    return None
 
 
 def _is_module(name: str) -> bool:
-    try:
-        return _module_file(name) is not None
-    except (ImportError, ValueError):
-        return False
+    return _module_file(name) is not None
 
 
-def _imported_names(name: str, source: bytes) -> set[str]:
-    """Dotted ``dermis.*`` module names imported anywhere in ``source`` (module ``name``)."""
-    tree = ast.parse(source)
+@functools.lru_cache(maxsize=None)
+def _module_facts(name: str) -> tuple[frozenset, tuple]:
+    """(the ``dermis.*`` modules imported anywhere in module ``name``, the ``KERNELS`` it
+    declares), from one parse of its source."""
+    tree = ast.parse(read_source(_module_file(name)))
+    return frozenset(_imported_names(name, tree)), _declared_kernels(tree)
+
+
+def _imported_names(name: str, tree: ast.AST) -> set[str]:
+    """Dotted ``dermis.*`` module names imported anywhere in ``tree`` (module ``name``)."""
     package = name if _module_file(name).name == "__init__.py" else name.rpartition(".")[0]
     found = set()
     for node in ast.walk(tree):
@@ -86,7 +108,7 @@ def module_closure(name: str) -> tuple[str, ...]:
         if mod in seen or (mod in NOT_RESULTS and mod != name) or not _is_module(mod):
             continue
         seen.add(mod)
-        todo.extend(_imported_names(mod, read_source(_module_file(mod))))
+        todo.extend(_module_facts(mod)[0])
     return tuple(sorted(seen))
 
 
@@ -94,11 +116,15 @@ def clear() -> None:
     """Forget memoised closures and hashes (after source files changed in this process)."""
     module_closure.cache_clear()
     closure_hash.cache_clear()
+    _module_facts.cache_clear()
 
 
 def _kernels_of(name: str) -> tuple[str, ...]:
     """The ``KERNELS`` a module declares, read statically (no import, no side effects)."""
-    tree = ast.parse(read_source(_module_file(name)))
+    return _module_facts(name)[1]
+
+
+def _declared_kernels(tree: ast.Module) -> tuple[str, ...]:
     for node in tree.body:
         targets = node.targets if isinstance(node, ast.Assign) else (
             [node.target] if isinstance(node, ast.AnnAssign) else [])

@@ -17,9 +17,11 @@ for, so nothing that no requested output needs is ever computed.
 """
 from __future__ import annotations
 
+import copy
 import hashlib
 import importlib
 import json
+import threading
 import time
 import traceback
 from contextlib import contextmanager
@@ -301,50 +303,105 @@ def _one_blas_thread():
 
 def execute(nodes: dict[str, Node], targets: list[str], store: Store, ctx, *,
             force: tuple[str, ...] = (), dry_run: bool = False, progress=None,
-            notice=None) -> RunSummary:
+            notice=None, jobs: int = 1) -> RunSummary:
     """Run ``targets`` and their upstream nodes, skipping whatever is cached.
 
     ``force`` lists stage names (or node ids) to recompute even when cached.
     ``dry_run`` computes keys and staleness only (``dermis status``).
     ``progress(node, fraction)`` is called as nodes advance; ``notice(text)`` gets one-line
-    notices (a corrupted cache entry being rebuilt).
+    notices (a corrupted cache entry being rebuilt).  ``jobs`` > 1 runs up to that many
+    independent nodes at once on threads of this process (:func:`_run_concurrently`); the
+    artifacts are the same bytes whatever ``jobs`` is.
     """
     order = plan_order(nodes, targets)
     keys: dict[str, str] = {}
-    loaded: dict[str, Any] = {}
-    reports = []
+    all_parts: dict[str, dict] = {}
+    reports: dict[str, NodeReport] = {}
     stale: set[str] = set()
-    for nid in order:
+    todo: list[str] = []
+    for nid in order:          # keys follow from the code, the config and upstream keys only
         node = nodes[nid]
-        parts = key_parts(node, keys)
+        parts = all_parts[nid] = key_parts(node, keys)
         key = keys[nid] = node_key(parts)
-        forced = node.stage in force or nid in force
         reasons = staleness(store, node, parts, key, stale)
-        if forced:
+        if node.stage in force or nid in force:
             reasons = ["forced"] + reasons
-        rep = NodeReport(nid, node.stage, "cached", key=key, reasons=reasons,
-                         path=str(store.artifact_dir(nid, key)))
-        reports.append(rep)
+        reports[nid] = NodeReport(nid, node.stage, "cached", key=key, reasons=reasons,
+                                  path=str(store.artifact_dir(nid, key)))
         if not reasons:
             continue
         if reasons[0].startswith("corrupted") and notice:
             notice(f"{nid}: cache entry {reasons[0]}; rebuilding it")
         stale.add(nid)
+        todo.append(nid)
         if dry_run:
-            rep.status = "stale"
-            continue
-        inputs = {d: loaded[d] if d in loaded else _load(store, d, keys[d]) for d in node.dep_ids}
-        loaded.update(inputs)
-        if progress:
-            progress(node, 0.0)
+            reports[nid].status = "stale"
+    summary = RunSummary([reports[nid] for nid in order])
+    if dry_run or not todo:
+        return summary
+    runner = _NodeRunner(nodes, keys, all_parts, store, ctx, progress, todo)
+    with _one_blas_thread():   # for the whole run: per node, threads would undo each other's
+        if jobs <= 1 or len(todo) == 1:
+            for nid in todo:
+                runner.run(nid, reports[nid])
+        else:
+            _run_concurrently(runner, todo, reports, int(jobs))
+    return summary
+
+
+class _NodeRunner:
+    """Runs one stale node: loads its inputs, calls it, checks and stores its artifact."""
+
+    def __init__(self, nodes, keys, parts, store, ctx, progress, todo):
+        self.nodes, self.keys, self.parts, self.store, self.ctx = nodes, keys, parts, store, ctx
+        self._progress = progress
+        self._loaded: dict[str, Any] = {}
+        self._loading: dict[str, threading.Lock] = {}
+        self._lock = threading.Lock()
+        # how many stale nodes still read each artifact: at 0 it is dropped from memory (the
+        # run's images, visibility and irradiance arrays would otherwise all stay resident)
+        self._readers: dict[str, int] = {}
+        for nid in todo:
+            for d in nodes[nid].dep_ids:
+                self._readers[d] = self._readers.get(d, 0) + 1
+
+    def progress(self, node, fraction):
+        if self._progress:
+            with self._lock:   # the callback (progress bars) need not be thread-safe
+                self._progress(node, fraction)
+
+    def input(self, nid: str):
+        """The artifact of ``nid``: produced in this run, or loaded once from the store."""
+        with self._lock:
+            if nid in self._loaded:
+                return self._loaded[nid]
+            once = self._loading.setdefault(nid, threading.Lock())
+        with once:
+            with self._lock:
+                if nid in self._loaded:
+                    return self._loaded[nid]
+            value = _load(self.store, nid, self.keys[nid])
+            with self._lock:
+                self._loaded[nid] = value
+            return value
+
+    def _node_ctx(self, node, out_dir):
+        """The run's context for one node: its own output folder and progress callback."""
+        ctx = self.ctx.for_node() if hasattr(self.ctx, "for_node") else copy.copy(self.ctx)
+        ctx.out_dir = out_dir
+        ctx.progress = (lambda f, _n=node: self.progress(_n, f)) if self._progress else None
+        return ctx
+
+    def run(self, nid: str, rep: NodeReport) -> None:
+        node, key, store = self.nodes[nid], self.keys[nid], self.store
+        inputs = {d: self.input(d) for d in node.dep_ids}
+        self.progress(node, 0.0)
         t0 = time.perf_counter()
-        build0 = ctx.build_seconds
+        build0 = self.ctx.build_seconds
         with store.writing(nid, key) as tmp:
-            ctx.out_dir = tmp
-            ctx.progress = (lambda f, _n=node: progress(_n, f)) if progress else None
+            ctx = self._node_ctx(node, tmp)
             try:
-                with _one_blas_thread():
-                    result = node.call(inputs, ctx)
+                result = node.call(inputs, ctx)
             except DermisError:
                 raise
             except Exception as exc:
@@ -362,21 +419,83 @@ def execute(nodes: dict[str, Node], targets: list[str], store: Store, ctx, *,
             kernel_s = float(info.pop("kernel_seconds", 0.0) or 0.0)
             if result.artifact is not None and isinstance(getattr(result.artifact, "info", None), dict):
                 kernel_s = kernel_s or float(result.artifact.info.get("kernel_seconds", 0.0) or 0.0)
-            build_s = ctx.build_seconds - build0   # OpenCL program builds: once per process
-            meta = {"node": nid, "stage": node.stage, "key": key, "parts": parts,
+            build_s = self.ctx.build_seconds - build0   # OpenCL program builds: once per process
+            meta = {"node": nid, "stage": node.stage, "key": key,
+                    "parts": self.parts[nid],
                     "seconds": seconds, "kernel_seconds": kernel_s, "info": info,
                     "build_seconds": build_s,
                     "measurements": measured if result.artifact is not None else {},
                     "files": [str(f) for f in result.files], "device": ctx.device_description,
                     "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
             (tmp / META).write_text(json.dumps(meta, indent=1, sort_keys=True, default=str))
-        store.write_index(nid, {"key": key, "parts": parts})
-        loaded[nid] = result.artifact if result.artifact is not None else store.artifact_dir(nid, key)
+        store.write_index(nid, {"key": key, "parts": meta["parts"]})
+        with self._lock:
+            if self._readers.get(nid, 0) > 0:
+                self._loaded[nid] = (result.artifact if result.artifact is not None
+                                     else store.artifact_dir(nid, key))
+            for d in node.dep_ids:
+                self._readers[d] -= 1
+                if self._readers[d] == 0:
+                    self._loaded.pop(d, None)
+        del inputs, result
         rep.status, rep.seconds, rep.kernel_seconds = "ran", seconds, kernel_s
         rep.path = str(store.artifact_dir(nid, key))
-        if progress:
-            progress(node, 1.0)
-    return RunSummary(reports)
+        self.progress(node, 1.0)
+
+
+def _priorities(nodes: dict[str, Node], todo: list[str]) -> dict[str, int]:
+    """How many stale nodes wait on each stale node (itself included): the scheduler starts
+    the node that unblocks the most work first (on a cold run no node's duration is known)."""
+    todo_set = set(todo)
+    below: dict[str, set] = {nid: {nid} for nid in todo}
+    for nid in todo:                       # todo is topological: upstream first
+        for d in nodes[nid].dep_ids:
+            if d in todo_set:
+                below[d].add(nid)
+    for nid in reversed(todo):             # close downwards: each node's dependants' dependants
+        for d in nodes[nid].dep_ids:
+            if d in todo_set:
+                below[d] |= below[nid]
+    return {nid: len(s) for nid, s in below.items()}
+
+
+def _run_concurrently(runner: _NodeRunner, todo: list[str], reports: dict, jobs: int) -> None:
+    """Run the stale nodes ``todo`` (topological order) on ``jobs`` threads, each node once
+    all its stale inputs are done, the one most work waits on first.  The first failure stops
+    new starts; running nodes finish (their entries are complete or discarded by the store)
+    and the failure is raised."""
+    from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
+
+    nodes = runner.nodes
+    position = {nid: i for i, nid in enumerate(todo)}
+    priority = _priorities(nodes, todo)
+    waiting = {nid: {d for d in nodes[nid].dep_ids if d in position} for nid in todo}
+    dependants: dict[str, list] = {nid: [] for nid in todo}
+    for nid in todo:
+        for d in waiting[nid]:
+            dependants[d].append(nid)
+    ready = [nid for nid in todo if not waiting[nid]]
+    running: dict = {}
+    failure: BaseException | None = None
+    with ThreadPoolExecutor(max_workers=jobs, thread_name_prefix="dermis-node") as pool:
+        while (ready and failure is None) or running:
+            while ready and failure is None and len(running) < jobs:
+                ready.sort(key=lambda n: (-priority[n], position[n]))
+                nid = ready.pop(0)
+                running[pool.submit(runner.run, nid, reports[nid])] = nid
+            done, _ = wait(running, return_when=FIRST_COMPLETED)
+            for fut in done:
+                nid = running.pop(fut)
+                exc = fut.exception()
+                if exc is not None:
+                    failure = failure or exc
+                    continue
+                for other in dependants[nid]:
+                    waiting[other].discard(nid)
+                    if not waiting[other]:
+                        ready.append(other)
+    if failure is not None:
+        raise failure
 
 
 class StageFailure(Exception):

@@ -32,11 +32,13 @@ def content_key(*parts) -> str:
 
 
 class RecentResults:
-    """The ``size`` most recently used results of one computation, by key (thread-safe)."""
+    """The ``size`` most recently used results of one computation, by key (thread-safe: when
+    several threads ask for a missing key at once, one computes it and the others wait)."""
 
     def __init__(self, size: int):
         self.size = int(size)
         self._items: OrderedDict = OrderedDict()
+        self._making: dict = {}
         self._lock = threading.Lock()
 
     def get(self, key, make):
@@ -45,13 +47,25 @@ class RecentResults:
             if key in self._items:
                 self._items.move_to_end(key)
                 return self._items[key]
-        value = make()
-        with self._lock:
-            self._items[key] = value
-            self._items.move_to_end(key)
-            while len(self._items) > self.size:
-                self._items.popitem(last=False)
-        return value
+            once = self._making.setdefault(key, threading.Lock())
+        with once:
+            with self._lock:
+                if key in self._items:
+                    self._items.move_to_end(key)
+                    return self._items[key]
+            try:
+                value = make()
+            except BaseException:
+                with self._lock:
+                    self._making.pop(key, None)
+                raise
+            with self._lock:
+                self._items[key] = value
+                self._items.move_to_end(key)
+                while len(self._items) > self.size:
+                    self._items.popitem(last=False)
+                self._making.pop(key, None)
+            return value
 
     def clear(self) -> None:
         with self._lock:

@@ -1,7 +1,7 @@
 """Preview images of mesh prep: the baked maps, and a Lambert render of high vs low + bump.
 
 For eyeballing a bake (is the albedo in place, are the pores in the bump, does the bump-mapped
-low mesh look like the scan?), not for the report's measured images.  PNGs via OpenImageIO.
+low mesh look like the scan?), not for the report's measured images.
 """
 from __future__ import annotations
 
@@ -10,7 +10,6 @@ from pathlib import Path
 import numpy as np
 
 from dermis.pipeline.artifacts import BakedMaps, Mesh, renormalise_f64
-from dermis.pipeline.errors import DermisError
 from dermis.pipeline.graph import Node, StageResult
 from dermis.physics.color import linear_to_srgb8
 from dermis.stages import bake
@@ -31,18 +30,10 @@ PREVIEW_FOV_DEG = 30.0
 
 
 def _write_png(path: Path, image: np.ndarray) -> Path:
-    """Write a (H, W[, C]) uint8 image as PNG with OpenImageIO."""
-    import OpenImageIO as oiio
-    path.parent.mkdir(parents=True, exist_ok=True)
-    image = np.ascontiguousarray(image)
-    channels = 1 if image.ndim == 2 else image.shape[2]
-    out = oiio.ImageOutput.create(str(path))
-    if out is None:
-        raise DermisError(f"cannot write {path}: {oiio.geterror()}")
-    out.open(str(path), oiio.ImageSpec(image.shape[1], image.shape[0], channels, oiio.UINT8))
-    out.write_image(image)
-    out.close()
-    return path
+    """Write a (H, W[, 3]) uint8 image as PNG (:func:`dermis.reports.sheets.save_png`: zlib
+    level 1, ~3x faster than the default 6 on the 4096^2 maps, 5.8 -> ~1.8 s for the five)."""
+    from dermis.reports.sheets import save_png
+    return save_png(path, image)
 
 
 def _grey8(x: np.ndarray) -> np.ndarray:
@@ -88,17 +79,15 @@ def _camera_rays(mesh: Mesh, size: int):
     return o3d.core.Tensor(np.ascontiguousarray(rays[::-1, ::-1]))
 
 
-def _cast(mesh: Mesh, rays):
-    """Primary hits: (mask (H, W), triangle ids, barycentrics (N, 2), face normals (N, 3))."""
-    import open3d as o3d
-    import open3d.core as o3c
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3c.Tensor(np.ascontiguousarray(mesh.vertices, dtype=np.float32)),
-                        o3c.Tensor(np.ascontiguousarray(mesh.faces, dtype=np.uint32)))
-    ans = scene.cast_rays(rays)
-    mask = np.isfinite(ans["t_hit"].numpy())
-    return (mask, ans["primitive_ids"].numpy()[mask].astype(np.int64),
-            ans["primitive_uvs"].numpy()[mask], ans["primitive_normals"].numpy()[mask])
+def _cast(mesh: Mesh, rays, memo: dict | None = None):
+    """Primary hits: (mask (H, W), triangle ids, barycentrics (N, 2)), on the mesh's shared
+    Embree scene (:func:`dermis.physics.visibility.shared`: the renders built it already)."""
+    from dermis.physics.visibility import shared
+    r = rays.numpy()
+    hits = shared(mesh, {} if memo is None else memo).intersect(
+        r[..., :3].reshape(-1, 3), r[..., 3:].reshape(-1, 3))
+    mask = hits.hit.reshape(r.shape[:2])
+    return mask, hits.tri[hits.hit].astype(np.int64), hits.bary[hits.hit]
 
 
 def _shade(mask: np.ndarray, normals: np.ndarray, albedo: np.ndarray | float = 0.8) -> np.ndarray:
@@ -114,7 +103,7 @@ def _shade(mask: np.ndarray, normals: np.ndarray, albedo: np.ndarray | float = 0
 
 
 def lambert_render(mesh: Mesh, *, size: int = 800, maps: BakedMaps | None = None,
-                   blurred: bool = False, rays=None) -> np.ndarray:
+                   blurred: bool = False, rays=None, memo: dict | None = None) -> np.ndarray:
     """Grey Lambert image (size, size, 3) uint8 of ``mesh`` seen from +Z.
 
     Without ``maps`` the shading normal is the mesh's interpolated vertex normal (libigl's
@@ -122,7 +111,7 @@ def lambert_render(mesh: Mesh, *, size: int = 800, maps: BakedMaps | None = None
     (:func:`stages.bake.bump_shading_normals_at_hits`, sharp or blurred bump).
     """
     rays = rays if rays is not None else _camera_rays(mesh, size)
-    mask, tri, bary, _ = _cast(mesh, rays)
+    mask, tri, bary = _cast(mesh, rays, memo)
     if maps is not None:
         n = bake.bump_shading_normals_at_hits(mesh, maps, tri, bary, blurred=blurred)
     else:
@@ -133,7 +122,7 @@ def lambert_render(mesh: Mesh, *, size: int = 800, maps: BakedMaps | None = None
 
 
 def save_shaded_comparison(high: Mesh, low: Mesh, maps: BakedMaps, out_path, *,
-                           size: int = 800) -> Path:
+                           size: int = 800, memo: dict | None = None) -> Path:
     """Side-by-side Lambert renders: high mesh | low + bump | low + blurred bump | low alone
     (the high panel alone when ``low`` is None).
 
@@ -151,11 +140,12 @@ def save_shaded_comparison(high: Mesh, low: Mesh, maps: BakedMaps, out_path, *,
     Shading uses a constant grey albedo so that only geometry differs between panels.
     """
     rays = _camera_rays(high, size)
-    panels = [lambert_render(high, rays=rays)]
+    memo = {} if memo is None else memo
+    panels = [lambert_render(high, rays=rays, memo=memo)]
     if low is not None:  # no low mesh (render.geometries = ["high"] or []): the high panel only
-        panels += [lambert_render(low, maps=maps, rays=rays),
-                   lambert_render(low, maps=maps, blurred=True, rays=rays),
-                   lambert_render(low, rays=rays)]
+        panels += [lambert_render(low, maps=maps, rays=rays, memo=memo),
+                   lambert_render(low, maps=maps, blurred=True, rays=rays, memo=memo),
+                   lambert_render(low, rays=rays, memo=memo)]
     gap = np.full((size, 4, 3), 255, np.uint8)
     row = np.concatenate([x for p in panels for x in (p, gap)][:-1], axis=1)
     return _write_png(Path(out_path), row)
@@ -175,9 +165,10 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
         files += save_map_previews(inputs["maps"], ctx.out_dir)
         out = ctx.out_dir / "shaded_high_vs_low.png"
         save_shaded_comparison(inputs["high"], inputs["low"], inputs["maps"], out,
-                               size=params["size"])
+                               size=params["size"], memo=ctx.memo)
     else:
         out = ctx.out_dir / "shaded_high.png"
-        save_shaded_comparison(inputs["high"], None, None, out, size=params["size"])
+        save_shaded_comparison(inputs["high"], None, None, out, size=params["size"],
+                               memo=ctx.memo)
     files.append(out)
     return StageResult(files=[Path(f).name for f in files])

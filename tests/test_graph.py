@@ -1,5 +1,6 @@
 """Stage graph and cache semantics on toy stages (the product has only real stages)."""
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -214,3 +215,71 @@ def test13_non_finite_artifacts_are_refused(tmp_path):
     with pytest.raises(StageFailure, match="non-finite"):
         execute(nodes, ["s"], store, Ctx())
     assert not (tmp_path / "s").exists()
+
+
+def _wide_graph(barrier, log, fail=None):
+    """root -> (left, right) -> join: left and right are independent; each waits on
+    ``barrier`` so that they pass only if both run at the same time."""
+    import threading
+
+    def stage(name, value):
+        def fn(inputs, ctx):
+            log.append((name, "start", threading.get_ident(), sorted(inputs)))
+            if name in ("left", "right"):
+                barrier.wait(timeout=10)           # BrokenBarrierError when run one by one
+            if name == fail:
+                raise RuntimeError(f"{name} failed")
+            total = value + sum(float(p.Rd[0]) for p in inputs.values())
+            (ctx.out_dir / "who.txt").write_text(name)   # each node its own out_dir
+            log.append((name, "end", threading.get_ident(), str(ctx.out_dir)))
+            return StageResult(_profile(total), files=["who.txt"])
+        return fn
+
+    return {
+        "root": Node("root", "root", __name__, {"v": 1}, (), stage("root", 1.0)),
+        "left": Node("left", "left", __name__, {"v": 2}, ("root",), stage("left", 2.0)),
+        "right": Node("right", "right", __name__, {"v": 3}, ("root",), stage("right", 3.0)),
+        "join": Node("join", "join", __name__, {"v": 4}, ("left", "right"), stage("join", 4.0)),
+    }
+
+
+def test14_jobs_run_independent_nodes_at_once_in_dependency_order(tmp_path):
+    """jobs=2: the two independent nodes meet at a barrier (impossible one by one), every node
+    starts after its inputs ended, and the results equal the serial run's."""
+    import threading
+    log: list = []
+    s = execute(_wide_graph(threading.Barrier(2), log), ["join"], Store(tmp_path / "a"),
+                Ctx(), jobs=2)
+    assert sorted(s.ran()) == ["join", "left", "right", "root"]
+    events = [(name, what) for name, what, *_ in log]
+    for node, deps in (("left", ["root"]), ("right", ["root"]), ("join", ["left", "right"])):
+        start = events.index((node, "start"))
+        assert all(events.index((d, "end")) < start for d in deps)
+    starts = {name: rest[1] for name, what, *rest in log if what == "start"}
+    assert starts["join"] == ["left", "right"]
+    out_dirs = {name: rest[1] for name, what, *rest in log if what == "end"}
+    assert len(set(out_dirs.values())) == 4
+    serial_log: list = []
+    s1 = execute(_wide_graph(threading.Barrier(1), serial_log), ["join"], Store(tmp_path / "b"),
+                 Ctx(), jobs=1)
+    for a, b in zip(s.nodes, s1.nodes):
+        assert a.id == b.id and a.key == b.key
+        assert json.loads((Path(a.path) / "meta.json").read_text())["checksums"] == \
+            json.loads((Path(b.path) / "meta.json").read_text())["checksums"]
+
+
+def test15_one_failing_node_stops_new_work_and_leaves_the_rest_valid(tmp_path):
+    """A node failing while its sibling runs: the failure is raised, the sibling finishes and
+    is cached, nothing downstream starts, and a rerun builds only what is missing."""
+    import threading
+    from dermis.pipeline.graph import StageFailure
+    store = Store(tmp_path)
+    log: list = []
+    with pytest.raises(StageFailure, match="left failed"):
+        execute(_wide_graph(threading.Barrier(2), log, fail="left"), ["join"], store, Ctx(),
+                jobs=2)
+    assert ("join", "start") not in [(n, w) for n, w, *_ in log]
+    log.clear()
+    s = execute(_wide_graph(threading.Barrier(1), log), ["join"], store, Ctx(), jobs=2)
+    assert sorted(s.ran()) == ["join", "left"] and sorted(s.cached()) == ["right", "root"]
+    assert not list((tmp_path / ".tmp").iterdir())

@@ -128,12 +128,15 @@ PROBE = {
     "stages/render.py": {"render", "bssrdf"},          # pixel_surface + surface term
     "stages/brdf_models.py": {"render", "bssrdf", "irradiance"},  # the BSSRDF's surface lobes
                                                        # and the entry transmittance they cap
-    "physics/visibility.py": {"render", "bssrdf", "irradiance", "visibility"},
-    "physics/lights.py": {"render", "bssrdf", "irradiance", "visibility"},
+    # the previews cast their rays on the renders' shared Embree scenes (physics/visibility.py,
+    # which imports physics/lights.py)
+    "physics/visibility.py": {"render", "bssrdf", "irradiance", "visibility", "mesh_previews"},
+    "physics/lights.py": {"render", "bssrdf", "irradiance", "visibility", "mesh_previews"},
     "stages/visibility.py": {"visibility", "render", "bssrdf"},   # shared rays, hit attributes
     "pipeline/plan.py": set(),                         # decides which nodes exist, runs in none
     "reports/diff.py": {"report", "differences"},
-    "reports/sheets.py": {"images", "report", "differences"},   # grids drawn with Pillow
+    "reports/sheets.py": {"images", "report", "differences",   # grids drawn with Pillow
+                          "mesh_previews"},                  # and its PNG writer
     "reports/tonemap.py": {"images", "report"},        # tone mapping is not part of rendering
     "stages/gather.py": {"bssrdf"},
     "stages/mesh_prep.py": {"mesh_source", "mesh_high", "mesh_low"},
