@@ -224,8 +224,12 @@ def _is_measurement(key: str, value) -> bool:
             key.endswith("_s") and isinstance(value, float) and not key.startswith("sigma"))
 
 
+_LIST = "__list__"     # marks the measurements of a list of dicts (one dict per item)
+
+
 def _split(d: dict) -> tuple[dict, dict]:
-    """(d without its time measurements, the measurements), recursively through dicts."""
+    """(d without its time measurements, the measurements), recursively through dicts and
+    lists of dicts (e.g. the seconds of each Monte Carlo run)."""
     kept, measured = {}, {}
     for k, v in d.items():
         if _is_measurement(k, v):
@@ -234,6 +238,11 @@ def _split(d: dict) -> tuple[dict, dict]:
             kept[k], sub = _split(v)
             if sub:
                 measured[k] = sub
+        elif isinstance(v, list) and v and all(isinstance(x, dict) for x in v):
+            pairs = [_split(x) for x in v]
+            kept[k] = [a for a, _ in pairs]
+            if any(b for _, b in pairs):
+                measured[k] = {_LIST: [b for _, b in pairs]}
         else:
             kept[k] = v
     return kept, measured
@@ -242,8 +251,12 @@ def _split(d: dict) -> tuple[dict, dict]:
 def _merge(d: dict, measured: dict) -> dict:
     out = dict(d)
     for k, v in measured.items():
-        out[k] = _merge(out.get(k, {}), v) if isinstance(v, dict) and isinstance(
-            out.get(k), dict) and k not in MEASUREMENT_KEYS else v
+        if isinstance(v, dict) and _LIST in v and isinstance(out.get(k), list):
+            out[k] = [_merge(x, m) for x, m in zip(out[k], v[_LIST])]
+        elif isinstance(v, dict) and isinstance(out.get(k), dict) and k not in MEASUREMENT_KEYS:
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = v
     return out
 
 

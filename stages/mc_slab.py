@@ -273,8 +273,11 @@ def combine(a: McResult, b: McResult) -> McResult:
                 interactions_per_second=interactions / seconds,
                 trips_per_channel=(np.add(a.info["trips_per_channel"],
                                           b.info["trips_per_channel"])).tolist(),
-                lane_occupancy=(a.info["lane_occupancy"] * a.seconds
-                                + b.info["lane_occupancy"] * b.seconds) / seconds,
+                # pooled over loop trips (busy lane-trips / lane-trips), not over seconds:
+                # a time-weighted mean made the artifact's bytes depend on the machine's load
+                lane_occupancy=(a.info["lane_occupancy"] * sum(a.info["trips_per_channel"])
+                                + b.info["lane_occupancy"] * sum(b.info["trips_per_channel"]))
+                / max(sum(a.info["trips_per_channel"]) + sum(b.info["trips_per_channel"]), 1.0),
                 runs=[{"seed": r.info["seed"], "photons_per_channel": r.info["photons_per_channel"],
                        "seconds": r.seconds} for r in (a, b)])
     return McResult(

@@ -140,3 +140,63 @@ def test08_results_kept_across_runs_by_content():
     other = Mesh()
     other.vertices = other.vertices * 2.0
     assert visibility.shared(other, {}) is not first
+
+
+def test09_nodes_run_at_once_give_the_same_bytes_as_one_by_one(built, tmp_path):
+    """The default jobs (2 threads) and one node at a time, each into a fresh cache, must give every node the same key and every artifact the same bytes.  What prints the
+    seconds a node took differs by those alone: JSON files are compared without their time
+    measurements, and the contact sheets and the PDF (timings in the captions) are left out."""
+    from dermis.pipeline.graph import _split
+    scene = built[0]
+    assert api.resolve_jobs() >= 2
+    first = api.run(scene, cache=tmp_path / "at_once", export=False)
+    serial = api.run(scene, cache=tmp_path / "one_by_one", export=False, jobs=1)
+    assert [n.id for n in serial.nodes] == [n.id for n in first.nodes]
+    differ, compared = [], 0
+    for a, b in zip(first.nodes, serial.nodes):
+        assert a.key == b.key, a.id
+        sums_a = json.loads((Path(a.path) / "meta.json").read_text())["checksums"]
+        sums_b = json.loads((Path(b.path) / "meta.json").read_text())["checksums"]
+        assert sorted(sums_a) == sorted(sums_b), a.id
+        for name in sums_a:
+            if name.startswith("sheet-") or name == "report.pdf":
+                continue
+            if name.endswith(".json") and sums_a[name] != sums_b[name]:
+                ja, jb = (json.loads((Path(n.path) / name).read_text()) for n in (a, b))
+                same = (_split(ja)[0] == _split(jb)[0]) if isinstance(ja, dict) else ja == jb
+            else:
+                same = sums_a[name] == sums_b[name]
+            compared += 1
+            if not same:
+                differ.append(f"{a.id}/{name}")
+    assert compared > 200 and differ == [], differ
+
+
+def test10_concurrent_askers_of_one_result_share_one_computation():
+    """RecentResults (pipeline/reuse.py): threads asking for the same missing key at once make
+    it once (two nodes on two threads need the same Embree scene)."""
+    import threading
+    import time
+    from dermis.pipeline.reuse import RecentResults
+    keep, made, got = RecentResults(2), [], []
+
+    def make():
+        made.append(1)
+        time.sleep(0.2)            # long enough for every asker to arrive meanwhile
+        return object()
+
+    threads = [threading.Thread(target=lambda: got.append(keep.get("k", make)))
+               for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(made) == 1 and len(got) == 4 and len({id(g) for g in got}) == 1
+
+
+def test11_jobs_are_checked():
+    from dermis.pipeline.errors import DermisError
+    for bad in (0, "two", 65, "1.5"):
+        with pytest.raises(DermisError, match="whole number from 1 to 64"):
+            api.resolve_jobs(bad)
+    assert api.resolve_jobs(3) == 3
