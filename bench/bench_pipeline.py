@@ -41,10 +41,57 @@ def _per_stage(summary) -> dict:
     return out
 
 
-def _run(api, scene, cache, jobs) -> tuple[float, object]:
+class _MemoryWatch:
+    """Samples this process's resident memory every 0.1 s and which nodes were running then:
+    where the peak comes from (nodes run at once on threads)."""
+
+    def __init__(self):
+        import threading
+        self.running: set = set()
+        self.peak_mb, self.peak_nodes = 0.0, []
+        self.t0 = time.perf_counter()
+        self.timeline: dict = {}        # node id -> [start, end] seconds since the run began
+        self.curve: list = []           # [seconds, MB] once a second
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._watch, daemon=True)
+        self._page = os.sysconf("SC_PAGE_SIZE")
+
+    def progress(self, node, fraction):
+        now = round(time.perf_counter() - self.t0, 3)
+        if fraction <= 0.0:
+            self.running.add(node.id)
+            self.timeline[node.id] = [now, None]
+        elif fraction >= 1.0:
+            self.running.discard(node.id)
+            self.timeline[node.id][1] = now
+
+    def _watch(self):
+        while not self._stop.wait(0.1):
+            with open("/proc/self/statm") as f:
+                rss = int(f.read().split()[1]) * self._page / 2**20
+            if rss > self.peak_mb:
+                self.peak_mb, self.peak_nodes = rss, sorted(self.running)
+            now = time.perf_counter() - self.t0
+            if not self.curve or now - self.curve[-1][0] >= 1.0:
+                self.curve.append([round(now, 1), round(rss)])
+
+    def __enter__(self):
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join()
+
+
+def _run(api, scene, cache, jobs) -> tuple[float, object, dict]:
     t0 = time.perf_counter()
-    summary = api.run(scene, cache=cache, export=False, jobs=jobs)
-    return time.perf_counter() - t0, summary
+    with _MemoryWatch() as watch:
+        summary = api.run(scene, cache=cache, export=False, jobs=jobs, progress=watch.progress)
+    return time.perf_counter() - t0, summary, {"peak_mb": watch.peak_mb,
+                                               "running_at_peak": watch.peak_nodes,
+                                               "timeline": watch.timeline,
+                                               "curve": watch.curve}
 
 
 def main(argv=None) -> int:
@@ -70,7 +117,7 @@ def main(argv=None) -> int:
     cache = args.cache or tempfile.mkdtemp(prefix="dermis-bench-")
     load0 = os.getloadavg()
     cpu0 = time.process_time()
-    wall, summary = _run(api, scene, cache, jobs)
+    wall, summary, memory = _run(api, scene, cache, jobs)
     cpu = time.process_time() - cpu0
     nodes = {n.id: {"status": n.status, "seconds": n.seconds, "kernel_seconds": n.kernel_seconds}
              for n in summary.nodes}
@@ -96,6 +143,7 @@ def main(argv=None) -> int:
         "images": sum(1 for n in summary.nodes if n.stage in ("render", "bssrdf")),
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "loadavg_before": load0, "loadavg_after": os.getloadavg(), "cpus": os.cpu_count(),
+        "memory_watch": memory,
         "per_stage": _per_stage(summary), "nodes": nodes, "seconds_per_image": table,
     }
     if args.warm_light:
@@ -104,7 +152,7 @@ def main(argv=None) -> int:
                                                if l.name == light.name else {})}
                            for l in scene.lights]}
         changed = load_scene(args.scene, overrides={**base_over, **over})
-        w2, s2 = _run(api, changed, cache, jobs)
+        w2, s2, _ = _run(api, changed, cache, jobs)
         result["warm"] = {"light": args.warm_light, "wall_seconds": w2,
                           "fraction_of_cold": w2 / wall, "ran": s2.ran(),
                           "per_stage": _per_stage(s2)}

@@ -286,8 +286,12 @@ def sample_image(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 def _vertex_uv_pairs(f: np.ndarray, uvf: np.ndarray, n_uv: int):
     """Unique (vertex, uv index) pairs used by face corners, sorted by vertex."""
-    code = f.reshape(-1).astype(np.int64) * n_uv + uvf.reshape(-1)
-    uniq = np.unique(code)
+    code = np.sort(f.reshape(-1).astype(np.int64) * n_uv + uvf.reshape(-1))
+    # = np.unique(code), whose hash-based path took 1.4 s on the 3.4M corners of the scan
+    # (numpy 2.x) against ~0.25 s for this sort
+    first = np.ones(len(code), dtype=bool)
+    first[1:] = code[1:] != code[:-1]
+    uniq = code[first]
     return uniq // n_uv, uniq % n_uv
 
 

@@ -126,11 +126,8 @@ def samples_per_hit(lights, spp: int, shadow_samples: int | None = None) -> int:
 
 # --------------------------------------------------------------------------- OpenCL helpers
 def _buf(cl, env, array):
-    array = np.ascontiguousarray(array)
-    if array.nbytes == 0:
-        array = np.zeros(4, dtype=array.dtype)
-    return cl.Buffer(env.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
-                     hostbuf=array)
+    from dermis.pipeline.cl import to_device
+    return to_device(env, array)
 
 
 def _global_size(n: int) -> tuple[int]:
