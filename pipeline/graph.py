@@ -378,6 +378,11 @@ class _NodeRunner:
             for d in nodes[nid].dep_ids:
                 self._readers[d] = self._readers.get(d, 0) + 1
 
+    def readers_left(self, nid: str) -> int:
+        """Stale nodes that still have to read ``nid``'s artifact."""
+        with self._lock:
+            return self._readers.get(nid, 0)
+
     def progress(self, node, fraction):
         if self._progress:
             with self._lock:   # the callback (progress bars) need not be thread-safe
@@ -493,7 +498,13 @@ def _run_concurrently(runner: _NodeRunner, todo: list[str], reports: dict, jobs:
     with ThreadPoolExecutor(max_workers=jobs, thread_name_prefix="dermis-node") as pool:
         while (ready and failure is None) or running:
             while ready and failure is None and len(running) < jobs:
-                ready.sort(key=lambda n: (-priority[n], position[n]))
+                # among equals, the node whose inputs have the fewest readers left: the nodes
+                # reading one artifact (the models of one mesh and light) run together and it
+                # leaves memory early (a plan-order tie-break kept every light's rays until
+                # the last model: +0.4 GB on the default matrix)
+                ready.sort(key=lambda n: (-priority[n], min(
+                    (runner.readers_left(d) for d in nodes[n].dep_ids), default=0),
+                    position[n]))
                 nid = ready.pop(0)
                 running[pool.submit(runner.run, nid, reports[nid])] = nid
             done, _ = wait(running, return_when=FIRST_COMPLETED)
