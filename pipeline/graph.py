@@ -451,14 +451,36 @@ class _NodeRunner:
             if self._readers.get(nid, 0) > 0:
                 self._loaded[nid] = (result.artifact if result.artifact is not None
                                      else store.artifact_dir(nid, key))
+            released = 0
             for d in node.dep_ids:
                 self._readers[d] -= 1
                 if self._readers[d] == 0:
-                    self._loaded.pop(d, None)
+                    released += self._loaded.pop(d, None) is not None
         del inputs, result
+        if released:
+            _return_free_memory()
         rep.status, rep.seconds, rep.kernel_seconds = "ran", seconds, kernel_s
         rep.path = str(store.artifact_dir(nid, key))
         self.progress(node, 1.0)
+
+
+def _return_free_memory() -> None:
+    """Give the allocator's free pages back to the system (glibc ``malloc_trim``): with nodes
+    on several threads, glibc keeps one heap per thread and the arrays a node freed stay in
+    its heap, counted as resident, until trimmed."""
+    trim = _MALLOC_TRIM[0]
+    if trim is None:
+        try:
+            import ctypes
+            trim = ctypes.CDLL("libc.so.6").malloc_trim
+        except (OSError, AttributeError):   # not glibc: nothing to do
+            trim = False
+        _MALLOC_TRIM[0] = trim
+    if trim:
+        trim(0)
+
+
+_MALLOC_TRIM: list = [None]
 
 
 def _priorities(nodes: dict[str, Node], todo: list[str]) -> dict[str, int]:
