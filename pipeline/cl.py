@@ -280,16 +280,16 @@ def event_seconds(events) -> float:
 
 
 def to_device(env: ClEnv, array: np.ndarray):
-    """A read-only device buffer holding a contiguous host array.
+    """Copy a contiguous host array to a read-only device buffer.
 
-    On a CPU device (PoCL) the buffer uses the host memory itself (``USE_HOST_PTR``; pyopencl
-    keeps the array alive with the buffer, and no caller writes to an array it uploaded):
-    copying cost ~60 ms per 67 MB (the 4096^2 bump map, uploaded by every render) against
-    ~0.3 ms.  Other devices get a copy."""
+    A copy, also on CPU devices: a ``USE_HOST_PTR`` buffer would save ~60 ms per 67 MB, but
+    pyopencl lets go of the host array when the Python buffer object goes, which can happen
+    while a kernel enqueued with it still runs (a temporary buffer passed straight to an
+    asynchronous launch); with nodes on two threads the freed memory was reused and one
+    BSSRDF image in a few runs differed (tests/test_pipeline.py test09)."""
     cl = _cl()
     array = np.ascontiguousarray(array)
     if not array.nbytes:
         array = np.zeros(4, array.dtype)
-    where = (cl.mem_flags.USE_HOST_PTR if env.device.type & cl.device_type.CPU
-             else cl.mem_flags.COPY_HOST_PTR)
-    return cl.Buffer(env.context, cl.mem_flags.READ_ONLY | where, hostbuf=array)
+    return cl.Buffer(env.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
+                     hostbuf=array)
