@@ -18,6 +18,7 @@ for, so nothing that no requested output needs is ever computed.
 from __future__ import annotations
 
 import copy
+import functools
 import hashlib
 import importlib
 import json
@@ -26,12 +27,12 @@ import time
 import traceback
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Callable
 
 from . import artifacts
 from .codehash import closure_hash
 from .errors import DermisError
+from .reuse import KeyedLocks
 from .store import META, Store
 
 __all__ = ["Node", "StageResult", "RunSummary", "node_key", "plan_order", "execute", "staleness"]
@@ -369,7 +370,7 @@ class _NodeRunner:
         self.nodes, self.keys, self.parts, self.store, self.ctx = nodes, keys, parts, store, ctx
         self._progress = progress
         self._loaded: dict[str, Any] = {}
-        self._loading: dict[str, threading.Lock] = {}
+        self._loading = KeyedLocks()            # each cached input read once
         self._lock = threading.Lock()
         # how many stale nodes still read each artifact: at 0 it is dropped from memory (the
         # run's images, visibility and irradiance arrays would otherwise all stay resident)
@@ -390,11 +391,7 @@ class _NodeRunner:
 
     def input(self, nid: str):
         """The artifact of ``nid``: produced in this run, or loaded once from the store."""
-        with self._lock:
-            if nid in self._loaded:
-                return self._loaded[nid]
-            once = self._loading.setdefault(nid, threading.Lock())
-        with once:
+        with self._loading(nid):
             with self._lock:
                 if nid in self._loaded:
                     return self._loaded[nid]
@@ -464,23 +461,23 @@ class _NodeRunner:
         self.progress(node, 1.0)
 
 
+@functools.lru_cache(maxsize=1)
+def _malloc_trim():
+    """glibc's ``malloc_trim``, or None where the C library is not glibc."""
+    import ctypes
+    try:
+        return ctypes.CDLL("libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return None
+
+
 def _return_free_memory() -> None:
     """Give the allocator's free pages back to the system (glibc ``malloc_trim``): with nodes
     on several threads, glibc keeps one heap per thread and the arrays a node freed stay in
     its heap, counted as resident, until trimmed."""
-    trim = _MALLOC_TRIM[0]
-    if trim is None:
-        try:
-            import ctypes
-            trim = ctypes.CDLL("libc.so.6").malloc_trim
-        except (OSError, AttributeError):   # not glibc: nothing to do
-            trim = False
-        _MALLOC_TRIM[0] = trim
-    if trim:
+    trim = _malloc_trim()
+    if trim is not None:
         trim(0)
-
-
-_MALLOC_TRIM: list = [None]
 
 
 def _priorities(nodes: dict[str, Node], todo: list[str]) -> dict[str, int]:

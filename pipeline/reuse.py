@@ -11,10 +11,11 @@ from __future__ import annotations
 import hashlib
 import threading
 from collections import OrderedDict
+from contextlib import contextmanager
 
 import numpy as np
 
-__all__ = ["content_key", "RecentResults"]
+__all__ = ["content_key", "RecentResults", "KeyedLocks"]
 
 
 def content_key(*parts) -> str:
@@ -31,6 +32,29 @@ def content_key(*parts) -> str:
     return h.hexdigest()
 
 
+class KeyedLocks:
+    """One lock per key, held with ``with locks(key):`` -- threads asking for the same key
+    wait for each other, other keys go on; a key's lock is dropped by its last holder."""
+
+    def __init__(self):
+        self._locks: dict = {}          # key -> [lock, holders]
+        self._guard = threading.Lock()
+
+    @contextmanager
+    def __call__(self, key):
+        with self._guard:
+            entry = self._locks.setdefault(key, [threading.Lock(), 0])
+            entry[1] += 1
+        try:
+            with entry[0]:
+                yield
+        finally:
+            with self._guard:
+                entry[1] -= 1
+                if entry[1] == 0:
+                    del self._locks[key]
+
+
 class RecentResults:
     """The ``size`` most recently used results of one computation, by key (thread-safe: when
     several threads ask for a missing key at once, one computes it and the others wait)."""
@@ -38,33 +62,30 @@ class RecentResults:
     def __init__(self, size: int):
         self.size = int(size)
         self._items: OrderedDict = OrderedDict()
-        self._making: dict = {}
+        self._making = KeyedLocks()
         self._lock = threading.Lock()
 
-    def get(self, key, make):
-        """The result stored under ``key``, else ``make()`` stored under it."""
+    def _stored(self, key):
         with self._lock:
             if key in self._items:
                 self._items.move_to_end(key)
-                return self._items[key]
-            once = self._making.setdefault(key, threading.Lock())
-        with once:
-            with self._lock:
-                if key in self._items:
-                    self._items.move_to_end(key)
-                    return self._items[key]
-            try:
-                value = make()
-            except BaseException:
-                with self._lock:
-                    self._making.pop(key, None)
-                raise
+                return True, self._items[key]
+        return False, None
+
+    def get(self, key, make):
+        """The result stored under ``key``, else ``make()`` stored under it."""
+        found, value = self._stored(key)
+        if found:
+            return value
+        with self._making(key):
+            found, value = self._stored(key)    # made by another thread meanwhile
+            if found:
+                return value
+            value = make()
             with self._lock:
                 self._items[key] = value
-                self._items.move_to_end(key)
                 while len(self._items) > self.size:
                     self._items.popitem(last=False)
-                self._making.pop(key, None)
             return value
 
     def clear(self) -> None:

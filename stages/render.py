@@ -49,9 +49,10 @@ from dermis.pipeline.config import BSSRDF_MODELS, MODELS as SCENE_MODELS
 from dermis.pipeline.config import CameraConfig
 from dermis.pipeline.errors import ConfigError, DermisError
 from dermis.pipeline.graph import Node, StageResult
+from dermis.pipeline.cl import to_device
 from dermis.pipeline.imageio import write_exr
 from dermis.physics.visibility import Visibility, camera_rays, camera_vectors
-from dermis.stages.visibility import (LightSampling, _buf, _global_size, cast,
+from dermis.stages.visibility import (LightSampling, _global_size, cast,
                                       surface_attributes)
 
 __all__ = ["VERSION", "KERNELS", "MODELS", "LambertParams", "LightSampling", "RenderResult",
@@ -276,10 +277,10 @@ class _Shader:
         if base == "hk93":  # the texture tints rho_ms: shade.cl expects albedo / Rd (1 = untinted)
             albedo = (albedo / bparams.texture_reference()).astype(np.float32) \
                 if px.texture is not None else np.ones_like(albedo)
-        self.inputs = [_buf(cl, env_cl, px.surf["shading_normal"]), _buf(cl, env_cl, px.surf["wo"]),
-                       _buf(cl, env_cl, albedo),
-                       _buf(cl, env_cl, np.asarray(base_block, dtype=np.float32)),
-                       _buf(cl, env_cl, np.asarray(asp_block, dtype=np.float32))]
+        self.inputs = [to_device(env_cl, px.surf["shading_normal"]),
+                       to_device(env_cl, px.surf["wo"]), to_device(env_cl, albedo),
+                       to_device(env_cl, np.asarray(base_block, dtype=np.float32)),
+                       to_device(env_cl, np.asarray(asp_block, dtype=np.float32))]
 
     def __call__(self, gidx: np.ndarray, dirs: np.ndarray, wts: np.ndarray) -> tuple[np.ndarray, float]:
         """f W cos(theta_i) of each sample of hit ``gidx``: (k, 3) float32, kernel seconds."""
@@ -289,8 +290,9 @@ class _Shader:
         env, k = self.env, len(gidx)
         out = np.empty((k, 3), dtype=np.float32)
         out_buf = cl.Buffer(env.context, cl.mem_flags.WRITE_ONLY, out.nbytes)
-        ev = self.kernel(env.queue, _global_size(k), None, _buf(cl, env, gidx), _buf(cl, env, dirs),
-                         _buf(cl, env, wts), np.int32(k), *self.inputs, out_buf)
+        ev = self.kernel(env.queue, _global_size(k), None, to_device(env, gidx),
+                         to_device(env, dirs), to_device(env, wts), np.int32(k), *self.inputs,
+                         out_buf)
         cl.enqueue_copy(env.queue, out, out_buf, wait_for=[ev])
         env.queue.finish()
         return out, event_seconds(ev)

@@ -125,11 +125,6 @@ def samples_per_hit(lights, spp: int, shadow_samples: int | None = None) -> int:
 
 
 # --------------------------------------------------------------------------- OpenCL helpers
-def _buf(cl, env, array):
-    from dermis.pipeline.cl import to_device
-    return to_device(env, array)
-
-
 def _global_size(n: int) -> tuple[int]:
     return (max(64, -(-n // 64) * 64),)
 
@@ -143,7 +138,7 @@ def surface_attributes(env, mesh, hits_tri, hits_bary, camera_pos, *, texture=No
     ``NS_MIN_COS`` towards the camera (cl/surface.cl), so every hit can be shaded.
     """
     import pyopencl as cl
-    from dermis.pipeline.cl import event_seconds
+    from dermis.pipeline.cl import event_seconds, to_device
 
     m = len(hits_tri)
     has_uv = mesh.uv is not None
@@ -154,17 +149,17 @@ def surface_attributes(env, mesh, hits_tri, hits_bary, camera_pos, *, texture=No
     tex = texture if texture is not None else np.zeros((1, 1, 3), np.uint8)
     bmp = bump_map if bump_map is not None else np.zeros((1, 1), np.float32)
     ins = [
-        _buf(cl, env, np.asarray(hits_tri, dtype=np.int32)),
-        _buf(cl, env, np.asarray(hits_bary, dtype=np.float32)),
+        to_device(env, np.asarray(hits_tri, dtype=np.int32)),
+        to_device(env, np.asarray(hits_bary, dtype=np.float32)),
         np.int32(m),
-        _buf(cl, env, np.asarray(mesh.vertices, dtype=np.float32)),
-        _buf(cl, env, np.asarray(mesh.faces, dtype=np.int32)),
-        _buf(cl, env, mesh.vertex_normals()),
-        _buf(cl, env, np.asarray(mesh.uv if has_uv else np.zeros((1, 2)), dtype=np.float32)),
-        _buf(cl, env, np.asarray(mesh.uv_faces if has_uv else np.zeros((1, 3)), dtype=np.int32)),
-        _buf(cl, env, np.ascontiguousarray(tex, dtype=np.uint8)),
-        np.int32(tex.shape[1]), np.int32(tex.shape[0]), _buf(cl, env, lut),
-        _buf(cl, env, np.asarray(bmp, dtype=np.float32)),
+        to_device(env, np.asarray(mesh.vertices, dtype=np.float32)),
+        to_device(env, np.asarray(mesh.faces, dtype=np.int32)),
+        to_device(env, mesh.vertex_normals()),
+        to_device(env, np.asarray(mesh.uv if has_uv else np.zeros((1, 2)), dtype=np.float32)),
+        to_device(env, np.asarray(mesh.uv_faces if has_uv else np.zeros((1, 3)), dtype=np.int32)),
+        to_device(env, np.ascontiguousarray(tex, dtype=np.uint8)),
+        np.int32(tex.shape[1]), np.int32(tex.shape[0]), to_device(env, lut),
+        to_device(env, np.asarray(bmp, dtype=np.float32)),
         np.int32(bmp.shape[1]), np.int32(bmp.shape[0]), np.float32(bump_range),
         *(np.float32(c) for c in camera_pos),
     ]
