@@ -706,7 +706,12 @@ def irradiance(points: np.ndarray, normals: np.ndarray, light,
         # one cosine pass: samples below the horizon (or of zero weight) are not live, get
         # no shadow ray and add nothing; the sum is E = sum_s V_s cos_s (T_s) weights_s
         cos = np.einsum("nsk,nk->ns", ls.directions, ns)
-        live = (cos > 0) & (ls.weights.max(axis=2) > 0)
+        # any channel > 0, one comparison per channel: ``weights.max(axis=2)`` reduces over
+        # a length-3 axis, ~10x slower (3.8 of 46 s of a sunset + area pass, py-spy)
+        wt = ls.weights
+        live = (wt[..., 0] > 0) | (wt[..., 1] > 0)
+        live |= wt[..., 2] > 0
+        live &= cos > 0
         factor = np.where(live, cos, np.float32(0.0))
         if occlusion_fn is not None and live.any():
             # shadow rays of the live samples only (flat indices: one ``take`` per array)

@@ -144,7 +144,6 @@ class Visibility:
         if len(p) == 0:
             return np.zeros(0, dtype=bool)
         side = np.where(np.einsum("ij,ij->i", n, d) < 0, -1.0, 1.0).astype(np.float32)
-        origins = p + (self.offset_mm * side)[:, None] * n
         # Embree's tfar is in units of the direction's length and a scalar per call, so the
         # per-ray end goes into the direction's length: d * (distance - offset), tfar = 1.
         # Lights at infinity end at a distance that clears the whole scene from any origin
@@ -152,7 +151,15 @@ class Visibility:
         dist = np.broadcast_to(np.asarray(max_distance, dtype=np.float32), p.shape[:1])
         dist = np.minimum(dist, np.float32(2.0 * self.diagonal_mm)) - np.float32(self.offset_mm)
         dist = np.maximum(dist, np.float32(0.0))
-        rays = _rays(origins, d * dist[:, None])
+        # the rays [origin, direction x length] written in place (no temporaries): the same
+        # float32 operations as p + offset side n and d dist
+        if n.shape != p.shape or d.shape != p.shape or p.ndim != 2 or p.shape[1] != 3:
+            raise DermisError(f"visibility: points {p.shape}, normals {n.shape} and "
+                              f"directions {d.shape} must all be (N, 3)")
+        rays = np.empty((len(p), 6), dtype=np.float32)
+        np.multiply(n, (self.offset_mm * side)[:, None], out=rays[:, :3])
+        rays[:, :3] += p
+        np.multiply(d, dist[:, None], out=rays[:, 3:])
         self.rays_cast += len(rays)
         return self._scene.test_occlusions(self._o3c.Tensor(rays), tnear=0.0,
                                            tfar=1.0).numpy().astype(bool, copy=False)

@@ -511,9 +511,13 @@ def write_report(images: dict, metrics: dict, out_pdf, *, scene_name: str, devic
     # Latin-1 would print as '?'; the report's own text is ASCII).
     import logging
     logging.getLogger("matplotlib.font_manager").setLevel(logging.ERROR)
-    # zlib level 1 for the page images: ~3x faster than 6 for a slightly larger file
+    # zlib level 1 for the page images: ~3x faster than 6 for a slightly larger file.
+    # Titles at the top of their axes (axes.titley = 1, where matplotlib's automatic placement
+    # puts them when no tick labels sit on top): the automatic placement measures every tick
+    # label of the axes first, ~0.1 s per log-scaled axes on this report's pages.
     with plt.rc_context({"font.size": FONT_PT, "pdf.use14corefonts": True,
-                         "font.family": "sans-serif", "pdf.compression": 1}), \
+                         "font.family": "sans-serif", "pdf.compression": 1,
+                         "axes.titley": 1.0}), \
             PdfPages(out_pdf) as pdf:
         builders = [lambda: [_title_page(plt, images, metrics, scene_name=scene_name,
                                          device=device, timings_extra=timings_extra,

@@ -26,6 +26,9 @@ PAGES = 1
 BAND_MM = (0.02, 10.0)          # radii drawn (mm); the error columns use profile_cli's band
 NOISE_BAND_SIGMA = 2.0          # the Monte Carlo band: +-2 standard errors per ring
 Y_DECADES = 1e-5                # r R(r) drawn over five decades below its peak (a drawing choice)
+# Minor grid lines of the log axes at 2 and 5 x each decade (a 1-2-5 grid) instead of
+# matplotlib's 2..9: the page drew ~300 minor ticks, 0.2 s of its CPU time (py-spy).
+MINOR_SUBS = (2.0, 5.0)
 CHANNELS = ("red", "green", "blue")
 _STYLE = {"multipole": dict(color="C0", lw=1.4), "diffusion": dict(color="C2", lw=1.2, ls="--"),
           "dj2005": dict(color="C3", lw=1.0, ls=":")}
@@ -65,6 +68,7 @@ def profile_pages(pdf, profiles: dict) -> int:
 
 
 def _page(pdf, plt, profiles: dict) -> int:
+    from matplotlib.ticker import LogLocator
     from dermis.stages.profile_cli import ERROR_BAND_MM, profile_errors, ring_energy
     profs = [profiles[k] for k in sorted(profiles)]
     mcs = [p for p in profs if p.info.get("model") == "monte_carlo"]
@@ -106,6 +110,8 @@ def _page(pdf, plt, profiles: dict) -> int:
                      transform=ax2.transAxes, fontsize=8)
         ax.set_xscale("log")
         ax.set_yscale("log")
+        for axis in (ax.xaxis, ax.yaxis):
+            axis.set_minor_locator(LogLocator(subs=MINOR_SUBS))
         peak = max([float(np.max(p.r_mm * p.R[:, c])) for p in profs] + [1e-30])
         ax.set_ylim(peak * Y_DECADES, peak * 2.0)
         ax.set_title(f"{CHANNELS[c]}: r R(r)", fontsize=9)
@@ -113,6 +119,7 @@ def _page(pdf, plt, profiles: dict) -> int:
         ax.grid(True, which="both", alpha=0.25)
         ax.tick_params(labelsize=7)
         ax2.set_xscale("log")
+        ax2.xaxis.set_minor_locator(LogLocator(subs=MINOR_SUBS))
         ax2.set_xlim(*BAND_MM)
         lim = 0.5
         if mc is not None and models:

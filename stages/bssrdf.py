@@ -53,7 +53,7 @@ def _surface_term(mesh, lights, camera, maps, bump, seed, samples, ctx) -> tuple
     from dermis.stages.brdf_models import LafortuneParams
     spec = render.render(mesh, lights, "lafortune", LafortuneParams(rho_d=(0.0, 0.0, 0.0)),
                          camera, maps=maps, bump=bump, seed=seed, samples=samples,
-                         cl_env=ctx.cl, textured=False)
+                         cl_env=ctx.cl, textured=False, memo=ctx.memo)
     return spec.linear.reshape(-1, 3), spec.timings
 
 
@@ -65,7 +65,7 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     lights = [LightConfig(**d) for d in params["lights"]]
     vis = inputs["visibility"]   # shared camera + shadow rays (stages/visibility.py)
     px = render.pixel_surface(mesh, camera, samples=vis, maps=maps, bump=params["bump"],
-                              cl_env=ctx.cl)
+                              cl_env=ctx.cl, memo=ctx.memo)
     t_vis = time.perf_counter() - t_start
     front, surf = px.front_idx, px.surf
     t0 = time.perf_counter()

@@ -227,16 +227,27 @@ class PixelSurface:
         return (out / self.spp).astype(np.float32)
 
 
+# Surface attributes kept per run (``memo``) for this many geometries (mesh, camera hits, bump
+# map): one per geometry of the default matrix (high, low_bump, low_bump_blur), each ~68 bytes
+# a hit (~175 MB at 800x800 x 4 spp).  The images of a geometry (4 lights x the BRDF models,
+# the BSSRDF and its surface term) share one camera cast (stages/visibility.py), so without
+# it they computed the same attributes ~20 times over: 13 s of node time in a 48-image
+# matrix (bench/results/pipeline_default.json, ``before_surface_cache``).
+SURFACE_CACHE_SIZE = 3
+
+
 def pixel_surface(mesh, camera, *, samples: PixelSamples | None = None, maps=None,
                   bump: str | None = None, visibility: Visibility | None = None, cl_env=None,
                   textured: bool = True, albedo_const=(0.5, 0.5, 0.5), spp: int = 1,
-                  seed: int = 0, lights=None) -> PixelSurface:
+                  seed: int = 0, lights=None, memo: dict | None = None) -> PixelSurface:
     """cl/surface.cl at the camera hits of ``samples``: the shading inputs of every hit.
 
     Shared by the BRDF renderer and the BSSRDF gather so both see the same surface.
     ``samples`` : the visibility artifact (stages/visibility.py); None casts camera rays here
     (``spp``, ``seed``; and light samples of ``lights`` when given).
     ``textured=False`` ignores the albedo texture (``albedo_const`` everywhere).
+    ``memo`` : the run's scratch dict: the attributes of a geometry are then computed once per
+    run (``SURFACE_CACHE_SIZE`` geometries kept) and shared read-only by its images.
     """
     from dermis.pipeline.cl import get_env
 
@@ -246,19 +257,50 @@ def pixel_surface(mesh, camera, *, samples: PixelSamples | None = None, maps=Non
                        cl_env=env_cl)
     _check_samples(samples, camera, mesh)
     texture = maps.albedo_srgb if maps is not None else mesh.texture_srgb
-    if not textured or (texture is not None and mesh.uv is None):
-        texture = None  # no UVs (or asked for none): the constant albedo stands in
+    if mesh.uv is None:
+        texture = None  # no UVs: the constant albedo stands in
     bump_map = None
     if bump is not None:
         bump_map = maps.bump if bump == "sharp" else maps.bump_blur
     cam_pos = np.asarray(camera.position, dtype=np.float64)
-    surf, ks = surface_attributes(env_cl, mesh, samples.tri, samples.bary, cam_pos,
-                                  texture=texture, bump_map=bump_map,
-                                  bump_range=float(maps.bump_range_mm) if maps is not None else 0.0,
-                                  albedo_const=np.asarray(albedo_const, dtype=np.float32))
+    bump_range = float(maps.bump_range_mm) if maps is not None else 0.0
+    const = np.asarray(albedo_const, dtype=np.float32)
+
+    def compute():
+        return surface_attributes(env_cl, mesh, samples.tri, samples.bary, cam_pos,
+                                  texture=texture, bump_map=bump_map, bump_range=bump_range,
+                                  albedo_const=const)
+    surf, ks = compute() if memo is None else _shared_surface(
+        memo, (mesh, texture, bump_map), (bump_range, tuple(cam_pos)), samples, compute)
+    if texture is None or not textured:
+        # cl/surface.cl writes the constant as the albedo of every hit when it has no texture:
+        # the same float32 values, so the shared attributes serve every albedo
+        texture = None
+        surf = {**surf, "albedo": np.broadcast_to(const, surf["albedo"].shape)}
     m = len(samples.tri)
     return PixelSurface(samples.width, samples.height, samples.spp,
                         samples.pixel.astype(np.int64), surf, np.arange(m), samples, texture, ks)
+
+
+def _shared_surface(memo: dict, objects: tuple, values: tuple, samples, compute):
+    """``compute()``'s (surf, kernel seconds), once per run for equal inputs: keyed by the
+    identity of ``objects`` (the run's loaded mesh, texture and bump map; the entry holds them,
+    so their ids stay theirs), ``values`` and the content of the camera hits (each lighting
+    condition's visibility node holds its own copy of the same hits).  The arrays are shared
+    read-only; a reuse reports 0 kernel seconds (no kernel ran)."""
+    from dermis.pipeline.reuse import RecentResults, content_key
+    cache = memo.setdefault(("pixel_surface",), RecentResults(SURFACE_CACHE_SIZE))
+    key = (tuple(id(o) for o in objects), values, content_key(samples.tri, samples.bary))
+    made = []
+
+    def make():
+        surf, ks = compute()
+        for a in surf.values():
+            a.setflags(write=False)
+        made.append(True)
+        return objects, surf, ks
+    _, surf, ks = cache.get(key, make)
+    return surf, (ks if made else 0.0)
 
 
 # --------------------------------------------------------------------------- render
@@ -336,7 +378,8 @@ def render(mesh, light, model: str, params, camera, *, maps=None, bump: str | No
            seed: int = 0, visibility: Visibility | None = None, asperity_base: str | None = None,
            base_params=None, cl_env=None, textured: bool = True,
            sampling: LightSampling | None = None, samples: PixelSamples | None = None,
-           spp: int = 1, progress: Callable[[float], None] | None = None) -> RenderResult:
+           spp: int = 1, progress: Callable[[float], None] | None = None,
+           memo: dict | None = None) -> RenderResult:
     """Render one image of ``mesh`` under ``light`` with a BRDF model.
 
     Parameters
@@ -375,6 +418,9 @@ def render(mesh, light, model: str, params, camera, *, maps=None, bump: str | No
         Camera samples per pixel when cast here (1 = the pixel centre).
     progress : callable(float), optional
         Called with the completed fraction in [0, 1].
+    memo : dict, optional
+        The run's scratch dict: surface attributes shared with the run's other images
+        (:func:`pixel_surface`).
 
     Raises
     ------
@@ -403,7 +449,8 @@ def render(mesh, light, model: str, params, camera, *, maps=None, bump: str | No
         t_visibility = time.perf_counter() - t0 - scene_build
     t0 = time.perf_counter()
     px = pixel_surface(mesh, camera, samples=samples, maps=maps, bump=bump, cl_env=env_cl,
-                       textured=textured, albedo_const=_fallback_albedo(base, bparams))
+                       textured=textured, albedo_const=_fallback_albedo(base, bparams),
+                       memo=memo)
     t_surface = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -501,7 +548,7 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     result = render(mesh, [], model, p, CameraConfig(**params["camera"]),
                     maps=inputs.get("maps"), bump=params["bump"], samples=samples,
                     asperity_base=params["asperity_base"], base_params=base_params,
-                    cl_env=ctx.cl, progress=ctx.progress)
+                    cl_env=ctx.cl, progress=ctx.progress, memo=ctx.memo)
     result.timings["visibility_shared"] = float(
         (samples.info.get("timings") or {}).get("total", 0.0))
     name = f"{model}-{params['label']}-{params['geometry']}"

@@ -367,3 +367,44 @@ def test12_mis_lowers_environment_render_noise(sphere, cl_env):
                        sampling=sampling).linear.reshape(-1, 3)[inner] for s in (1, 2))
         noise[strategy] = math.sqrt(np.mean((a - b) ** 2) / np.mean(((a + b) / 2) ** 2))
     assert noise["luminance"] / noise["mis"] > MIS_MIN_RENDER_NOISE_RATIO, noise
+
+
+def test13_surface_attributes_shared_within_a_run(cl_env):
+    # A run's images of one geometry share one surface pass (stages/render.py pixel_surface,
+    # ``memo``): textured and untextured images, models with other constant albedos and other
+    # lights must come out bit for bit as when each computes its own, and only the first
+    # image of the geometry may run cl/surface.cl.
+    from dermis.stages.brdf_models import LafortuneParams
+    from dermis.stages.visibility import cast
+    rng = np.random.default_rng(13)
+    tex = rng.integers(0, 256, (16, 16, 3), dtype=np.uint8)
+    mesh = plane(size=200.0, n=2, texture_srgb=tex)
+    maps = _ramp_maps(32, 20.0)
+    maps = BakedMaps(albedo_srgb=tex, bump=maps.bump, bump_blur=maps.bump_blur,
+                     coverage=maps.coverage, bump_min_mm=0.0, bump_range_mm=20.0,
+                     blur_sigma_px=0.0)
+    cam = CameraConfig(position=(10.0, -20.0, 400.0), look_at=(0.0, 0.0, 0.0), fov_deg=20.0,
+                       width=32, height=32)
+    lights = [LightConfig(name="d", type="directional", direction=(-1.0, 0.0, 1.0),
+                          intensity=(math.pi,) * 3),
+              LightConfig(name="p", type="point", position=(50.0, 80.0, 300.0),
+                          intensity=(4e4,) * 3)]
+    # each light's visibility carries its own copy of the same camera hits
+    visibility = [cast(mesh, lt, cam, spp=4, seed=3, cl_env=cl_env) for lt in lights]
+    jobs = [("lambert", None, True), ("lafortune", LafortuneParams(), True),
+            ("lafortune", LafortuneParams(rho_d=(0.0, 0.0, 0.0)), False),
+            ("hk93", None, True)]
+    memo: dict = {}
+    for k, (samples, (model, params, textured)) in enumerate(
+            (s, j) for s in visibility for j in jobs):
+        for bump in ("sharp", "blur"):
+            alone = render(mesh, [], model, params, cam, maps=maps, bump=bump, samples=samples,
+                           cl_env=cl_env, textured=textured)
+            shared = render(mesh, [], model, params, cam, maps=maps, bump=bump, samples=samples,
+                            cl_env=cl_env, textured=textured, memo=memo)
+            np.testing.assert_array_equal(shared.linear, alone.linear)
+            assert alone.info["textured"] == shared.info["textured"] == textured
+    cached = memo[("pixel_surface",)]
+    assert len(cached._items) == 2          # one surface pass per bump map, no more
+    for _, surf, _ in cached._items.values():
+        assert all(not a.flags.writeable for a in surf.values())
