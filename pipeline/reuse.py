@@ -15,7 +15,7 @@ from contextlib import contextmanager
 
 import numpy as np
 
-__all__ = ["content_key", "RecentResults", "KeyedLocks"]
+__all__ = ["content_key", "RecentResults", "KeyedLocks", "once"]
 
 
 def content_key(*parts) -> str:
@@ -91,3 +91,18 @@ class RecentResults:
     def clear(self) -> None:
         with self._lock:
             self._items.clear()
+
+
+def once(memo: dict, key, make):
+    """``memo[key]``, made by ``make()`` once even when several threads ask for it at the same
+    time: the first computes, the others wait for its result (a run's nodes run on threads
+    and share its ``memo``; without this, two nodes started together each computed it)."""
+    try:
+        return memo[key]
+    except KeyError:
+        pass
+    locks = memo.setdefault(("reuse.once", "locks"), KeyedLocks())
+    with locks(key):
+        if key not in memo:
+            memo[key] = make()
+        return memo[key]

@@ -998,6 +998,12 @@ NEAR_INNER = 2.0
 NEAR_OUTER = 3.5
 # Light types whose near field is resolved at the shading point.
 SHARP_LIGHTS = ("point", "directional")
+# Gathers kept per run by :func:`exitance` for reuse: the same points, irradiance, profile and
+# query positions give the same exitance, and the low mesh's two bump variants of a lighting
+# condition shade the same positions (the bump moves normals only) and run together.  Each
+# is a (Q, 3) float32 array, ~30 MB at 800 x 800 x 4 spp; 4 hold a condition's far and soft
+# parts for two profiles.
+SHARED_GATHERS = 4
 # Boundary-integral table Q(omega, phi): omega in [0, NEAR_OUTER sigma], phi in [0, pi/2].
 EDGE_TABLE_OMEGA = 512
 EDGE_TABLE_PHI = 256
@@ -1569,7 +1575,10 @@ def exitance(points, irradiance: np.ndarray, profile, queries: np.ndarray, *,
         False: the thesis's method, the whole profile gathered from the points (blurred by
         their reconstruction width); so is the "thesis" normalisation.
     memo : dict, optional
-        The run's scratch dict: octrees, edges and tables are kept per (points, irradiance).
+        The run's scratch dict: octrees, edges and tables are kept per (points, irradiance),
+        made once when several nodes ask at the same time, and the gathers of the last
+        ``SHARED_GATHERS`` query sets (the low mesh's bump variants shade the same positions:
+        only the sharp near field sees their normals) are reused.
     visible : (Q, number of point/directional lights) bool, optional
         Which of those lights each shading point sees (:func:`sharp_visibility` of the
         shared visibility); None traces a shadow ray per point and light.
@@ -1578,6 +1587,7 @@ def exitance(points, irradiance: np.ndarray, profile, queries: np.ndarray, *,
     -------
     M : (Q, 3) float32; stats : dict (the gathers' stats, timings of each part)
     """
+    from dermis.pipeline.reuse import RecentResults, content_key, once
     t0 = time.perf_counter()
     memo = {} if memo is None else memo
     sigma = float(points.info.get("kernel_sigma_mm") or 0.0)
@@ -1592,24 +1602,38 @@ def exitance(points, irradiance: np.ndarray, profile, queries: np.ndarray, *,
     key = (id(points), id(irradiance))
 
     def tree(name, e):
-        k = ("octree", name) + key
-        if k not in memo:
-            memo[k] = (points, irradiance, build_octree(points.positions, points.areas, e,
-                                                         leaf_size=leaf_size,
-                                                         kernel_sigma_mm=sigma or None))
-        return memo[k][2]
+        return once(memo, ("octree", name) + key, lambda: (
+            points, irradiance, build_octree(points.positions, points.areas, e(),
+                                             leaf_size=leaf_size,
+                                             kernel_sigma_mm=sigma or None)))[2]
 
     gkw = dict(epsilon=epsilon, normalisation=normalisation, env=env, brute_force=brute_force,
                progress=progress, tuning=tuning)
+    shared = memo.setdefault(("gather", "results"), RecentResults(SHARED_GATHERS))
+    qkey = content_key(queries)
+
+    def gathered(name, e, part):
+        """gather() of the octree ``name`` at the queries, or the same gather made earlier in
+        the run (its stats then say shared, with no kernel seconds of this call)."""
+        gk = (("gather", name, part, qkey, id(profile), epsilon, normalisation, brute_force,
+               repr(tuning)) + key)
+        made = []
+
+        def make():
+            made.append(True)
+            return (points, irradiance, profile), gather(tree(name, e), profile, queries,
+                                                         part=part, **gkw)
+        m, st = shared.get(gk, make)[1]
+        return m, (st if made else {**st, "kernel_seconds": 0.0, "shared": True})
+
     stats: dict = {"near_field": bool(resolved)}
     if not resolved:
-        m, st = gather(tree("all", E), profile, queries, **gkw)
+        m, st = gathered("all", lambda: E, "all")
         stats.update(st)
         stats["seconds"] = time.perf_counter() - t0
         return m, stats
-    ek = ("edges",) + key
-    pending = None
-    if ek not in memo:
+
+    def locate_edges():
         # the shadow edges (host numpy and Embree, one thread each) are located while this
         # thread builds the octree and the device gathers the far part: independent work
         # whose results do not depend on the overlap
@@ -1620,23 +1644,21 @@ def exitance(points, irradiance: np.ndarray, profile, queries: np.ndarray, *,
                                spacing, transmittance=transmittance, irradiance=own)
                    for l in sharp]
         pool.shutdown(wait=False)
-    m_far, st = gather(tree("all", E), profile, queries, part="far", **gkw)
-    if pending is not None:
-        memo[ek] = (points, irradiance, [f.result() for f in pending])
-    edges = memo[ek][2]
+        return points, irradiance, pending
+    pending = once(memo, ("edges",) + key, locate_edges)[2]
+    m_far, st = gathered("all", lambda: E, "far")
+    edges = [f.result() for f in pending]
     t_edges = sum(ed.info["seconds"] for ed in edges)
     stats.update(st)
     M = m_far.astype(np.float64)
     if soft:
-        e_soft = np.maximum(E - sum(ed.irradiance for ed in edges), 0.0).astype(np.float32)
-        m_soft, st_soft = gather(tree("soft", e_soft), profile, queries, part="near", **gkw)
+        m_soft, st_soft = gathered("soft", lambda: np.maximum(
+            E - sum(ed.irradiance for ed in edges), 0.0).astype(np.float32), "near")
         M += m_soft
         stats["kernel_seconds"] += st_soft["kernel_seconds"]
     t1 = time.perf_counter()
-    tk = ("near_table", id(profile), sigma, tuning.cutoff_mm)
-    if tk not in memo:
-        memo[tk] = (profile, near_tables(split_profile(profile, sigma, cutoff_mm=tuning.cutoff_mm)))
-    table = memo[tk][1]
+    table = once(memo, ("near_table", id(profile), sigma, tuning.cutoff_mm), lambda: (
+        profile, near_tables(split_profile(profile, sigma, cutoff_mm=tuning.cutoff_mm))))[1]
     from dermis.pipeline.cl import get_env
     for k, (light, ed) in enumerate(zip(sharp, edges)):
         M += sharp_near_field(queries, shading_normals, geo_normals, light, visibility, ed,

@@ -76,6 +76,25 @@ def half_energy_radius(prof):
 
 def knife_edge(prof, stack, cl_env, *, density=None, near_field=True, seed=1):
     """Relative error (Q, 3) of the rendered exitance across the edge, and the samples."""
+    sc = knife_scene(prof, stack, density=density, seed=seed)
+    M, stats = sc_exitance(sc, prof, cl_env, near_field=near_field)
+    ref = sc["lit"] * edge_spread(prof, sc["q"][:, 0] - sc["edge"])
+    return (M - ref) / (sc["lit"] * prof.Rd), sc["q"], stats
+
+
+def sc_exitance(sc, prof, cl_env, *, near_field=True, shading_normals=None, memo=None):
+    """gather.exitance on a knife_scene at the shipped settings."""
+    cfg = BssrdfConfig()
+    nrm = np.tile([0.0, 0.0, 1.0], (len(sc["q"]), 1))
+    return G.exitance(sc["pts"], sc["E"], prof, sc["q"],
+                      shading_normals=nrm if shading_normals is None else shading_normals,
+                      geo_normals=nrm, lights=[sc["light"]], visibility=sc["vis"],
+                      epsilon=cfg.epsilon, transmittance=sc["transmit"],
+                      leaf_size=cfg.leaf_size, near_field=near_field, env=cl_env, memo=memo)
+
+
+def knife_scene(prof, stack, *, density=None, seed=1) -> dict:
+    """The slab, its points and irradiance under the plate's shadow, and the queries."""
     cfg = BssrdfConfig()
     spacing = S.spacing_from_mfp(stack, cfg.point_density if density is None else density)
     sigma = S.KERNEL_SIGMA_FACTOR * spacing
@@ -99,13 +118,9 @@ def knife_edge(prof, stack, cl_env, *, density=None, near_field=True, seed=1):
     u = np.arange(-100, 101) * (radius / 20.0)
     rows = np.linspace(-2.5, 2.5, 4) * spacing
     q = np.array([[edge + x, y, 0.0] for y in rows for x in u])
-    nrm = np.tile([0.0, 0.0, 1.0], (len(q), 1))
-    M, stats = G.exitance(pts, E, prof, q, shading_normals=nrm, geo_normals=nrm, lights=[light],
-                          visibility=vis, epsilon=cfg.epsilon, transmittance=transmit,
-                          leaf_size=cfg.leaf_size, near_field=near_field, env=cl_env)
     lit = 1.5 * LIGHT_DIR[2] * transmit(np.array([LIGHT_DIR[2]]))[0]   # E cos T(cos)
-    ref = lit * edge_spread(prof, q[:, 0] - edge)
-    return (M - ref) / (lit * prof.Rd), q, stats
+    return {"pts": pts, "E": E, "q": q, "vis": vis, "light": light, "transmit": transmit,
+            "edge": edge, "lit": lit}
 
 
 @pytest.mark.parametrize("preset", ["two_layer", "skin1", "skin2"])
@@ -147,3 +162,23 @@ def test03_hk93_uses_the_same_layer_file(layer_files):
     for preset, prof in layer_files.items():
         np.testing.assert_allclose(HK93Params(PRESETS[preset]).diffuse_reflectance, prof.Rd,
                                    rtol=1e-9)
+
+
+def test04_bump_variants_share_the_gathers(cl_env, layer_files):
+    # The low mesh's two bump variants shade the same positions with other normals: in one
+    # run (``memo``) the second reuses the first's octree, shadow edges and far gather
+    # (stages/gather.py exitance), and both exitances equal the ones computed alone, bit for
+    # bit; only the sharp near field sees the normals.
+    prof = layer_files["two_layer"]
+    sc = knife_scene(prof, PRESETS["two_layer"])
+    q = sc["q"]
+    tilt = np.stack([0.3 * np.sin(q[:, 0]), 0.2 * np.cos(q[:, 1]), np.ones(len(q))], axis=1)
+    tilt /= np.linalg.norm(tilt, axis=1, keepdims=True)
+    memo: dict = {}
+    for k, normals in enumerate((None, tilt)):
+        alone, _ = sc_exitance(sc, prof, cl_env, shading_normals=normals)
+        shared, stats = sc_exitance(sc, prof, cl_env, shading_normals=normals, memo=memo)
+        np.testing.assert_array_equal(shared, alone)
+        assert stats.get("shared", False) == (k == 1)
+    assert not np.array_equal(alone, sc_exitance(sc, prof, cl_env)[0])   # normals matter
+    assert sum(1 for key in memo if key[0] == "edges") == 1

@@ -194,6 +194,31 @@ def test10_concurrent_askers_of_one_result_share_one_computation():
     assert len(made) == 1 and len(got) == 4 and len({id(g) for g in got}) == 1
 
 
+def test10b_run_memo_entries_are_made_once_by_concurrent_nodes():
+    """reuse.once: the run's memo entry asked for by four threads at once is made once, and
+    a later ask gets it without making (two BSSRDF nodes started together each located the
+    same shadow edges before, stages/gather.py exitance)."""
+    import threading
+    import time
+    from dermis.pipeline.reuse import once
+    memo, made, got = {}, [], []
+
+    def make():
+        made.append(1)
+        time.sleep(0.2)            # long enough for every asker to arrive meanwhile
+        return object()
+
+    threads = [threading.Thread(target=lambda: got.append(once(memo, ("edges", 1), make)))
+               for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(made) == 1 and len(got) == 4 and len({id(g) for g in got}) == 1
+    assert once(memo, ("edges", 1), make) is got[0] and len(made) == 1
+    assert once(memo, ("edges", 2), make) is not got[0] and len(made) == 2
+
+
 def test11_jobs_are_checked():
     from dermis.pipeline.errors import DermisError
     for bad in (0, "two", 65, "1.5"):
