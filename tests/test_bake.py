@@ -264,6 +264,30 @@ def test09_misses_inside_charts_are_neutral_and_filled(low, textured_high):
     assert (maps.albedo_srgb[rows[cap], cols[cap]].sum(1) > 0).all()
 
 
+
+def test09b_windowed_nearest_matches_whole_map_edt():
+    # _nearest_within transforms only tiles grown by the reach; it must pick the very texel
+    # the whole map's EDT picks, ties included (sparse random masks give many equidistant
+    # texels), and report exactly the query texels with none within reach as far.
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        h, w = (int(n) for n in rng.integers(3, 90, 2))
+        valid = rng.random((h, w)) < rng.choice([0.002, 0.02, 0.1, 0.6])
+        if not valid.any():
+            continue
+        query = ~valid & (rng.random((h, w)) < rng.choice([0.05, 1.0]))
+        reach, tile = int(rng.integers(0, 10)), int(rng.integers(1, 40))
+        iy, ix = bake._nearest_fill_indices(valid)
+        rows, cols = np.nonzero(query)
+        d2 = (iy[rows, cols] - rows) ** 2 + (ix[rows, cols] - cols) ** 2
+        near = d2 <= reach * reach
+        dst, src, far = bake._nearest_within(valid, query, reach, tile)
+        order = np.argsort(dst)
+        assert np.array_equal(dst[order], (rows * w + cols)[near])
+        assert np.array_equal(src[order], (iy[rows, cols] * w + ix[rows, cols])[near])
+        assert np.array_equal(np.sort(far), (rows * w + cols)[~near])
+
+
 # ---------------------------------------------------------------------------------------
 def _plane_frame(n_points, a=2.0, seed=0):
     """Points on the plane p = (a u, a v, 0) with n = +z."""
