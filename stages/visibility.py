@@ -284,18 +284,25 @@ def cast(mesh, lights, camera, *, spp: int = 1, seed: int = 0,
                            env_strategy=sampling.env_strategy, share=spp,
                            strata=strata[sl] if strata is not None else None,
                            lobe=lobe[sl] if lobe is not None else None)
-        live = np.any(ls.weights > 0, axis=2)
-        ip, isamp = np.nonzero(live)         # row-major: grouped by hit, in hit order
-        d = ls.directions[ip, isamp]
+        # live: any channel > 0, one comparison per channel (``np.any(weights > 0, axis=2)``
+        # reduces over a length-3 axis, several times slower); then flat indices, row-major
+        # (grouped by hit, in hit order), and one ``take`` per array
+        wt = ls.weights
+        live = (wt[..., 0] > 0) | (wt[..., 1] > 0)
+        live |= wt[..., 2] > 0
+        flat = np.flatnonzero(live)
+        ip = flat // live.shape[1]
+        d = ls.directions.reshape(-1, 3).take(flat, axis=0)
         t1 = time.perf_counter()
         t_sampling += t1 - t0
-        blocked = vis.occluded(pos[sl][ip], ng[sl][ip], d, ls.distance[ip, isamp])
+        blocked = vis.occluded(pos[sl].take(ip, axis=0), ng[sl].take(ip, axis=0), d,
+                               ls.distance.reshape(-1).take(flat))
         n_shadow += len(ip)
-        keep = ~blocked
-        ip, isamp = ip[keep], isamp[keep]
+        keep = np.flatnonzero(~blocked)
+        ip, flat = ip.take(keep), flat.take(keep)
         counts[sl] = np.bincount(ip, minlength=sl.stop - sl.start)
-        dirs.append(d[keep])
-        wts.append(ls.weights[ip, isamp])
+        dirs.append(d.take(keep, axis=0))
+        wts.append(wt.reshape(-1, 3).take(flat, axis=0))
         t_shadows += time.perf_counter() - t1
         if progress is not None:
             progress(min(1.0, sl.stop / max(m, 1)))
