@@ -163,10 +163,27 @@ class LightSamples:
 
 
 # --------------------------------------------------------------------------- helpers
+def _length(v: np.ndarray) -> np.ndarray:
+    """``np.linalg.norm(v, axis=-1)`` of (..., 3) vectors, the same sum ((x^2 + y^2) + z^2)
+    taken component by component (numpy reduces and broadcasts along a trailing axis of 3
+    several times slower)."""
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    s = x * x
+    s += y * y
+    s += z * z
+    return np.sqrt(s, out=s)
+
+
 def _normalize(v: np.ndarray) -> np.ndarray:
     """Unit vectors along the last axis (zero vectors stay zero)."""
-    n = np.linalg.norm(v, axis=-1, keepdims=True)
-    return v / np.maximum(n, 1e-30)
+    if v.ndim < 2 or v.shape[-1] != 3:
+        return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-30)
+    n = _length(v)
+    n = np.maximum(n, 1e-30, out=n)
+    out = np.empty(v.shape, np.result_type(v, n))
+    for k in range(3):
+        np.divide(v[..., k], n, out=out[..., k])
+    return out
 
 
 def _frame(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -208,14 +225,28 @@ def cosine_hemisphere(u: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, n
     Returns (N, S, 3) float64 unit directions and their cosine with the normal (N, S);
     the solid-angle pdf is cos / pi.
     """
-    n = np.asarray(normals, dtype=np.float64)
-    n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+    n = _normalize(np.asarray(normals, dtype=np.float64))
     xy = concentric_disc(u)
-    cos = np.sqrt(np.maximum(1.0 - (xy ** 2).sum(-1), 0.0))
+    x, y = xy[..., 0], xy[..., 1]
+    cos = x * x
+    cos += y * y
+    np.subtract(1.0, cos, out=cos)
+    np.sqrt(np.maximum(cos, 0.0, out=cos), out=cos)
     t, b = _frames(n)
-    d = (xy[..., :1] * t[:, None, :] + xy[..., 1:] * b[:, None, :]
-         + cos[..., None] * n[:, None, :])
-    return _normalize(d), cos
+    # x t + y b + cos n, normalised: one component at a time (numpy broadcasts along a
+    # trailing axis of 3 several times slower)
+    dk = [x * t[:, k, None] for k in range(3)]
+    for k in range(3):
+        dk[k] += y * b[:, k, None]
+        dk[k] += cos * n[:, k, None]
+    length = dk[0] * dk[0]      # as _normalize
+    length += dk[1] * dk[1]
+    length += dk[2] * dk[2]
+    length = np.maximum(np.sqrt(length, out=length), 1e-30, out=length)
+    d = np.empty(cos.shape + (3,))
+    for k in range(3):
+        np.divide(dk[k], length, out=d[..., k])
+    return d, cos
 
 
 def concentric_disc(u: np.ndarray) -> np.ndarray:
@@ -240,8 +271,9 @@ def stratified_2d(rng: np.random.Generator, n: int, s: int) -> np.ndarray:
     jitter = rng.random((n, s, 2))
     if m * m == s:
         k = np.arange(s)
-        cell = np.stack([k % m, k // m], axis=-1)[None].astype(np.float64)
-        return (cell + jitter) / m
+        jitter += np.stack([k % m, k // m], axis=-1).astype(np.float64)   # the cell
+        jitter /= m
+        return jitter
     # Latin hypercube: each axis stratified, strata paired by an independent permutation
     perm = np.argsort(rng.random((n, s)), axis=1)
     ax0 = (np.arange(s)[None, :] + jitter[..., 0]) / s
@@ -259,13 +291,46 @@ def _search(table: np.ndarray, keys: np.ndarray) -> np.ndarray:
     return out
 
 
+def _tree(rows: np.ndarray) -> list[np.ndarray]:
+    """Sorted rows (R, n) as implicit binary search trees, stored level by level (level l:
+    the 2^l nodes of each row in turn; node i has children 2i and 2i + 1), each row padded
+    with +inf to a width w = 2^L >= max(n, 2) and its tree made of the first w - 1."""
+    r, n = rows.shape
+    width = 1 << max(n - 1, 1).bit_length()
+    if width > n:
+        pad = np.full((r, width), np.inf)
+        pad[:, :n] = rows
+        rows = pad
+    # level l: the entries (2i + 1) s - 1 of a row, s = w / 2^(l + 1)
+    return [np.ascontiguousarray(rows[:, (width >> (lv + 1)) - 1::width >> lv]).ravel()
+            for lv in range(width.bit_length() - 1)]
+
+
+def _tree_search(tree: list[np.ndarray], row: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    """For each key, min(w - 1, the number of entries <= the key in its ``row`` of
+    :func:`_tree`) (``np.searchsorted(.., side="right")`` of the row): branchless, one
+    gather per level, the first levels small enough to stay in cache (for 0.4M keys, 14 ms
+    in 512 rows of 8192 where a search of the sorted keys in the flat table took 24 ms, and
+    8 ms in 8192 rows of 64 where a binary search of each padded row took 17 ms)."""
+    q = np.asarray(row, np.int64)
+    for i, level in enumerate(tree):
+        hit = level.take(q) <= keys
+        q = np.add(q, q, out=q if i else None)     # the child 2 q + hit
+        q += hit
+    q -= np.left_shift(row, len(tree), dtype=np.int64)
+    return q
+
+
 def _hash_u64(x: np.ndarray) -> np.ndarray:
     """splitmix64 finaliser (Steele, Lea & Flood 2014) of uint64 values: a fixed, seedable
     integer hash, the same for a pixel wherever its samples fall in a batch."""
     z = x.astype(np.uint64) + np.uint64(0x9E3779B97F4A7C15)
-    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-    return z ^ (z >> np.uint64(31))
+    z ^= z >> np.uint64(30)
+    z *= np.uint64(0xBF58476D1CE4E5B9)
+    z ^= z >> np.uint64(27)
+    z *= np.uint64(0x94D049BB133111EB)
+    z ^= z >> np.uint64(31)
+    return z
 
 
 @dataclass(frozen=True)
@@ -302,7 +367,11 @@ class PixelStrata:
 
     def uniform_1d(self, rng, s: int, salt: int) -> np.ndarray:
         """(N, s) numbers in [0, 1), one per stratum of :meth:`strata`."""
-        return (self.strata(s, salt) + rng.random((len(self.pixel), s))) / (s * self.share)
+        c = self.strata(s, salt)
+        u = rng.random((len(self.pixel), s))
+        u += c
+        u /= s * self.share
+        return u
 
     def uniform_2d(self, rng, s: int, salt: int) -> np.ndarray:
         """(N, s, 2) points in [0, 1)^2: the strata are the cells of an m x m jittered grid
@@ -311,12 +380,16 @@ class PixelStrata:
         total = s * self.share
         c = self.strata(s, salt)
         m = int(round(math.sqrt(total)))
-        jitter = rng.random((len(self.pixel), s, 2))
+        u = rng.random((len(self.pixel), s, 2))   # the jitter, then the point
         if m * m == total:
-            row = c // m
-            col = (c % m + row) % m
-            return np.stack([(col + jitter[..., 0]) / m, (row + jitter[..., 1]) / m], axis=-1)
-        return np.stack([(c + jitter[..., 0]) / total, jitter[..., 1]], axis=-1)
+            k = np.arange(total)    # each cell's column and row, looked up
+            u[..., 0] += ((k % m + k // m) % m).astype(np.float64).take(c)
+            u[..., 1] += (k // m).astype(np.float64).take(c)
+            u /= m
+            return u
+        u[..., 0] += c
+        u[..., 0] /= total
+        return u
 
 
 def _check_points(points, normals) -> tuple[np.ndarray, np.ndarray | None]:
@@ -377,23 +450,34 @@ def _disc(light, p: np.ndarray, rng, samples: int, strata=None, salt: int = 0) -
          else stratified_2d(rng, len(p), samples))
     # float32 throughout (the outputs are float32): the map, the sample point q on the disc
     # as centre + x t + y b, and d = q - p (the irradiance pass's 15M samples; measured in
-    # bench/results/irradiance.json)
-    xy = concentric_disc(u.astype(np.float32)) * np.float32(radius)
+    # bench/results/irradiance.json); (N, S, 3) arrays one component at a time (numpy
+    # broadcasts along a trailing axis of 3 several times slower)
+    xy = concentric_disc(u.astype(np.float32))
+    xy *= np.float32(radius)
     frame = np.stack([t, b]).astype(np.float32)                       # (2, 3)
     d = xy @ frame
-    d += (centre.astype(np.float32)[None, :] - p)[:, None, :]
+    to_centre = centre.astype(np.float32)[None, :] - p
+    for k in range(3):
+        d[..., k] += to_centre[:, k, None]
     dist2 = np.einsum("nsk,nsk->ns", d, d)
     dist = np.sqrt(dist2)
     far = dist > 1e-6
     inv = np.float32(1.0) / np.where(far, dist, np.float32(1.0))
     wi = d
-    wi *= inv[..., None]
+    for k in range(3):
+        wi[..., k] *= inv
     # two-sided emitter (module docstring): |cos theta_l|; L (pi r^2) = I; a point exactly
     # on the disc gets weight 0, not inf
-    cos_l = np.abs(wi @ axis.astype(np.float32))
-    scale = np.where(far, cos_l * (inv * inv) * np.float32(1.0 / samples), np.float32(0.0))
+    cos_l = wi @ axis.astype(np.float32)
+    cos_l = np.abs(cos_l, out=cos_l)
+    inv *= inv
+    cos_l *= inv
+    cos_l *= np.float32(1.0 / samples)
+    scale = np.where(far, cos_l, np.float32(0.0))
     intensity = _vec(light.intensity, "intensity", light).astype(np.float32)
-    w = scale[..., None] * intensity
+    w = np.empty(scale.shape + (3,), dtype=np.float32)
+    for k in range(3):
+        np.multiply(scale, intensity[k], out=w[..., k])
     return wi, w, dist
 
 
@@ -510,11 +594,14 @@ def _environment(light, p: np.ndarray, rng, samples: int, env, normals, strategy
         n_lobe = min(max(int(round(samples * lobe.fraction)), 1), samples - 2)
         n_cos = max(1, n_cos - n_lobe)
     n_env = samples - n_cos - n_lobe
-    u = np.empty((n, n_env, 4 if product else 3))
     # stratify the flattened-CDF coordinate per point; jitter inside the pixel at random
-    u[..., 0] = ((np.arange(n_env)[None, :] + rng.random((n, n_env))) / n_env
-                 if strata is None else strata.uniform_1d(rng, n_env, 2 * salt))
-    u[..., 1:] = rng.random((n, n_env, u.shape[2] - 1))
+    u0 = ((np.arange(n_env)[None, :] + rng.random((n, n_env))) / n_env
+          if strata is None else strata.uniform_1d(rng, n_env, 2 * salt))
+    jitter = rng.random((n, n_env, 3 if product else 2))
+    if not product:
+        u = np.empty((n, n_env, 3))
+        u[..., 0] = u0
+        u[..., 1:] = jitter
     if not mis:
         wi, w = env.sample(u.reshape(-1, 3))
         wi = wi.reshape(n, samples, 3)
@@ -524,11 +611,11 @@ def _environment(light, p: np.ndarray, rng, samples: int, env, normals, strategy
     # multiple importance sampling, balance heuristic (module docstring): for a sample x of
     # any strategy i, w_i(x) L / (n_i p_i(x)) with w_i = n_i p_i / sum_j n_j p_j reduces to
     # L(x) / sum_j n_j p_j(x) (Veach 1997, eq. 9.13), every pdf evaluated at x
-    nrm = np.asarray(normals, dtype=np.float64)
-    nrm = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-30)
+    nrm = _normalize(np.asarray(normals, dtype=np.float64))
     if product:   # luminance x cosine of the point's normal bin (EnvironmentMap._product)
         bins = env.normal_bin(nrm)
-        d_env, rad_env, pdf_env = env.product_sample(u.reshape(-1, 4), np.repeat(bins, n_env))
+        d_env, rad_env, pdf_env = env.product_sample(u0.ravel(), jitter.reshape(-1, 3),
+                                                     np.repeat(bins, n_env))
     else:
         d_env, rad_env, pdf_env = env.sample_pdf(u.reshape(-1, 3))   # pdf known from the pick
     dirs = [cosine_hemisphere(stratified_2d(rng, n, n_cos) if strata is None
@@ -548,15 +635,20 @@ def _environment(light, p: np.ndarray, rng, samples: int, env, normals, strategy
     wi = np.empty((n, samples, 3), dtype=np.float32)
     wi[:, :n_env] = d_env.reshape(n, n_env, 3)
     wi[:, n_env:] = other
-    pdf_env = np.concatenate([pdf_env.reshape(n, n_env), pdf_other], axis=1)
-    rad = np.concatenate([rad_env.reshape(n, n_env, 3), rad_other], axis=1)
-    den = n_env * pdf_env + (n_cos / math.pi) * np.maximum(
-        np.einsum("nsk,nk->ns", wi, nrm.astype(np.float32)), 0.0)
+    den = np.concatenate([pdf_env.reshape(n, n_env), pdf_other], axis=1)
+    w = np.concatenate([rad_env.reshape(n, n_env, 3), rad_other], axis=1)   # float32
+    den *= n_env
+    cos = np.einsum("nsk,nk->ns", wi, nrm.astype(np.float32))
+    cos = np.maximum(cos, 0.0, out=cos)
+    cos *= n_cos / math.pi          # float32, as (n_cos / pi) * cos
+    den += cos
     if n_lobe:
-        den = den + n_lobe * lobe.pdf(np.concatenate([d_env.reshape(n, n_env, 3), other],
-                                                     axis=1))
-    inv = np.where(den > 0, 1.0 / np.where(den > 0, den, 1.0), 0.0).astype(np.float32)
-    w = rad.astype(np.float32, copy=False) * inv[..., None]
+        den += n_lobe * lobe.pdf(np.concatenate([d_env.reshape(n, n_env, 3), other], axis=1))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = np.divide(1.0, den).astype(np.float32)
+    inv[~(den > 0)] = 0.0
+    for k in range(3):   # w *= inv[..., None], one channel at a time (cosine_hemisphere)
+        w[..., k] *= inv
     dist = np.full((n, samples), np.inf, dtype=np.float32)
     return wi, w, dist
 
@@ -723,7 +815,8 @@ def irradiance(points: np.ndarray, normals: np.ndarray, light,
             factor.ravel()[idx[blocked]] = 0.0
         w = ls.weights
         if transmittance is not None:
-            w = w * np.asarray(transmittance(np.maximum(cos, 0.0)), dtype=np.float32)
+            t = np.asarray(transmittance(np.maximum(cos, 0.0)), dtype=np.float32)
+            w = np.multiply(w, t, out=w if w.flags.writeable else None)   # a fresh array
         out[start:start + chunk] = np.einsum("ns,nsk->nk", factor, w)
 
     batches = range(-(-len(p) // chunk))
@@ -870,16 +963,28 @@ class EnvironmentMap:
         table = weight / np.where(total > 0, total, 1.0)              # (K, B) block pmf per bin
         cum = np.cumsum(table, axis=1)                                # (K, B) per-bin CDF
         share = blocks / np.where(mass > 0, mass, 1.0)[:, None]       # pixel share in block
-        # the pixels' CDF in each block, padded with +inf to a power of two (a branchless
-        # binary search in product_sample)
+        # the block's and the pixel's CDFs as search trees (_tree): each bin's row of the
+        # flat per-bin CDF (cum + bin, as the keys of product_sample), and the pixels' CDF
+        # in each block.  Searching a key's own row finds the same block as a search of the
+        # whole flat table (clipped to the row) when the flat table is sorted across rows as
+        # well and every key (u0 <= 1) stays below the next row; else the flat table is
+        # kept and searched
+        cum_flat = cum + np.arange(kr * kc)[:, None]    # sorted in each row
         per = bh * bw
-        width = 1 << max(per - 1, 1).bit_length()
-        fine = np.full((hc * wc, width), np.inf)
-        fine[:, :per] = np.cumsum(share, axis=1)
-        self._prod = {"bh": bh, "bw": bw, "hc": hc, "wc": wc, "table": table,
-                      "cum_flat": (cum + np.arange(kr * kc)[:, None]).ravel(),
-                      "cum_last": cum[:, -1], "fine": fine.ravel(),
-                      "fine_width": width, "mass": mass, "kr": kr, "kc": kc}
+        k = np.arange(kr * kc)
+        exact = bool(np.all(cum_flat[1:, 0] >= cum_flat[:-1, -1])
+                     and np.all(k + cum[:, -1] * (1.0 - 1e-12) < k + 1))
+        # a pixel's block and position in the block as the sums of lookups by its row and its
+        # column, and back (integer divisions of millions of samples cost more)
+        r, c, b, q = np.arange(hc * bh), np.arange(wc * bw), np.arange(hc * wc), np.arange(per)
+        self._prod = {"bh": bh, "bw": bw, "hc": hc, "wc": wc, "table": table.ravel(),
+                      "block_of": ((r // bh) * wc, c // bw), "pos_of": ((r % bh) * bw, c % bw),
+                      "rows_of": ((b // wc) * bh, q // bw), "cols_of": ((b % wc) * bw, q % bw),
+                      "nb": hc * wc, "per": per, "cum_last": cum[:, -1],
+                      "block_tree": _tree(cum_flat) if exact else None,
+                      "cum_flat": None if exact else cum_flat.ravel(),
+                      "fine_tree": _tree(np.cumsum(share, axis=1)),
+                      "share": share.ravel(), "kr": kr, "kc": kc}
         return self._prod
 
     def normal_bin(self, normals: np.ndarray) -> np.ndarray:
@@ -893,37 +998,37 @@ class EnvironmentMap:
         c = np.minimum((u * t["kc"]).astype(np.int64), t["kc"] - 1)
         return r * t["kc"] + c
 
-    def product_sample(self, u: np.ndarray, bins: np.ndarray):
-        """Directions, radiance and pdf of the product strategy for uniform numbers ``u``
-        (M, 4) and the normal bin of each sample (M,) (:meth:`normal_bin`)."""
+    def product_sample(self, u0: np.ndarray, jitter: np.ndarray, bins: np.ndarray):
+        """Directions, radiance and pdf of the product strategy for uniform numbers ``u0``
+        (M,) (the block) and ``jitter`` (M, 3) (the pixel in the block, then the point in
+        the pixel: column, row) and the normal bin of each sample (M,) (:meth:`normal_bin`)."""
         t = self._product()
-        nb = t["table"].shape[1]
+        nb, per = t["nb"], t["per"]
         # the block: inversion of the bin's CDF at u0 (u0 is stratified per point; an alias
-        # table would lose that), one search of the sorted keys in the flat table
-        key = bins + u[:, 0] * t["cum_last"][bins] * (1.0 - 1e-12)
-        b = _search(t["cum_flat"], key) - bins * nb
-        b = np.clip(b, 0, nb - 1)
-        # the pixel in the block: its CDF row searched branchlessly (log2(width) gathers,
-        # side="right": the number of entries <= the key; the same pixels as a search of the
-        # flattened rows, 2.4x faster: 0.86 -> 0.36 s for 3.1M samples, at load 3.7)
-        per = t["bh"] * t["bw"]
-        fine, width = t["fine"], t["fine_width"]
-        key = u[:, 1] * (1.0 - 1e-12)
-        base = b * width
-        j = np.zeros(len(key), dtype=np.int64)
-        step = width // 2
-        while step >= 1:
-            j += step * (fine[base + j + (step - 1)] <= key)
-            step //= 2
-        j += fine[base + j] <= key
-        j = np.minimum(j, per - 1)
-        row = (b // t["wc"]) * t["bh"] + j // t["bw"]
-        col = (b % t["wc"]) * t["bw"] + j % t["bw"]
-        row = np.minimum(row, self.height - 1)
-        col = np.minimum(col, self.width - 1)
-        d, _ = self._dirs((col + u[:, 2]) / self.width, (row + u[:, 3]) / self.height,
-                          np.float32)
-        return d, self._radiance_at(row, col), self.product_pdf(d, bins, row, col)
+        # table would lose that), a search of the bin's row
+        key = u0 * t["cum_last"].take(bins)
+        key *= 1.0 - 1e-12
+        key += bins
+        if t["block_tree"] is not None:
+            b = _tree_search(t["block_tree"], bins, key)
+        else:
+            b = _search(t["cum_flat"], key) - bins * nb
+        b = np.clip(b, 0, nb - 1, out=b)
+        # the pixel in the block: a search of its CDF row
+        j = _tree_search(t["fine_tree"], b, jitter[:, 0] * (1.0 - 1e-12))
+        j = np.minimum(j, per - 1, out=j)
+        row = t["rows_of"][0].take(b) + t["rows_of"][1].take(j)
+        col = t["cols_of"][0].take(b) + t["cols_of"][1].take(j)
+        if t["hc"] * t["bh"] > self.height or t["wc"] * t["bw"] > self.width:
+            row = np.minimum(row, self.height - 1)   # blocks padded beyond the map
+            col = np.minimum(col, self.width - 1)
+            b, j = None, None
+        x = col + jitter[:, 1]
+        x /= self.width
+        y = row + jitter[:, 2]
+        y /= self.height
+        d, _ = self._dirs(x, y, np.float32)
+        return d, self._radiance_at(row, col), self.product_pdf(d, bins, row, col, b, j)
 
     def _radiance_at(self, row: np.ndarray, col: np.ndarray) -> np.ndarray:
         """``radiance[row, col]`` through one flat index (a single ``take``: ~4x faster than
@@ -932,22 +1037,30 @@ class EnvironmentMap:
         return self.radiance.reshape(-1, 3).take(flat.ravel(), axis=0).reshape(
             np.shape(flat) + (3,))
 
-    def product_pdf(self, directions: np.ndarray, bins: np.ndarray, row=None, col=None):
+    def product_pdf(self, directions: np.ndarray, bins: np.ndarray, row=None, col=None,
+                    block=None, pos=None):
         """Solid-angle density of the product strategy for normal bins ``bins`` (...) at
-        ``directions`` (..., 3)."""
+        ``directions`` (..., 3) (their pixel ``row``, ``col``, or its ``block`` and
+        position ``pos`` in the block, when known)."""
         t = self._product()
         d = np.asarray(directions)
-        if row is None:
-            row, col = self.pixel_of(d)
-        b = (row // t["bh"]) * t["wc"] + col // t["bw"]
-        mass = t["mass"].take(b)
-        pix = self.pmf.take(row * self.width + col)
-        nb = t["table"].shape[1]
-        p = t["table"].ravel().take(bins * nb + b) * np.where(
-            mass > 0, pix / np.where(mass > 0, mass, 1.0), 0.0)
-        sin_t = np.sqrt(np.maximum(1.0 - d[..., 1].astype(np.float64) ** 2, 0.0))
-        return np.where(sin_t > 0, p * (self.height * self.width)
-                        / (2.0 * math.pi * math.pi * np.maximum(sin_t, 1e-30)), 0.0)
+        if block is None:
+            if row is None:
+                row, col = self.pixel_of(d)
+            block = t["block_of"][0].take(row) + t["block_of"][1].take(col)
+            pos = t["pos_of"][0].take(row) + t["pos_of"][1].take(col)
+        # the block's pmf in the bin x the pixel's share of the block's mass
+        p = t["table"].take(bins * t["nb"] + block)
+        p *= t["share"].take(block * t["per"] + pos)
+        # over solid angle: p H W / (2 pi^2 sin theta), 0 at the poles
+        sin_t = d[..., 1].astype(np.float64)
+        sin_t *= sin_t
+        np.subtract(1.0, sin_t, out=sin_t)
+        np.sqrt(np.maximum(sin_t, 0.0, out=sin_t), out=sin_t)
+        p *= self.height * self.width
+        p /= np.maximum(sin_t, 1e-30) * (2.0 * math.pi * math.pi)
+        p[~(sin_t > 0)] = 0.0
+        return p
 
     def sample(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Directions and radiance / pdf for uniform numbers ``u`` (M, 3) in [0, 1).

@@ -279,9 +279,10 @@ class Transmittance:
         ``LOOKUP`` + 1 uniform cosines (the irradiance pass applies it to ~16M light samples
         per mesh and light; error < 3e-5 at grazing, where T rises steepest, ~1e-6 elsewhere)."""
         c = np.asarray(cos, np.float32)
-        i = (np.clip(c.ravel(), 0.0, 1.0) * np.float32(self.LOOKUP) + np.float32(0.5)).astype(
-            np.int32)
-        return self._fine.take(i, axis=0).reshape(c.shape + (3,))
+        x = np.clip(c.ravel(), 0.0, 1.0)
+        x *= np.float32(self.LOOKUP)
+        x += np.float32(0.5)
+        return self._fine.take(x.astype(np.intp), axis=0).reshape(c.shape + (3,))
 
     def __repr__(self) -> str:
         return f"Transmittance(eta={self.eta}, surface_reflection={self.surface_reflection!r})"
