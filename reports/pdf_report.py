@@ -363,7 +363,9 @@ def _timing_page(plt, images, metrics, *, device, timings_extra):
             "ratios between models under one light. Thesis geometries: 1M triangles ~ 'high', "
             "16,750 triangles + bump map ~ 'low_bump'. Thesis light types: dir = the two "
             "directional lights together, env = the environment (sunset) map. Times here are wall "
-            "seconds of the render stage (visibility, shadows, shading); "
+            "seconds of each image's own work (shading; for the BSSRDF the gather, the exit and "
+            "the surface term), without the camera and shadow rays and the surface attributes "
+            "that every model of a mesh and light (geometry) shares, cast and computed once; "
             f"'+ x irr' is the {ref}'s separate irradiance pass for that light and mesh (run once, "
             "cached and shared by every geometry on that mesh).")
     fig.text(0.03, 0.22, textwrap.fill(note, 170), va="top", fontsize=8)

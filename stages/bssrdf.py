@@ -105,7 +105,10 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
         timings["surface_reflection"] = spec_t["total"]
         timings["kernel_seconds"] += spec_t.get("kernel_seconds", 0.0)
     image = np.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0)
-    timings["total"] = time.perf_counter() - t_start
+    # the image's own work: the surface pass is shared by the geometry's images (its seconds
+    # in "surface_shared", stages/render.py pixel_surface), like the visibility
+    timings["surface_shared"] = px.surface_seconds
+    timings["total"] = time.perf_counter() - t_start - t_vis
     linear = image.reshape(px.height, px.width, 3)
     mask = px.mask
     model = params.get("model", "bssrdf")

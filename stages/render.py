@@ -192,6 +192,9 @@ class PixelSurface:
         hit face the camera)
     samples : the PixelSamples the hits come from (light samples included)
     texture : the albedo texture used (None: ``albedo_const``)
+    kernel_seconds : cl/surface.cl's kernel seconds in this call (0 when shared)
+    surface_seconds : seconds of the surface pass these attributes came from (computed here
+        or earlier in the run and shared)
     """
 
     width: int
@@ -203,6 +206,7 @@ class PixelSurface:
     samples: PixelSamples
     texture: object
     kernel_seconds: float
+    surface_seconds: float = 0.0
 
     @property
     def coverage(self) -> np.ndarray:
@@ -267,10 +271,12 @@ def pixel_surface(mesh, camera, *, samples: PixelSamples | None = None, maps=Non
     const = np.asarray(albedo_const, dtype=np.float32)
 
     def compute():
-        return surface_attributes(env_cl, mesh, samples.tri, samples.bary, cam_pos,
-                                  texture=texture, bump_map=bump_map, bump_range=bump_range,
-                                  albedo_const=const)
-    surf, ks = compute() if memo is None else _shared_surface(
+        t0 = time.perf_counter()
+        surf, ks = surface_attributes(env_cl, mesh, samples.tri, samples.bary, cam_pos,
+                                      texture=texture, bump_map=bump_map,
+                                      bump_range=bump_range, albedo_const=const)
+        return surf, ks, time.perf_counter() - t0
+    surf, ks, seconds = compute() if memo is None else _shared_surface(
         memo, (mesh, texture, bump_map), (bump_range, tuple(cam_pos)), samples, compute)
     if texture is None or not textured:
         # cl/surface.cl writes the constant as the albedo of every hit when it has no texture:
@@ -279,11 +285,12 @@ def pixel_surface(mesh, camera, *, samples: PixelSamples | None = None, maps=Non
         surf = {**surf, "albedo": np.broadcast_to(const, surf["albedo"].shape)}
     m = len(samples.tri)
     return PixelSurface(samples.width, samples.height, samples.spp,
-                        samples.pixel.astype(np.int64), surf, np.arange(m), samples, texture, ks)
+                        samples.pixel.astype(np.int64), surf, np.arange(m), samples, texture, ks,
+                        seconds)
 
 
 def _shared_surface(memo: dict, objects: tuple, values: tuple, samples, compute):
-    """``compute()``'s (surf, kernel seconds), once per run for equal inputs: keyed by the
+    """``compute()``'s (surf, kernel seconds, seconds), once per run for equal inputs: keyed by the
     identity of ``objects`` (the run's loaded mesh, texture and bump map; the entry holds them,
     so their ids stay theirs), ``values`` and the content of the camera hits (each lighting
     condition's visibility node holds its own copy of the same hits).  The arrays are shared
@@ -294,13 +301,13 @@ def _shared_surface(memo: dict, objects: tuple, values: tuple, samples, compute)
     made = []
 
     def make():
-        surf, ks = compute()
+        surf, ks, seconds = compute()
         for a in surf.values():
             a.setflags(write=False)
         made.append(True)
-        return objects, surf, ks
-    _, surf, ks = cache.get(key, make)
-    return surf, (ks if made else 0.0)
+        return objects, surf, ks, seconds
+    _, surf, ks, seconds = cache.get(key, make)
+    return surf, (ks if made else 0.0), seconds
 
 
 # --------------------------------------------------------------------------- render
@@ -460,9 +467,14 @@ def render(mesh, light, model: str, params, camera, *, maps=None, bump: str | No
     t_shading = time.perf_counter() - t0
     if progress is not None:
         progress(1.0)
-    timings = {"visibility": t_visibility, "surface": t_surface, "shading": t_shading,
+    # in a run (``memo``) every image of a geometry shares one surface pass, as every image of a
+    # mesh and light shares its visibility: its seconds are kept apart ("surface_shared", the
+    # same in each image) and ``total`` is this image's own work, whichever image made the pass
+    own = time.perf_counter() - t_start - (t_surface if memo is not None else 0.0)
+    timings = {"visibility": t_visibility, "surface": t_surface,
+               "surface_shared": px.surface_seconds, "shading": t_shading,
                "kernel_seconds": px.kernel_seconds + stats["kernel_seconds"],
-               "scene_build": scene_build, "total": time.perf_counter() - t_start}
+               "scene_build": scene_build, "total": own}
     w, h = px.width, px.height
     vinfo = samples.info or {}
     info = {

@@ -395,6 +395,7 @@ def test13_surface_attributes_shared_within_a_run(cl_env):
             ("lafortune", LafortuneParams(rho_d=(0.0, 0.0, 0.0)), False),
             ("hk93", None, True)]
     memo: dict = {}
+    pass_seconds: dict = {}
     for k, (samples, (model, params, textured)) in enumerate(
             (s, j) for s in visibility for j in jobs):
         for bump in ("sharp", "blur"):
@@ -404,7 +405,11 @@ def test13_surface_attributes_shared_within_a_run(cl_env):
                             cl_env=cl_env, textured=textured, memo=memo)
             np.testing.assert_array_equal(shared.linear, alone.linear)
             assert alone.info["textured"] == shared.info["textured"] == textured
+            # every image of a geometry reports the one pass it shares, outside its own total
+            t = shared.timings
+            assert t["surface_shared"] == pass_seconds.setdefault(bump, t["surface_shared"]) > 0
+            assert alone.timings["total"] >= alone.timings["surface"]   # alone: its own pass
     cached = memo[("pixel_surface",)]
     assert len(cached._items) == 2          # one surface pass per bump map, no more
-    for _, surf, _ in cached._items.values():
+    for _, surf, _, _ in cached._items.values():
         assert all(not a.flags.writeable for a in surf.values())
