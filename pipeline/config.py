@@ -218,8 +218,8 @@ class ReferenceConfig:
     rr_depth: int = spec(1024, lo=1, doc="events before Russian roulette starts")
     env_clamp: float = spec(0.0, lo=0.0, doc="clamp environment radiance (0 = none, as the models)")
     slab_samples: int = spec(1 << 18, lo=1024, doc="paths of the flat-slab Rd that normalises the albedo tint")
-    variant: str = spec("auto", choices=("auto", "cuda_ad_rgb", "llvm_ad_rgb", "scalar_rgb"),
-                        doc="Mitsuba variant (auto: cuda, else llvm, else scalar)")
+    variant: str = spec("auto", choices=("auto", "cuda_ad_rgb", "llvm_ad_rgb"),
+                        doc="Mitsuba variant (auto: cuda, else llvm)")
 
 
 @dataclass(frozen=True)

@@ -42,7 +42,10 @@ layer stack into a Mitsuba scene dictionary and renders it (docs/ground-truth.md
 
 Variant: :func:`load_mitsuba` picks ``cuda_ad_rgb`` where a CUDA device answers, else
 ``llvm_ad_rgb`` where libLLVM is found (Debian's ``libllvm19``; ``DRJIT_LIBLLVM_PATH`` is set
-to it when unset), else ``scalar_rgb``.
+to it when unset) and its JIT works on this CPU (checked in a child process, since a failing
+LLVM aborts the process), else Mitsuba counts as unavailable.  ``scalar_rgb`` is not offered:
+the scene export and readback here use Dr.Jit arrays of many lanes (``pixel_hits``, the
+wavefront renders), which the scalar variant lacks, and one path at a time would take hours.
 """
 from __future__ import annotations
 
@@ -64,9 +67,9 @@ __all__ = ["MitsubaUnavailable", "load_mitsuba", "mitsuba_missing_reason", "VARI
            "medium_dict", "head_scene", "render_passes", "pixel_hits", "slab_reflectance",
            "SlabResult", "tint_texture", "INSTALL_HINT", "MAX_LANES"]
 
-VARIANTS = ("cuda_ad_rgb", "llvm_ad_rgb", "scalar_rgb")
-INSTALL_HINT = ("pip install 'dermis[reference]' (mitsuba, drjit, flip-evaluator); for the "
-                "fast llvm_ad_rgb variant also apt-get install libllvm19")
+VARIANTS = ("cuda_ad_rgb", "llvm_ad_rgb")
+INSTALL_HINT = ("pip install 'dermis[reference]' (mitsuba, drjit, flip-evaluator); without a "
+                "CUDA device also apt-get install libllvm19 (the llvm_ad_rgb variant)")
 # Samples traced by one render call (wavefront size): bounds the LLVM variant's memory at a
 # few GB (measured ~0.5 kB per lane for volpathmis in skin).
 MAX_LANES = 1 << 21
@@ -130,6 +133,11 @@ def load_mitsuba(variant: str = "auto"):
         if v.startswith("cuda") and not _has_backend("CUDA"):
             errors.append(f"{v}: no CUDA device")
             continue
+        if v.startswith("llvm"):
+            broken = _llvm_jit_fails(v)
+            if broken:
+                errors.append(f"{v}: {broken}")
+                continue
         try:
             mi.set_variant(v)
             scene = mi.load_dict({"type": "scene", "integrator": {"type": "path"}, "sensor": {
@@ -141,6 +149,37 @@ def load_mitsuba(variant: str = "auto"):
             errors.append(f"{v}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}")
     raise MitsubaUnavailable("no Mitsuba variant could render (" + "; ".join(errors) + "); "
                              + INSTALL_HINT)
+
+
+# Run in a child process before the LLVM variant is used here: an LLVM that cannot compile
+# Dr.Jit's code for this CPU aborts the whole process ("LLVM ERROR: Cannot select ... fmaximum":
+# Debian 12's libLLVM-15 on an AVX-512 host, where drjit's dr.maximum became llvm.maximum;
+# libllvm19 compiles it).  The child evaluates that operation and renders one pixel.
+_LLVM_PROBE = """
+import drjit as dr, mitsuba as mi
+mi.set_variant({variant!r})
+x = dr.maximum(dr.arange(mi.Float, 64) - 3.0, 0.0) + dr.minimum(dr.arange(mi.Float, 64), 2.0)
+dr.eval(x)
+mi.render(mi.load_dict({{"type": "scene", "integrator": {{"type": "path"}}, "sensor": {{
+    "type": "perspective", "film": {{"type": "hdrfilm", "width": 1, "height": 1}}}}}}), spp=1)
+"""
+
+
+def _llvm_jit_fails(variant: str) -> str | None:
+    """None if ``variant`` compiles and runs in a child process, else why not (one line)."""
+    import subprocess
+    import sys
+    try:
+        child = subprocess.run([sys.executable, "-c", _LLVM_PROBE.format(variant=variant)],
+                               capture_output=True, text=True, timeout=300)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        return f"the LLVM JIT probe did not finish ({type(exc).__name__})"
+    if child.returncode == 0:
+        return None
+    lines = [ln for ln in child.stderr.splitlines() if ln.strip()]
+    first = next((ln for ln in lines if "ERROR" in ln or "Error" in ln), lines[-1] if lines else "")
+    return (f"the LLVM JIT fails on this CPU with {os.environ.get('DRJIT_LIBLLVM_PATH', 'libLLVM')}"
+            f" (exit {child.returncode}: {first[:160]}); apt-get install libllvm19")
 
 
 def _has_backend(name: str) -> bool:
