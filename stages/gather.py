@@ -1614,7 +1614,8 @@ def exitance(points, irradiance: np.ndarray, profile, queries: np.ndarray, *,
 
     def gathered(name, e, part):
         """gather() of the octree ``name`` at the queries, or the same gather made earlier in
-        the run (its stats then say shared, with no kernel seconds of this call)."""
+        the run (its stats then with no kernel seconds of this call; which node made it
+        depends on the run's order, so nothing else says so: the artifact stays the same)."""
         gk = (("gather", name, part, qkey, id(profile), epsilon, normalisation, brute_force,
                repr(tuning)) + key)
         made = []
@@ -1624,7 +1625,7 @@ def exitance(points, irradiance: np.ndarray, profile, queries: np.ndarray, *,
             return (points, irradiance, profile), gather(tree(name, e), profile, queries,
                                                          part=part, **gkw)
         m, st = shared.get(gk, make)[1]
-        return m, (st if made else {**st, "kernel_seconds": 0.0, "shared": True})
+        return m, (st if made else {**st, "kernel_seconds": 0.0})
 
     stats: dict = {"near_field": bool(resolved)}
     if not resolved:

@@ -172,25 +172,32 @@ def test09_nodes_run_at_once_give_the_same_bytes_as_one_by_one(built, tmp_path):
     assert compared > 200 and differ == [], differ
 
 
-def test10_concurrent_askers_of_one_result_share_one_computation():
-    """RecentResults (pipeline/reuse.py): threads asking for the same missing key at once make
-    it once (two nodes on two threads need the same Embree scene)."""
+def _ask_at_once(ask, askers: int = 4):
+    """``ask(make)`` from ``askers`` threads at once; returns (made, results): ``make`` counts
+    its calls and takes long enough for every asker to arrive meanwhile."""
     import threading
     import time
-    from dermis.pipeline.reuse import RecentResults
-    keep, made, got = RecentResults(2), [], []
+    made, got = [], []
 
     def make():
         made.append(1)
-        time.sleep(0.2)            # long enough for every asker to arrive meanwhile
+        time.sleep(0.2)
         return object()
 
-    threads = [threading.Thread(target=lambda: got.append(keep.get("k", make)))
-               for _ in range(4)]
+    threads = [threading.Thread(target=lambda: got.append(ask(make))) for _ in range(askers)]
     for t in threads:
         t.start()
     for t in threads:
         t.join()
+    return made, got
+
+
+def test10_concurrent_askers_of_one_result_share_one_computation():
+    """RecentResults (pipeline/reuse.py): threads asking for the same missing key at once make
+    it once (two nodes on two threads need the same Embree scene)."""
+    from dermis.pipeline.reuse import RecentResults
+    keep = RecentResults(2)
+    made, got = _ask_at_once(lambda make: keep.get("k", make))
     assert len(made) == 1 and len(got) == 4 and len({id(g) for g in got}) == 1
 
 
@@ -198,25 +205,12 @@ def test10b_run_memo_entries_are_made_once_by_concurrent_nodes():
     """reuse.once: the run's memo entry asked for by four threads at once is made once, and
     a later ask gets it without making (two BSSRDF nodes started together each located the
     same shadow edges before, stages/gather.py exitance)."""
-    import threading
-    import time
     from dermis.pipeline.reuse import once
-    memo, made, got = {}, [], []
-
-    def make():
-        made.append(1)
-        time.sleep(0.2)            # long enough for every asker to arrive meanwhile
-        return object()
-
-    threads = [threading.Thread(target=lambda: got.append(once(memo, ("edges", 1), make)))
-               for _ in range(4)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
+    memo: dict = {}
+    made, got = _ask_at_once(lambda make: once(memo, ("edges", 1), make))
     assert len(made) == 1 and len(got) == 4 and len({id(g) for g in got}) == 1
-    assert once(memo, ("edges", 1), make) is got[0] and len(made) == 1
-    assert once(memo, ("edges", 2), make) is not got[0] and len(made) == 2
+    assert once(memo, ("edges", 1), lambda: 1 / 0) is got[0]
+    assert once(memo, ("edges", 2), object) is not got[0]
 
 
 def test11_jobs_are_checked():
