@@ -28,7 +28,8 @@ is blurred.  On the default scene (4096^2, 1.1M triangles, 2 cores) that took th
 28 s to 18.5 s wall (bench/bench_stages.py, bench/results/stage_speed.json).
 
 CPU seconds (all threads) then went, byte-identical, from ~36 to ~25-26 (bench_stages.py, one
-run each on a shared machine; Embree's ~8.5 s of casting is left).  Nearest-texel fills run an
+run each on a shared machine; Embree's ~8.5 s of casting is left); on a quiet machine 35.8 ->
+22.3 CPU s, 20.4 -> 12.7 s wall (bench/results/stage_speed_cpu.json, baseline c9ef14f).  Nearest-texel fills run an
 EDT only on 128^2 tiles that need one, grown by the reach (:func:`_nearest_within`: dilation
 band 3.5 -> 0.3 s, miss fill 2 -> 0.05 s); per-texel arithmetic runs on (3, m) coordinate
 planes (:func:`_texel_points` 250 -> 105 ms, the texture lookup 340 -> 120 ms per 1M-texel

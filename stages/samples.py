@@ -67,7 +67,8 @@ Choices made here (and why):
 * **Cost** (default scene, ~241k points, 2 cores, bench/bench_stages.py, 2 runs at load
   average 1.3-2.2): on the 1.13M-triangle mesh 14.4-15.6 CPU s (11.6-13.9 s wall), on the
   17k-triangle one 10.9-11.7 CPU s (8.4-9.0 s wall); the version before took 24.0-25.6 and
-  17.9-18.8 CPU s (23.0-24.3 and 14.6-17.6 s wall) for byte-identical output.  Sample elimination ~3 s (open3d, one core, holding the GIL, so
+  17.9-18.8 CPU s (23.0-24.3 and 14.6-17.6 s wall) for byte-identical output; quiet, one run
+  each: 18.5 -> 11.4 and 14.2 -> 9.6 CPU s (bench/results/stage_speed_cpu.json).  Sample elimination ~3 s (open3d, one core, holding the GIL, so
   nothing overlaps it); each Lloyd step ~2.2 s wall (3.9M dense samples ~0.5 s CPU, their
   nearest-point query ~2.5 s CPU, the projection back ~0.3 s, its tree ~0.7 s once on the
   1.1M-triangle mesh); the areas ~3-4 s (pair search ~0.4 s on one core, sparse matrix
