@@ -121,6 +121,9 @@ def load_mitsuba(variant: str = "auto"):
         if variant not in mi.variants():
             raise ConfigError(f"reference.variant = {variant!r}: not one of this Mitsuba's "
                               f"variants ({', '.join(mi.variants())})")
+        broken = _llvm_jit_fails(variant) if variant.startswith("llvm") else None
+        if broken:
+            raise MitsubaUnavailable(f"reference.variant = {variant!r}: {broken}")
         mi.set_variant(variant)
         return mi
     if _STATE.get("auto"):
@@ -166,7 +169,15 @@ mi.render(mi.load_dict({{"type": "scene", "integrator": {{"type": "path"}}, "sen
 
 
 def _llvm_jit_fails(variant: str) -> str | None:
-    """None if ``variant`` compiles and runs in a child process, else why not (one line)."""
+    """None if ``variant`` compiles and runs in a child process, else why not (one line);
+    probed once per process and libLLVM."""
+    key = ("llvm_probe", variant, os.environ.get("DRJIT_LIBLLVM_PATH"))
+    if key not in _STATE:
+        _STATE[key] = _probe_llvm(variant)
+    return _STATE[key]
+
+
+def _probe_llvm(variant: str) -> str | None:
     import subprocess
     import sys
     try:
