@@ -21,7 +21,7 @@ from dermis.pipeline.cl import event_seconds, get_env, to_device
 from dermis.stages.brdf_models import (KERNEL_FILES, MODELS, AsperityParams, HK93Params,
                                 LafortuneParams)
 
-SIDE = 800                      # thesis images are 800 x 800 (docs/physics.md §7, the thesis's timings)
+SIDE = 800                      # thesis images are 800 x 800 (docs/science.md §7, the thesis's timings)
 
 
 def _pairs(rng, n):

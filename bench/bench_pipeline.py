@@ -5,7 +5,7 @@ seconds, the seconds summed per stage (where the time goes), peak memory, the lo
 and a model x lighting x geometry table of seconds per 800x800 image.  For the BSSRDF it
 reports the image time alone and with its (cached, shared) irradiance pass, to check the
 thesis's headline that with area and environment lights the cached-irradiance BSSRDF is the
-fastest model (docs/physics.md §7, the thesis's timings, in this repository).  With ``--warm-light NAME`` it then scales that light's
+fastest model (docs/science.md §7, the thesis's timings, in this repository).  With ``--warm-light NAME`` it then scales that light's
 intensity by 1.1 and runs again on the same cache: what one changed light costs (warm).
 
     python3 bench/bench_pipeline.py [SCENE] [--cache DIR] [--out bench/results/pipeline.json]

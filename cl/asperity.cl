@@ -1,4 +1,4 @@
-/* asperity.cl - Koenderink-Pont asperity scattering term (docs/physics.md §5 in this repository).
+/* asperity.cl - Koenderink-Pont asperity scattering term (docs/science.md §5 in this repository).
  *
  * Source: J. J. Koenderink, S. C. Pont, "The secret of velvety skin", Machine Vision and
  * Applications 14:260-268, 2003 (doi:10.1007/s00138-002-0089-7): a thin layer (thickness
@@ -18,7 +18,7 @@
  * This is a term ADDED on top of a skin model (the base is the renderer's choice; the default
  * is documented with stages/brdf_models.py AsperityParams), never a material on its own.
  * The base lies under the layer, so its light crosses the layer twice (flag [5];
- * docs/physics.md §5, asperity scattering).  To the model's own first order the layer intercepts
+ * docs/science.md §5, asperity scattering).  To the model's own first order the layer intercepts
  * e1(mu) = tau (1 - tau/2) / max(mu, tau) of a beam (same clamp), scatters a of it (half
  * back: the term's albedo A = a e1 / 2; half on, its angular spread neglected) and absorbs
  * 1 - a: the base receives T(mu) = 1 - (1 - a/2) e1(mu), both ways, so cl/shade.cl

@@ -1,5 +1,5 @@
 /* brdf_hk93.cl - Hanrahan-Krueger two-layer single-scattering BRDF + constant multiple
- * scattering (docs/physics.md §2).
+ * scattering (docs/science.md §2).
  *
  * Source: P. Hanrahan, W. Krueger, "Reflection from layered surfaces due to subsurface
  * scattering", SIGGRAPH 1993, section 4 (first-order / single-scattering solution of a slab:
@@ -14,7 +14,7 @@
  *   f_2 = T_01(i) T_01(o) T_12(i) T_12(o) exp(-tau_1 (1/mu_1i + 1/mu_1o))
  *         * W_2 HG(cosT_2, g_2) (1 - exp(-tau_2 (1/mu_2i + 1/mu_2o))) / (eta_2^2 (mu_2i + mu_2o))
  *   cosT_k = -(wo.xy . wi.xy) / eta_k^2 - mu_ki mu_ko   (refracted propagation directions)
- * Variant decisions (the "check" items of docs/physics.md §2):
+ * Variant decisions (the "check" items of docs/science.md §2):
  *  - BRDF, not radiance ratio: the cos_i in HK93's numerator is the incident projected-area
  *    factor, so f = L_r / (L_i cos_i dw_i) has (mu_i + mu_o) alone in the denominator.
  *  - The 1/eta_k^2 factor: derived here from first principles (energy across the boundary:

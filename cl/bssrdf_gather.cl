@@ -1,7 +1,7 @@
 /* bssrdf_gather.cl - hierarchical (Jensen-Buhler 2002) and brute-force gather of radiant
  * exitance from cached irradiance sample points through a radial diffusion profile.
  *
- * Model: M_o(x) = sum_p R(|x - p|) E_p A_p  (docs/physics.md §4; Jensen & Buhler 2002,
+ * Model: M_o(x) = sum_p R(|x - p|) E_p A_p  (docs/science.md §4; Jensen & Buhler 2002,
  * "A rapid hierarchical rendering technique for translucent materials", eq. 3-4).  R(r) is
  * the layer file's radial profile R(r) in 1/mm^2 (stages/profiles.py), resampled on the
  * host into a uniform table that is zero beyond the per-channel cut-off radius.  The host

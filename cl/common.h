@@ -1,5 +1,5 @@
 /* common.h - shared device math for every dermis kernel.
- * Conventions (docs/physics.md): float32, lengths in mm, coefficients in 1/mm; local shading
+ * Conventions (docs/science.md): float32, lengths in mm, coefficients in 1/mm; local shading
  * frame with z along the shading normal, wo and wi both pointing away from the surface.
  */
 #ifndef DERMIS_COMMON_H

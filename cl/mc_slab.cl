@@ -16,7 +16,7 @@
  * alive after MAX_STEPS interactions is scored as "lost" (only sigma_a ~ 0 media do this).
  *
  * SIMD layout (why: PoCL vectorises across work-items only for loop-free kernels, and a
- * photon is a loop; architecture.md "what was measured").  Each work-item carries LANES
+ * photon is a loop; docs/software.md "what was measured").  Each work-item carries LANES
  * photons (LANES = 8 fills one AVX2 register, 16 one AVX-512 register; the host picks by
  * the device's preferred float vector width, stages/mc_slab.py lanes_for.  On a 2-core
  * AVX-512 machine the first loop, without splitting, ran 8 lanes at half the speed of 16;

@@ -2,7 +2,7 @@
  *
  * Contents: Snell refraction of cosines, unpolarised Fresnel reflectance of a smooth
  * dielectric boundary, its diffuse (hemispherical) average Fdr, and the Henyey-Greenstein
- * phase function.  docs/physics.md §2, §3.
+ * phase function.  docs/science.md §2, §3.
  *
  * Conventions (common.h): float32; cosines measured from the shading normal; "eta" is
  * always the RELATIVE index n_transmitted / n_incident unless the name says otherwise.
@@ -44,7 +44,7 @@ inline float fresnel_transmit(float cos_i, float cos_t, float eta) {
     return 2.0f * eta * cos_i * cos_t * (1.0f / (s * s) + 1.0f / (p * p));
 }
 
-/* Diffuse Fresnel reflectance Fdr(eta), polynomial fits quoted in docs/physics.md §3
+/* Diffuse Fresnel reflectance Fdr(eta), polynomial fits quoted in docs/science.md §3
  * (Egan & Hilgeman 1973 for eta >= 1; Jensen et al. 2001 eq. for eta < 1). */
 inline float fresnel_diffuse_reflectance(float eta) {
     float inv = 1.0f / eta;

@@ -6,14 +6,14 @@
  * and the host sums L_s per point, so the pixel is the estimator of pipeline/lights.py:
  * L_o = sum_s f(wo, wi_s) W_s cos(theta_s) V_s.  One item per sample instead of a loop over
  * samples keeps the body loop-free, so PoCL vectorises it across work-items
- * (docs/architecture.md, measured there).
+ * (docs/software.md, measured there).
  *
- * Models (docs/physics.md §1, §2, §5), chosen with -D DERMIS_BASE:
+ * Models (docs/science.md §1, §2, §5), chosen with -D DERMIS_BASE:
  *   0 lambert (albedo / pi, test material and asperity base), 1 lafortune
  *   (cl/brdf_lafortune.cl, albedo texture replaces rho_d as in the thesis), 2 hk93
  *   (cl/brdf_hk93.cl), -1 none (asperity term alone, for adding to a BSSRDF image).
  * -D DERMIS_ASPERITY=1 adds the Koenderink-Pont term (cl/asperity.cl) on top of the base:
- * "a term added on top of a skin model" (docs/physics.md §5); the base is seen through the
+ * "a term added on top of a skin model" (docs/science.md §5); the base is seen through the
  * asperity layer (asperity_transmit), which keeps the sum's albedo <= 1.
  *
  * Conventions: local shading frame from the (bumped) shading normal with make_frame

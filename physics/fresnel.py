@@ -1,4 +1,4 @@
-"""Fresnel and diffusion closed forms used on the host (docs/physics.md §3).
+"""Fresnel and diffusion closed forms used on the host (docs/science.md §3).
 
 The kernel-side versions of the same formulas live in ``cl/optics.h``; the tests compare them.
 ``eta`` is always the relative index n_inside / n_outside.
@@ -15,7 +15,7 @@ def fresnel_diffuse_reflectance(eta: float) -> float:
     """Fdr(eta), the diffuse Fresnel reflectance seen from inside the medium.
 
     Egan & Hilgeman's polynomial fits as quoted by Jensen et al. 2001 (eta >= 1) and its
-    companion fit for eta < 1 (docs/physics.md §3; same as ``cl/optics.h``).
+    companion fit for eta < 1 (docs/science.md §3; same as ``cl/optics.h``).
     """
     if eta >= 1.0:
         return -1.440 / eta**2 + 0.710 / eta + 0.668 + 0.0636 * eta

@@ -1,6 +1,6 @@
 """Layer stacks for the layer-optics stage: dataclasses, validation from TOML, skin presets.
 
-A stack is listed top to bottom.  Units (physics.md conventions): thickness in mm
+A stack is listed top to bottom.  Units (docs/science.md conventions): thickness in mm
 (``math.inf`` allowed for the last layer only), coefficients in 1/mm, per RGB channel.
 ``sigma_s_prime`` is the reduced scattering coefficient; ``g`` (Henyey-Greenstein mean
 cosine) matters only to the Monte Carlo reference and the HK93 model, which use
@@ -329,9 +329,9 @@ def load_layers_toml(path: str | Path) -> LayerStack:
 # Presets.
 #
 # skin1 / skin2: Jensen, Marschner, Levoy, Hanrahan 2001, "A practical model for subsurface
-#   light transport", Table of measured skin (eta = 1.3), 1/mm; physics.md section 3.
+#   light transport", Table of measured skin (eta = 1.3), 1/mm; docs/science.md section 3.
 #
-# two_layer: epidermis 0.25 mm over dermis, eta 1.4 (the layered face of physics.md
+# two_layer: epidermis 0.25 mm over dermis, eta 1.4 (the layered face of docs/science.md
 #   section 3), coefficients from the Donner-Jensen 2006 chromophore model ("A spectral
 #   BSSRDF for shading human skin", EGSR 2006) with melanin fraction C_m = 0.008 (all
 #   eumelanin) in the epidermis and blood fraction C_h = 0.009 (75 % oxygenated) in the
@@ -351,8 +351,8 @@ def load_layers_toml(path: str | Path) -> LayerStack:
 #     dermis    sigma_a = 0.009*blood + 0.991*base = (0.035, 0.265, 0.472)
 #     sigma_s' = (4.78, 6.08, 9.20)
 #   The dermis sigma_a agrees with Jensen 2001 Skin1 (0.032, 0.17, 0.48) to within the
-#   spread of measured skin.  g = 0.8: mean cosine of skin, physics.md section 2.
-#   Dermis thickness: the physics.md face used 20 mm; it is optically semi-infinite
+#   spread of measured skin.  g = 0.8: mean cosine of skin, docs/science.md section 2.
+#   Dermis thickness: the docs/science.md face used 20 mm; it is optically semi-infinite
 #   (sigma_tr >= 0.7 /mm, so e^{-sigma_tr d} < 1e-6), so we write inf.
 # ---------------------------------------------------------------------------------------
 
@@ -373,7 +373,7 @@ def _skin_two_layer() -> LayerStack:
 
 
 PRESETS: dict[str, LayerStack] = {
-    # Jensen et al. 2001, measured skin, semi-infinite, eta 1.3 (physics.md section 3).
+    # Jensen et al. 2001, measured skin, semi-infinite, eta 1.3 (docs/science.md section 3).
     "skin1": LayerStack((Layer(math.inf, 1.3, (0.032, 0.17, 0.48), (0.74, 0.88, 1.01)),)),
     "skin2": LayerStack((Layer(math.inf, 1.3, (0.013, 0.070, 0.145), (1.09, 1.59, 1.79)),)),
     "two_layer": _skin_two_layer(),

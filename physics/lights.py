@@ -1,4 +1,4 @@
-"""Light sampling shared by the BRDF renderer and the BSSRDF irradiance stage (docs/physics.md §6).
+"""Light sampling shared by the BRDF renderer and the BSSRDF irradiance stage (docs/science.md §6).
 
 Every light type answers one question: for surface points ``p`` (N, 3) with normals ``n``,
 give S samples per point of
@@ -26,7 +26,7 @@ Light types (``pipeline.config.LightConfig``, lengths in mm):
   matters.  Samples: S points stratified on the disc (jittered sqrt(S) x sqrt(S) grid when S
   is a square, Latin hypercube otherwise) through Shirley & Chiu's concentric map (area
   preserving), area-sampling estimator weight = L |cos theta_l| (pi r^2) / (d^2 S).
-  Default S = 16, r = 70 mm (thesis, docs/physics.md §6).
+  Default S = 16, r = 70 mm (thesis, docs/science.md §6).
 * ``environment`` - a lat-long radiance map: an HDR/EXR read with OpenImageIO or the
   embedded procedural sunset sky (sun 3 deg above the horizon, thesis).  Three strategies
   (``env_strategy``):
@@ -122,7 +122,7 @@ PRODUCT_NORMAL_BINS = (16, 32)
 # normal facing away from the sun (anti-sun: 18 % vs 34 % and 24 %).
 MIS_COSINE_FRACTION = 0.375
 
-# Procedural sunset (our embedded default map).  Sun elevation: thesis, docs/physics.md §6
+# Procedural sunset (our embedded default map).  Sun elevation: thesis, docs/science.md §6
 # ("sun ~3 deg above the horizon"); the Venice map's sun is at 3.3 deg (its README).
 SUNSET_SUN_ELEVATION_DEG = 3.0
 # Sun azimuth: where the Venice sunset map puts it under our lat-long convention (u = 0.6,
@@ -418,7 +418,7 @@ def _point(light, p: np.ndarray, rng) -> tuple:
     dist = np.linalg.norm(d, axis=1)
     safe = np.maximum(dist, np.float32(1e-6))
     wi = d / safe[:, None]
-    # inverse square (docs/physics.md §6); a point exactly at the light gets weight 0, not inf
+    # inverse square (docs/science.md §6); a point exactly at the light gets weight 0, not inf
     w = _vec(light.intensity, "intensity", light).astype(np.float32)[None, :] \
         / np.where(dist > 1e-6, safe * safe, np.inf)[:, None]
     return wi[:, None], w[:, None], dist[:, None]
@@ -487,7 +487,7 @@ class GlossyLobe:
     cosine-power lobe p(wi) = (e + 1) / (2 pi) max(0, a . wi)^e about the axis
     a = normalize(-wo_t, tilt x wo_n) (wo_t, wo_n: the view's parts along and across the
     surface of ``normals``): tilt 1 is the mirror direction; the Lafortune skin fit's sharp
-    lobe has Cz / |Cxy| ~ 0.75 and exponent ~60 (docs/physics.md §1).  Any model may shade
+    lobe has Cz / |Cxy| ~ 0.75 and exponent ~60 (docs/science.md §1).  Any model may shade
     these samples: the MIS weights count the lobe's density whatever the BRDF is.
 
     view : (N, 3) unit directions to the eye; normals : (N, 3) unit (interpolated) normals

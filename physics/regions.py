@@ -8,7 +8,7 @@ camera ray at the pixel centre hits one of its faces.
 
 Regions (:data:`REGIONS`, label = index + 1; 0 = no region) are placed relative to two
 landmarks that every head dermis renders has: the nose tip (the frontmost vertex; heads
-face +z, y is up, physics.md conventions) and the head's half-width ``w`` at the height
+face +z, y is up, docs/science.md conventions) and the head's half-width ``w`` at the height
 of the nose tip (largest |x| within 15 mm of that height).  Rules on a face's centroid
 (x, y, z relative to the nose tip) and its unit normal n, in this order (first match wins,
 so the regions are disjoint):

@@ -8,7 +8,7 @@ One :class:`Visibility` is built per mesh and answers two questions, both batche
 * :meth:`Visibility.occluded` - whether anything lies between a surface point and a light
   sample at a given distance (Embree's any-hit occlusion query, cheaper than a closest hit).
 
-Why Embree through open3d: docs/architecture.md "Where the work runs" (a well-kept BVH, ~2M
+Why Embree through open3d: docs/software.md "Where the work runs" (a well-kept BVH, ~2M
 rays/s per core measured here; no home-made BVH).
 
 Self-intersection ("shadow acne"): shadow-ray origins are pushed off the surface along the

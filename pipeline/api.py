@@ -81,7 +81,7 @@ def _check_stage(name: str, what: str) -> None:
 JOBS_ENV_VAR = "DERMIS_JOBS"
 # Nodes run at once by default.  Measured on the 2-core machine, cold default matrix
 # (bench/results/pipeline_default.json "jobs_comparison"; 3 jobs: no faster, +0.9 GB):
-# docs/architecture.md "Running nodes at once".
+# docs/software.md "Running nodes at once".
 DEFAULT_JOBS = 2
 
 

@@ -5,7 +5,7 @@ Every artifact is a dataclass whose fields are numpy arrays, numbers, strings,
 rest to ``fields.json`` inside a directory; ``load`` reverses it.  Stages exchange
 data only through these types.
 
-Conventions (docs/physics.md "Conventions"): lengths in mm, coefficients in 1/mm, colour in linear
+Conventions (docs/science.md "Conventions"): lengths in mm, coefficients in 1/mm, colour in linear
 RGB unless a field says ``srgb``.  UV origin is the bottom-left of the texture
 (OBJ convention): texel row counted from the top is ``(1 - v) * (H - 1)``.
 """
@@ -99,7 +99,7 @@ class Mesh:
 def angle_weighted_normals(vertices, faces) -> np.ndarray:
     """Angle-weighted unit vertex normals, (V, 3) float32; unused vertices get (0, 0, 0).
 
-    docs/physics.md §6 "Vertex normals" (Thuermer & Wuethrich, JGT 3(1), 1998), computed by
+    docs/science.md §6 "Vertex normals" (Thuermer & Wuethrich, JGT 3(1), 1998), computed by
     ``igl.per_vertex_normals`` (weighting ANGLE).
     """
     import igl

@@ -1,7 +1,7 @@
 """The code a node runs, as a hash: a stage module's in-repository import closure and kernels.
 
 A node's cache key must change when any code it executes changes, and only then
-(docs/architecture.md, "Cache keys").  The closure is read from the source, not
+(docs/software.md, "Cache keys").  The closure is read from the source, not
 from what happens to be imported: every ``import`` / ``from ... import`` statement
 of the stage module, function-local ones included, that names a module of the
 ``dermis`` package is followed, recursively.  Engine bookkeeping modules

@@ -59,7 +59,7 @@ def profiles_node_id(scene, profile: str) -> str:
     from dermis.physics.layers import DEFAULT_PROFILE_MODEL
     own = getattr(scene.optics, "profile", DEFAULT_PROFILE_MODEL)
     return "profiles" if profile == own else f"profiles-{profile}"
-# Models the asperity term can sit on (docs/physics.md §5); the BSSRDF is not one of them.
+# Models the asperity term can sit on (docs/science.md §5); the BSSRDF is not one of them.
 ASPERITY_BASES = ("lambert", "lafortune", "hk93")
 GEOMETRIES = ("high", "low", "low_bump", "low_bump_blur")
 LIGHT_TYPES = ("point", "disc", "directional", "environment")
@@ -153,7 +153,7 @@ class RenderConfig:
     geometries: tuple = spec(("high", "low_bump", "low_bump_blur"), choices=GEOMETRIES,
                              doc="high mesh; low mesh plain, with the sharp or the blurred bump map")
     # Lambert default: in the thesis's timings asperity renders beat Lafortune for every light
-    # (docs/physics.md §7), so its base cannot have been a costlier model (an inference; see asperity.cl)
+    # (docs/science.md §7), so its base cannot have been a costlier model (an inference; see asperity.cl)
     asperity_base: str = spec("lambert", choices=ASPERITY_BASES,
                               doc="model under the asperity term")
     # Measured (bench/bench_render.py --spp, bench/results/render_spp.json; Lafortune, high

@@ -77,7 +77,7 @@ class Node:
         return tuple(self.deps.values())
 
     def code_hash(self) -> str:
-        """Hash of the code this node runs (docs/architecture.md, "Cache keys")."""
+        """Hash of the code this node runs (docs/software.md, "Cache keys")."""
         mod = importlib.import_module(self.module)
         return hashlib.sha256(f"{getattr(mod, 'VERSION', 0)}:{closure_hash(self.module)}"
                               .encode()).hexdigest()

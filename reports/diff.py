@@ -3,7 +3,7 @@
 The thesis (Arizpe 2006) compares each model with the multi-layer BSSRDF by eye; here the
 comparison is also measured: per image RMSE, relative RMSE, per-channel bias, the 95th
 percentile of the per-pixel relative error, and SSIM on luminance.  The same functions
-compare geometries (low mesh + bump map vs the ~1M-triangle mesh, docs/physics.md §7), the
+compare geometries (low mesh + bump map vs the ~1M-triangle mesh, docs/science.md §7), the
 thesis's second question.
 
 Everything here is pure except :func:`write_differences`, which is the report writer.

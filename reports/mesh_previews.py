@@ -22,7 +22,7 @@ KERNELS = ()
 PREVIEW_SIZE = 800
 
 # Preview light: directional, from the upper left and grazing (about 65 deg from the view
-# axis) so that bumps cast strong shading gradients; not a thesis light (docs/physics.md §6
+# axis) so that bumps cast strong shading gradients; not a thesis light (docs/science.md §6
 # lists those), just a detail-revealing one.
 PREVIEW_LIGHT_DIR = np.array([-0.8, 0.45, 0.4])
 PREVIEW_AMBIENT = 0.05       # keeps unlit regions readable
@@ -131,7 +131,7 @@ def save_shaded_comparison(high: Mesh, low: Mesh, maps: BakedMaps, out_path, *,
     high, low : Mesh, mm
     maps : BakedMaps baked from ``high`` into ``low``
     out_path : path-like of the PNG
-    size : int, side of each panel in pixels (800 as the thesis's images, docs/physics.md §6)
+    size : int, side of each panel in pixels (800 as the thesis's images, docs/science.md §6)
 
     Returns
     -------

@@ -10,7 +10,7 @@ measured errors):
    symmetric colour scale per light (the scales of :func:`reports.diff.write_differences`),
    relative RMSE and SSIM under each;
 4. timing table (seconds per image; BSSRDF plus its irradiance pass) beside the thesis's
-   table (docs/physics.md §7);
+   table (docs/science.md §7);
 5. error vs time scatter plot -- users trade speed for accuracy;
 6. geometry page: relative RMSE of the low mesh + bump maps vs the ~1M-triangle mesh;
 7. pages the caller adds (``extra_pages``): the report node's layer-profile page
@@ -36,7 +36,7 @@ FONT_PT = 8          # body text; nothing in the report is set below MIN_FONT_PT
 MIN_FONT_PT = 7
 
 # Thesis render times, 800x800, pbrt on a dual-core Xeon 2.4 GHz (2006), m:ss or h:mm:ss
-# (Arizpe 2006, transcribed in docs/physics.md §7).  mesh -> light type -> model -> time.
+# (Arizpe 2006, transcribed in docs/science.md §7).  mesh -> light type -> model -> time.
 THESIS_LIGHTS = ("directional", "point", "area", "environment")
 THESIS_TIMES = {
     "1M": {
@@ -352,7 +352,7 @@ def _timing_page(plt, images, metrics, *, device, timings_extra):
                ["model / geometry"] + [l.replace("+", "+\n") for l in lights])
     ax2 = fig.add_axes([0.67, 0.30, 0.31, 0.58])
     ax2.axis("off")
-    ax2.set_title(f"thesis (docs/physics.md §7), m:ss\n{THESIS_HARDWARE}", fontsize=9)
+    ax2.set_title(f"thesis (docs/science.md §7), m:ss\n{THESIS_HARDWARE}", fontsize=9)
     tcells = []
     for mesh, by_light in THESIS_TIMES.items():
         for k, m in enumerate(THESIS_MODELS):

@@ -1,6 +1,6 @@
 """Albedo and bump maps baked from the high mesh into the low mesh's UV space.
 
-The bake follows the thesis (docs/physics.md §6, "Bake"): every low-poly triangle is
+The bake follows the thesis (docs/science.md §6, "Bake"): every low-poly triangle is
 rasterised in UV space, rays are cast both ways along the interpolated normal into the
 high-poly mesh, the signed distance of the nearest hit becomes the bump height and the hit's
 texture colour becomes the albedo; hits beyond a threshold distance are ignored.
@@ -617,7 +617,7 @@ def _albedo_without_texture_or_hits(albedo_cov: np.ndarray, texture, n_hit: int)
 
 def _albedo_image(albedo_cov: np.ndarray, flat, resolution: int, hit) -> np.ndarray:
     """Step 5: the (R*R, 3) sRGB map; unless ``hit`` is None, covered texels without a hit
-    take the albedo of the nearest texel with one (docs/physics.md §6: the thesis leaves it open)."""
+    take the albedo of the nearest texel with one (docs/science.md §6: the thesis leaves it open)."""
     n_pix = resolution * resolution
     albedo = np.zeros((n_pix, 3), dtype=np.uint8)
     # 3-byte texels as one void item each: half the time of the (N, 3) row scatter (0.25 s)
@@ -704,7 +704,7 @@ def _timed(fn, *args):
 def bake_maps(low: Mesh, high: Mesh, *, resolution: int = 4096, max_distance_mm: float | None = None,
               blur_sigma_px: float = 8.0, dilate_px: int = 16, reference: str = "phong",
               progress: Callable[[float], None] | None = None) -> BakedMaps:
-    """Bake albedo and bump maps of ``high`` into the UV space of ``low`` (docs/physics.md §6).
+    """Bake albedo and bump maps of ``high`` into the UV space of ``low`` (docs/science.md §6).
 
     Parameters
     ----------

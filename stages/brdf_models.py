@@ -2,12 +2,12 @@
 
 Three models, one ``.cl`` file each (their header comments give equations and variants):
 
-* ``lafortune`` - measured-skin Lafortune BRDF with an albedo texture (docs/physics.md §1),
+* ``lafortune`` - measured-skin Lafortune BRDF with an albedo texture (docs/science.md §1),
   ``cl/brdf_lafortune.cl``;
 * ``hk93`` - Hanrahan-Krueger two-layer single scattering + constant multiple scattering
-  (docs/physics.md §2), ``cl/brdf_hk93.cl``;
+  (docs/science.md §2), ``cl/brdf_hk93.cl``;
 * ``asperity`` - Koenderink-Pont asperity scattering term, added on top of a base model
-  (docs/physics.md §5), ``cl/asperity.cl``.
+  (docs/science.md §5), ``cl/asperity.cl``.
 
 Each parameter dataclass validates itself on construction (:class:`ConfigError` naming the
 field, the value and the rule) and ``pack()``s into the float32 block its kernel reads.
@@ -87,11 +87,11 @@ def _check(ok, name: str, value, unit: str, rule: str) -> None:
 
 
 # --------------------------------------------------------------------------------------
-# Lafortune (docs/physics.md §1)
+# Lafortune (docs/science.md §1)
 # --------------------------------------------------------------------------------------
 
 # pbrt-v1 materials/skin.cpp three-lobe fit of measured skin (Lafortune et al. 1997 model),
-# table in docs/physics.md §1. Rows: lobe 0 (grazing, non-zero past ~46 deg), lobe 1 (broad),
+# table in docs/science.md §1. Rows: lobe 0 (grazing, non-zero past ~46 deg), lobe 1 (broad),
 # lobe 2 (sharp specular); columns R, G, B.
 _SKIN_RHO_D = (0.428425, 0.301341, 0.331054)
 _SKIN_CXY = ((-1.131747, -1.016939, -0.966018),
@@ -118,7 +118,7 @@ class LafortuneParams:
     rho_d : (3,) floats in [0, 1]
         Diffuse albedo used when no per-point albedo (texture) is given.
     coupled : bool
-        Energy coupling of the diffuse term to the lobes (default True; docs/physics.md §1):
+        Energy coupling of the diffuse term to the lobes (default True; docs/science.md §1):
         f_d = albedo (1 - L(mu_i)) (1 - L(mu_o)) / (pi (1 - L_mean)), L the lobes'
         directional albedo (:func:`lafortune_lobe_albedo`) and L_mean its cosine-weighted
         mean (Kelemen & Szirmay-Kalos 2001's coupled matte term).  The directional albedo
@@ -228,7 +228,7 @@ def _lobe_albedo_table(params: "LafortuneParams") -> tuple[np.ndarray, np.ndarra
 
 
 # --------------------------------------------------------------------------------------
-# The surface of the BSSRDF: what the surface term does not reflect enters (docs/physics.md §4)
+# The surface of the BSSRDF: what the surface term does not reflect enters (docs/science.md §4)
 # --------------------------------------------------------------------------------------
 
 class Transmittance:
@@ -243,7 +243,7 @@ class Transmittance:
     for any albedo a <= 1.  The skin fit's lobes reflect more than a smooth surface below
     ~55 deg (eta 1.4) or ~62 deg (eta 1.3): L = 0.031 at normal incidence against
     F = 0.028 / 0.017, so the cap lowers T_mean by 0.3 % / 1.5 %.  ``mean`` =
-    int T 2 mu dmu normalises the exit (docs/physics.md §4).
+    int T 2 mu dmu normalises the exit (docs/science.md §4).
     """
 
     _TABLES: dict = {}
@@ -289,7 +289,7 @@ class Transmittance:
 
 
 # --------------------------------------------------------------------------------------
-# Hanrahan-Krueger 1993 (docs/physics.md §2)
+# Hanrahan-Krueger 1993 (docs/science.md §2)
 # --------------------------------------------------------------------------------------
 
 @dataclass(frozen=True)
@@ -446,7 +446,7 @@ def _single_scattering_hemispherical(layers) -> np.ndarray:
 
 def _default_multiple_scattering(layers: Sequence[HK93Layer], ss_max, rd) -> np.ndarray:
     """rho_ms so that HK93 and the BSSRDF reflect the same under uniform light (the thesis's
-    constant term, made consistent; docs/physics.md §2): the BSSRDF's uniform-light
+    constant term, made consistent; docs/science.md §2): the BSSRDF's uniform-light
     reflectance is (1 - Fdr_ext(eta)) Rd (entry Fresnel averaged over the cosine-weighted
     hemisphere, times the profile's Rd per entering photon), and HK93's is
     int rho_ss 2 mu dmu + rho_ms.  Clamped to [0, 1 - max rho_ss] so the directional albedo
@@ -457,7 +457,7 @@ def _default_multiple_scattering(layers: Sequence[HK93Layer], ss_max, rd) -> np.
 
 
 def _default_hk93_layers() -> tuple:
-    # Same skin as the multipole model (docs/physics.md §2: "derive both layers from the same
+    # Same skin as the multipole model (docs/science.md §2: "derive both layers from the same
     # epidermis/dermis optical parameters"): pipeline.layers PRESETS["two_layer"], an
     # epidermis of 0.25 mm over a semi-infinite dermis, eta 1.4, g 0.8.
     from dermis.physics.layers import PRESETS
@@ -590,7 +590,7 @@ def hk93_params_from_layers(layers, *, multiple_scattering=None) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------
-# Asperity (docs/physics.md §5)
+# Asperity (docs/science.md §5)
 # --------------------------------------------------------------------------------------
 
 
@@ -618,12 +618,12 @@ class AsperityParams:
         Optional cap f <= f_max (1/sr); default inf (none: the cosine clamp already bounds f).
     base : str
         Base model the renderer adds the term to; default "lambert" (albedo texture / pi):
-        the thesis's timings (docs/physics.md §7) put its asperity renders below the Lafortune
+        the thesis's timings (docs/science.md §7) put its asperity renders below the Lafortune
         ones in every light (e.g. 19:45 vs 28:56 for the area light), so its base cannot
         have been Lafortune or HK93 plus an extra term; a Lambertian albedo base is the
         cheaper candidate.  "lafortune" and "hk93" are accepted.
     attenuate_base : bool
-        The base is seen through the asperity layer (default True; docs/physics.md §5): its
+        The base is seen through the asperity layer (default True; docs/science.md §5): its
         BRDF is multiplied by T(mu_i) T(mu_o), T(mu) = 1 - (1 - albedo/2) e1(mu), the light
         the layer neither reflects nor absorbs to the term's own first order
         (e1 = tau (1 - tau/2) / max(mu, tau) intercepted, half of the scattered part sent
@@ -788,7 +788,7 @@ def _fresnel_angles(theta_i, theta_t, eta_rel):
 
 
 def _hk93_single_np(wo, wi, layers) -> np.ndarray:
-    """HK93 single scattering (N, 3) float64, summed over the layers (docs/physics.md §2):
+    """HK93 single scattering (N, 3) float64, summed over the layers (docs/science.md §2):
     no horizon test, no constant term (tests/brdf_reference.py hk93_f_np adds those)."""
     co, so, po = _angles(wo)
     ci, si, pi_ = _angles(wi)

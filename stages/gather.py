@@ -1,6 +1,6 @@
 """Radiant exitance by hierarchical gather of cached irradiance (Jensen-Buhler 2002 pass 2).
 
-docs/physics.md §4.  The host builds an octree over the irradiance sample points
+docs/science.md §4.  The host builds an octree over the irradiance sample points
 (``stages/samples.py``, irradiance from ``physics/lights.py``) and flattens it into arrays;
 the device (``cl/bssrdf_gather.cl``) walks it for every query point (pixel surface point)
 and sums M_o(x) = sum R(|x - p|) E A with the layer file's radial profile R
@@ -588,7 +588,7 @@ def gather(octree: Octree, profile, query_positions: np.ndarray, *, epsilon: flo
     query_positions : (Q, 3) float ndarray, mm
         Surface points to shade (one per pixel).
     epsilon : float
-        Solid-angle criterion A / d^2 < epsilon (docs/physics.md §4).  No default here: the
+        Solid-angle criterion A / d^2 < epsilon (docs/science.md §4).  No default here: the
         scene's ``[bssrdf] epsilon`` (pipeline/config.py) is the shipped value (anchors with
         zeroth-order clusters: pbrt-v2 0.05, Mitsuba 0.2).  Ignored (may be None) with
         ``brute_force``.
@@ -974,7 +974,7 @@ def _local(local: int | None):
 
 
 # ----------------------------------------------------------------------------- near field
-# The optics-resolved BSSRDF (docs/physics.md §4 "Near field").  The points reconstruct
+# The optics-resolved BSSRDF (docs/science.md §4 "Near field").  The points reconstruct
 # irradiance at the resolution sigma of their spacing, far coarser than the skin's profile
 # (two_layer: half of Rd within 0.17-0.5 mm, sigma 1.24 mm at the default density), so the
 # gather alone blurs the image by sigma.  The profile is split by a smooth window w(r)
@@ -1136,7 +1136,7 @@ class EdgeTable:
 
 
 def near_tables(split: ProfileSplit) -> EdgeTable:
-    """The boundary-integral table of the near part (docs/physics.md §4 "Near field").
+    """The boundary-integral table of the near part (docs/science.md §4 "Near field").
 
     For the lit region Omega around a shading point x, int_Omega R_near(|x - y|) dy =
     Rd_near 1_Omega(x) - int_Omega K(x - y) dy with K = Rd_near delta - R_near, and the

@@ -5,9 +5,9 @@ Jensen-Buhler pass 1: each point's irradiance with shadows, from
 lights).  One node per mesh and lighting condition.  The irradiance stored is the part that
 enters the skin: each light sample is weighted by the entry transmittance
 :class:`dermis.stages.brdf_models.Transmittance` at its cosine (Fresnel, and with the BSSRDF's
-surface term min(Fresnel, 1 - the lobes' albedo); docs/physics.md §4), because the
+surface term min(Fresnel, 1 - the lobes' albedo); docs/science.md §4), because the
 profile's Rd is per entering photon.  Cost per mesh and light (64 samples, ~241k points):
-``bench/bench_irradiance.py`` -> ``bench/results/irradiance.json`` (docs/physics.md §4).
+``bench/bench_irradiance.py`` -> ``bench/results/irradiance.json`` (docs/science.md §4).
 """
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """Mesh preparation, geometry steps: load a scan, validate it, build the high and low meshes.
 
-The thesis setup (docs/physics.md §6) renders a ~1M-triangle scan and a ~16,750-triangle
+The thesis setup (docs/science.md §6) renders a ~1M-triangle scan and a ~16,750-triangle
 QSlim simplification of it whose texture coordinates are transferred from the scan ("nearest
 old vertex -> its UV(s); at seams pick the UV combination with the smallest texture-space
 perimeter; repair triangles that straddle the cut").  This module holds those steps as pure
@@ -377,14 +377,14 @@ def make_high(mesh: Mesh, *, target_triangles: int, displacement=None, displacem
 # ----------------------------------------------------------------------------------------------
 
 def simplify(mesh: Mesh, *, target_triangles: int = 16750) -> Mesh:
-    """Quadric-error simplification to about ``target_triangles`` (docs/physics.md §6: QSlim).
+    """Quadric-error simplification to about ``target_triangles`` (docs/science.md §6: QSlim).
 
     Parameters
     ----------
     mesh : Mesh
         The high mesh.
     target_triangles : int
-        Wanted count; default 16,750 is the thesis's low-quality mesh (docs/physics.md §6).
+        Wanted count; default 16,750 is the thesis's low-quality mesh (docs/science.md §6).
 
     Returns
     -------
@@ -602,7 +602,7 @@ def _flatten_into_anchor_chart(charts, low_uv, corner_uv_idx, corner_pair, lp, b
 
 
 def transfer_uv(high: Mesh, low: Mesh) -> tuple[Mesh, dict]:
-    """Give the low mesh texture coordinates from the high mesh (thesis method, docs/physics.md §6).
+    """Give the low mesh texture coordinates from the high mesh (thesis method, docs/science.md §6).
 
     Parameters
     ----------

@@ -8,7 +8,7 @@ layer stack into a Mitsuba scene dictionary and renders it (docs/ground-truth.md
   unit factor is 1: ground-truth.md trap 1).  Vertices are split where per-corner UVs
   differ (Mitsuba's UVs are per vertex), the vertex normals are dermis's own
   (:meth:`Mesh.vertex_normals`, angle-weighted), and v is flipped: dermis's UV origin is the
-  bottom-left (physics.md conventions), Mitsuba's bitmap origin the top-left (measured).
+  bottom-left (docs/science.md conventions), Mitsuba's bitmap origin the top-left (measured).
   The mesh is written as a binary PLY into a temporary folder.
 * **Camera**: ``perspective`` with ``fov_axis = "smaller"`` (pbrt's and dermis's
   convention), ``look_at`` as in :func:`stages.render.camera_rays`; box pixel filter, so a

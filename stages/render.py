@@ -1,6 +1,6 @@
 """BRDF images: shared visibility (camera and shadow rays), OpenCL shading, box-filtered pixels.
 
-Pipeline of :func:`render` (docs/architecture.md "Where the work runs"):
+Pipeline of :func:`render` (docs/software.md "Where the work runs"):
 
 1. **visibility** - ``spp`` stratified camera rays per pixel, their light samples and shadow
    rays (:func:`dermis.stages.visibility.cast`).  In the pipeline this is the ``visibility``
@@ -15,7 +15,7 @@ Pipeline of :func:`render` (docs/architecture.md "Where the work runs"):
    (a box filter over the stratified sub-pixel samples: anti-aliased silhouettes, shadow
    edges and lip boundaries).
 
-Decisions touched here (docs/physics.md §6):
+Decisions touched here (docs/science.md §6):
 
 * Disc lights emit from both faces (physics/lights.py docstring): only the axis matters.
 * Every camera hit is shaded: back faces are two-sided, and shading normals facing away from
@@ -27,7 +27,7 @@ Decisions touched here (docs/physics.md §6):
   (disc, environment) are spread over them, so anti-aliasing adds camera rays and surface
   work but no light samples (stages/visibility.py).  spp = 1 is one ray through the pixel
   centre, the pre-anti-aliasing renderer.
-* Asperity is a term added to a base model (docs/physics.md §5); the base is chosen by the
+* Asperity is a term added to a base model (docs/science.md §5); the base is chosen by the
   caller (``RenderConfig.asperity_base``); ``"none"`` renders the term alone so the BSSRDF
   stage can add it to its own image (same light, same exposure: images are linear).
 

@@ -1,6 +1,6 @@
 """Irradiance sample points spread uniformly over a mesh (Jensen-Buhler 2002 pass 1).
 
-The hierarchical BSSRDF evaluation (docs/physics.md §4) first places points over the
+The hierarchical BSSRDF evaluation (docs/science.md §4) first places points over the
 surface so that every point stands for the same area; irradiance is then computed at each
 point per light (``pipeline/lights.py``) and gathered through an octree (``stages/gather.py``).
 This stage depends on the mesh and the point spacing only, not on any light, so its artifact
@@ -21,7 +21,7 @@ Choices made here (and why):
   steps gives a better partition of unity than open3d's own factor-5 sampler did with 2
   steps (max deviation 0.41-0.48 % vs 0.92-1.21 % on a finely tessellated plane, 3 seeds;
   bench/bench_samples.py), so 2 it is.
-* **Normals.**  Each point's normal is the angle-weighted vertex normal (docs/physics.md §6)
+* **Normals.**  Each point's normal is the angle-weighted vertex normal (docs/science.md §6)
   interpolated at the point's closest position on the mesh (open3d RaycastingScene closest
   points give triangle ids and barycentrics).
 * **Relaxation.**  Sample elimination leaves low-frequency density noise (measured on a
@@ -54,7 +54,7 @@ Choices made here (and why):
   for it would pile weight onto the rim and ring inwards).  Pairs whose normals disagree
   (n_p . n_q <= 0: the two sides of an ear or a lip) are not neighbours.
 * **Density rule** (:func:`spacing_from_mfp`): one point per pi l^2 / multiplier, where l is
-  the smallest reduced mean free path 1/sigma_t' of the layer stack (docs/physics.md §4,
+  the smallest reduced mean free path 1/sigma_t' of the layer stack (docs/science.md §4,
   following the thesis), but at most ``MFP_CAP_MM`` = 0.1 mm; ``spacing_mm`` means "each
   point covers spacing_mm^2 of surface".  The cap: since the BSSRDF evaluates the
   profile's near part at each shading point (``stages/gather.py`` "near field"), the
@@ -172,7 +172,7 @@ def spacing_from_mfp(profile_or_stack, multiplier: float = 1.0) -> float:
 
     Notes
     -----
-    docs/physics.md §4: "density about one point per pi l^2 for the smallest mean free
+    docs/science.md §4: "density about one point per pi l^2 for the smallest mean free
     path l, or finer" (Jensen & Buhler 2002, sec. 4.1, and the thesis); the cap: module
     docstring.
     """

@@ -3,7 +3,7 @@
 Pure file parsing with no geometry processing beyond welding exactly equal positions and
 merging duplicate UVs; :func:`dermis.stages.mesh_prep.validate` checks the result.  Written
 here rather than taken from open3d / trimesh because those drop per-corner UVs at seams or
-the embedded glTF texture (measured on the LPS scan; docs/architecture.md).
+the embedded glTF texture (measured on the LPS scan; docs/software.md).
 
 Conventions: mm; UV origin bottom-left (OBJ): texel row from the top is ``(1 - v) * (H - 1)``.
 """
@@ -23,7 +23,7 @@ from dermis.pipeline.store import file_digest
 
 __all__ = ["load_scan", "read_grey_image", "UNITS_MM"]
 
-# Millimetres per unit for the ``units`` option of load_scan (docs/physics.md: mm inside).
+# Millimetres per unit for the ``units`` option of load_scan (docs/science.md: mm inside).
 UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
 # ----------------------------------------------------------------------------------------------
 # loading

@@ -19,7 +19,7 @@ __all__ = ["lafortune_f_np", "hk93_f_np", "asperity_f_np"]
 
 def lafortune_f_np(wo, wi, params: LafortuneParams | None = None, albedo=None) -> np.ndarray:
     """Float64 Lafortune BRDF (N, 3): rho/pi + sum_k max(0, Cxy sin sin cos(dphi) + Cz cos cos)^n
-    (docs/physics.md §1); with ``params.coupled`` the diffuse term is
+    (docs/science.md §1); with ``params.coupled`` the diffuse term is
     rho (1 - L(cos_i)) (1 - L(cos_o)) / (pi (1 - L_mean)), L read from the packed table
     and interpolated linearly as the kernel does (the table itself is checked against the
     quadrature in tests/test_energy.py)."""
@@ -49,7 +49,7 @@ def lafortune_f_np(wo, wi, params: LafortuneParams | None = None, albedo=None) -
 
 
 def hk93_f_np(wo, wi, params: HK93Params | None = None) -> np.ndarray:
-    """Float64 HK93 BRDF (N, 3): single scattering per layer + rho_ms/pi (docs/physics.md §2).
+    """Float64 HK93 BRDF (N, 3): single scattering per layer + rho_ms/pi (docs/science.md §2).
 
     Walks the stack top-down: the beam refracts by Snell (sin theta_k = sin theta_0 / eta_k),
     loses the Fresnel transmittance of each interface in both directions and exp(-tau/cos)
@@ -64,7 +64,7 @@ def hk93_f_np(wo, wi, params: HK93Params | None = None) -> np.ndarray:
 
 def asperity_f_np(wo, wi, params: AsperityParams | None = None) -> np.ndarray:
     """Float64 asperity term (N, 3): albedo Delta / (4 pi lambda max(cos_i, tau) max(cos_o, tau))
-    (docs/physics.md §5)."""
+    (docs/science.md §5)."""
     params = params or AsperityParams()
     co = np.asarray(wo, np.float64)[:, 2]
     ci = np.asarray(wi, np.float64)[:, 2]

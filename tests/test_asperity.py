@@ -1,4 +1,4 @@
-"""Koenderink-Pont asperity scattering term (cl/asperity.cl, docs/physics.md §5)."""
+"""Koenderink-Pont asperity scattering term (cl/asperity.cl, docs/science.md §5)."""
 from __future__ import annotations
 
 import math

@@ -1,4 +1,4 @@
-"""Hanrahan-Krueger two-layer BRDF (cl/brdf_hk93.cl, cl/optics.h, docs/physics.md §2)."""
+"""Hanrahan-Krueger two-layer BRDF (cl/brdf_hk93.cl, cl/optics.h, docs/science.md §2)."""
 from __future__ import annotations
 
 import math
@@ -112,7 +112,7 @@ def test02_matches_reference(cl_env, rng, layers):
 
 def test02_closed_form_chandrasekhar(cl_env, rng):
     """Index-matched, non-absorbing, isotropic, semi-infinite: f = 1/(4 pi (mu_i + mu_o))
-    (Chandrasekhar's first-order term; docs/physics.md §2 BRDF form)."""
+    (Chandrasekhar's first-order term; docs/science.md §2 BRDF form)."""
     params = HK93Params([_layer(eta=1.0, g=0.0, sigma_a=(0, 0, 0))], (0, 0, 0))
     wo, wi = sample_pairs(rng, 4000)
     got = evaluate("hk93", wo, wi, params, env=cl_env)

@@ -1,4 +1,4 @@
-"""Lafortune measured-skin BRDF (cl/brdf_lafortune.cl, docs/physics.md §1)."""
+"""Lafortune measured-skin BRDF (cl/brdf_lafortune.cl, docs/science.md §1)."""
 from __future__ import annotations
 
 import math
@@ -104,7 +104,7 @@ def test02_matches_reference(cl_env, rng):
 
 
 def test02_closed_form_lobes_off(cl_env, rng):
-    """Lobes off: f = albedo / pi exactly (docs/physics.md §1)."""
+    """Lobes off: f = albedo / pi exactly (docs/science.md §1)."""
     wo, wi = sample_pairs(rng, 2000)
     albedo = rng.random((len(wo), 3)).astype(np.float32)
     got = evaluate("lafortune", wo, wi, LafortuneParams().lobes_off(), albedo=albedo, env=cl_env)

@@ -1,4 +1,4 @@
-"""Energy of every model as rendered (docs/physics.md §1, §2, §4, §5; issue 10).
+"""Energy of every model as rendered (docs/science.md §1, §2, §4, §5; issue 10).
 
 * Directional albedo <= 1 over a grid of view angles (0 - 89.9 deg) and texture albedos
   (0 - 1) for each model as the renderer composes it (``cl/shade.cl``: Lafortune with its

@@ -22,14 +22,14 @@ from dermis.stages import samples as S
 SHIPPED = BssrdfConfig()
 EPS = SHIPPED.epsilon
 
-# Jensen et al. 2001 measured skin1 (docs/physics.md §3), 1/mm, eta 1.3.
+# Jensen et al. 2001 measured skin1 (docs/science.md §3), 1/mm, eta 1.3.
 SKIN1_SIGMA_A = np.array([0.032, 0.17, 0.48])
 SKIN1_SIGMA_SP = np.array([0.74, 0.88, 1.01])
 SKIN1_ETA = 1.3
 
 
 def _fdr(eta):
-    """Internal diffuse Fresnel reflectance, Egan-Hilgeman fit (docs/physics.md §3)."""
+    """Internal diffuse Fresnel reflectance, Egan-Hilgeman fit (docs/science.md §3)."""
     return -1.440 / eta**2 + 0.710 / eta + 0.668 + 0.0636 * eta
 
 
@@ -86,7 +86,7 @@ def test01_dipole_profile_integrates_to_rd(skin1):
     total = np.trapezoid(2 * np.pi * r[:, None] * R, r, axis=0)
     # the 60 mm table holds all but e^{-sigma_tr 60} ~ 1e-4 of red; trapezoid error < 1e-4
     np.testing.assert_allclose(total, skin1.Rd, rtol=3e-3)
-    # docs/physics.md §3: Jensen 2001 skin1 Rd ~ (0.44, 0.22, 0.13)
+    # docs/science.md §3: Jensen 2001 skin1 Rd ~ (0.44, 0.22, 0.13)
     np.testing.assert_allclose(skin1.Rd, [0.44, 0.22, 0.13], atol=0.01)
 
 

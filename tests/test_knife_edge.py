@@ -1,5 +1,5 @@
 """Knife edge: the BSSRDF's blur is the skin profile's (stages/gather.py "near field",
-docs/physics.md §4; issue 10).
+docs/science.md §4; issue 10).
 
 A large flat slab lies half in the shadow of a straight occluder edge (a plate above it)
 under a directional light.  Across the shadow edge the exitance :func:`gather.exitance`

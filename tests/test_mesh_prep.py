@@ -1,5 +1,5 @@
 """Tests for stages/mesh_prep.py: loading, validation, subdivision/displacement, normals,
-simplification and the thesis's UV transfer (docs/physics.md §6).
+simplification and the thesis's UV transfer (docs/science.md §6).
 
 Meshes are built here from closed forms (spheres, lat-long UVs) so each check has independent
 evidence; the LPS scan test skips when /work/shared/data is absent.

@@ -229,7 +229,7 @@ def test07_lafortune_lobes_off_is_lambert_and_asperity_adds(sphere, cl_env):
     b = render(mesh, light, "lambert", LambertParams(laf.rho_d), cam, visibility=vis, cl_env=cl_env)
     np.testing.assert_allclose(a.linear, b.linear, rtol=F32_RTOL, atol=1e-9)
     # asperity without the base's attenuation through the layer = base + term alone
-    # (linearity); with it (the default, docs/physics.md §5) the base loses light
+    # (linearity); with it (the default, docs/science.md §5) the base loses light
     asp = AsperityParams(attenuate_base=False)
     full = render(mesh, light, "asperity", asp, cam, visibility=vis, asperity_base="lambert",
                   base_params=LambertParams(laf.rho_d), cl_env=cl_env)

@@ -125,7 +125,7 @@ def test05_spacing_from_mfp():
     capped at MFP_CAP_MM: every preset gets the two-layer skin's spacing at equal density."""
     from dermis.physics.layers import PRESETS
     two = PRESETS["two_layer"]
-    l_min = 1.0 / (0.8926 + 9.209)  # blue channel, two_layer epidermis (docs/physics.md §3)
+    l_min = 1.0 / (0.8926 + 9.209)  # blue channel, two_layer epidermis (docs/science.md §3)
     assert l_min < S.MFP_CAP_MM
     assert S.spacing_from_mfp(two, 1.0) == pytest.approx(math.sqrt(math.pi) * l_min, rel=1e-3)
     assert S.spacing_from_mfp(two, 4.0) == pytest.approx(math.sqrt(math.pi) * l_min / 2, rel=1e-3)
