@@ -153,10 +153,7 @@ class Visibility:
         dist = np.maximum(dist, np.float32(0.0))
         # the rays [origin, direction x length] written in place (no temporaries): the same
         # float32 operations as p + offset side n and d dist
-        if n.shape != p.shape or d.shape != p.shape or p.ndim != 2 or p.shape[1] != 3:
-            raise DermisError(f"visibility: points {p.shape}, normals {n.shape} and "
-                              f"directions {d.shape} must all be (N, 3)")
-        rays = np.empty((len(p), 6), dtype=np.float32)
+        rays = _ray_buffer(p, d)
         np.multiply(n, (self.offset_mm * side)[:, None], out=rays[:, :3])
         rays[:, :3] += p
         np.multiply(d, dist[:, None], out=rays[:, 3:])
@@ -169,14 +166,19 @@ class Visibility:
         return self.occluded
 
 
+def _ray_buffer(origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """An empty (N, 6) float32 ray array for (N, 3) origins and directions (checked)."""
+    if origins.shape != directions.shape or origins.ndim != 2 or origins.shape[1] != 3:
+        raise DermisError(f"visibility: origins {origins.shape} and directions "
+                          f"{directions.shape} must both be (N, 3)")
+    return np.empty((len(origins), 6), dtype=np.float32)
+
+
 def _rays(origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
     """(N, 6) float32 rays [ox, oy, oz, dx, dy, dz], contiguous, as open3d wants them."""
     o = np.asarray(origins, dtype=np.float32)
     d = np.asarray(directions, dtype=np.float32)
-    if o.shape != d.shape or o.ndim != 2 or o.shape[1] != 3:
-        raise DermisError(f"visibility: origins {o.shape} and directions {d.shape} must both "
-                          "be (N, 3)")
-    rays = np.empty((len(o), 6), dtype=np.float32)
+    rays = _ray_buffer(o, d)
     rays[:, :3] = o
     rays[:, 3:] = d
     return rays

@@ -15,7 +15,7 @@ from contextlib import contextmanager
 
 import numpy as np
 
-__all__ = ["content_key", "RecentResults", "KeyedLocks", "once"]
+__all__ = ["content_key", "RecentResults", "KeyedLocks", "once", "recent_in_run"]
 
 
 def content_key(*parts) -> str:
@@ -106,3 +106,17 @@ def once(memo: dict, key, make):
         if key not in memo:
             memo[key] = make()
         return memo[key]
+
+
+def recent_in_run(memo: dict, slot, size: int, key, make) -> tuple:
+    """(value, made): ``key``'s value among the last ``size`` kept in the run's ``memo`` under
+    ``slot`` (a :class:`RecentResults`: concurrent askers wait for one computation), made by
+    ``make()`` when missing; ``made`` says whether this call computed it (what it measured,
+    e.g. kernel seconds, belongs to this call only then)."""
+    cache = memo.setdefault(slot, RecentResults(size))
+    made = []
+
+    def making():
+        made.append(True)
+        return make()
+    return cache.get(key, making), bool(made)

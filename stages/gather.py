@@ -1587,7 +1587,7 @@ def exitance(points, irradiance: np.ndarray, profile, queries: np.ndarray, *,
     -------
     M : (Q, 3) float32; stats : dict (the gathers' stats, timings of each part)
     """
-    from dermis.pipeline.reuse import RecentResults, content_key, once
+    from dermis.pipeline.reuse import content_key, once, recent_in_run
     t0 = time.perf_counter()
     memo = {} if memo is None else memo
     sigma = float(points.info.get("kernel_sigma_mm") or 0.0)
@@ -1609,7 +1609,6 @@ def exitance(points, irradiance: np.ndarray, profile, queries: np.ndarray, *,
 
     gkw = dict(epsilon=epsilon, normalisation=normalisation, env=env, brute_force=brute_force,
                progress=progress, tuning=tuning)
-    shared = memo.setdefault(("gather", "results"), RecentResults(SHARED_GATHERS))
     qkey = content_key(queries)
 
     def gathered(name, e, part):
@@ -1618,13 +1617,10 @@ def exitance(points, irradiance: np.ndarray, profile, queries: np.ndarray, *,
         depends on the run's order, so nothing else says so: the artifact stays the same)."""
         gk = (("gather", name, part, qkey, id(profile), epsilon, normalisation, brute_force,
                repr(tuning)) + key)
-        made = []
-
-        def make():
-            made.append(True)
-            return (points, irradiance, profile), gather(tree(name, e), profile, queries,
-                                                         part=part, **gkw)
-        m, st = shared.get(gk, make)[1]
+        (_, (m, st)), made = recent_in_run(
+            memo, ("gather", "results"), SHARED_GATHERS, gk,
+            lambda: ((points, irradiance, profile),
+                     gather(tree(name, e), profile, queries, part=part, **gkw)))
         return m, (st if made else {**st, "kernel_seconds": 0.0})
 
     stats: dict = {"near_field": bool(resolved)}

@@ -235,8 +235,9 @@ class PixelSurface:
 # map): one per geometry of the default matrix (high, low_bump, low_bump_blur), each ~68 bytes
 # a hit (~175 MB at 800x800 x 4 spp).  The images of a geometry (4 lights x the BRDF models,
 # the BSSRDF and its surface term) share one camera cast (stages/visibility.py), so without
-# it they computed the same attributes ~20 times over: 13 s of node time in a 48-image
-# matrix (bench/results/pipeline_default.json, ``before_surface_cache``).
+# it they computed the same attributes ~20 times over (0.3-1.3 s per image; 0.06 s shared):
+# the 36 BRDF images of the 48-image matrix went from 29.3 to 14.7 s of node time with the
+# session's other changes (bench/results/pipeline_default_48.json, per_stage and before).
 SURFACE_CACHE_SIZE = 3
 
 
@@ -293,20 +294,21 @@ def _shared_surface(memo: dict, objects: tuple, values: tuple, samples, compute)
     """``compute()``'s (surf, kernel seconds, seconds), once per run for equal inputs: keyed by the
     identity of ``objects`` (the run's loaded mesh, texture and bump map; the entry holds them,
     so their ids stay theirs), ``values`` and the content of the camera hits (each lighting
-    condition's visibility node holds its own copy of the same hits).  The arrays are shared
+    condition's visibility node holds its own copy of the same hits; the cast stored their
+    fingerprint).  The arrays are shared
     read-only; a reuse reports 0 kernel seconds (no kernel ran)."""
-    from dermis.pipeline.reuse import RecentResults, content_key
-    cache = memo.setdefault(("pixel_surface",), RecentResults(SURFACE_CACHE_SIZE))
-    key = (tuple(id(o) for o in objects), values, content_key(samples.tri, samples.bary))
-    made = []
+    from dermis.pipeline.reuse import content_key, recent_in_run
 
     def make():
         surf, ks, seconds = compute()
         for a in surf.values():
             a.setflags(write=False)
-        made.append(True)
         return objects, surf, ks, seconds
-    _, surf, ks, seconds = cache.get(key, make)
+    hits = ((samples.info or {}).get("camera_hits_key")      # stages/visibility.py cast
+            or content_key(samples.tri, samples.bary))
+    key = (tuple(id(o) for o in objects), values, hits)
+    (_, surf, ks, seconds), made = recent_in_run(memo, ("pixel_surface",), SURFACE_CACHE_SIZE,
+                                                 key, make)
     return surf, (ks if made else 0.0), seconds
 
 

@@ -202,13 +202,17 @@ def _camera_hits(mesh, camera, spp: int, seed: int, vis: Visibility, env_cl,
     """Camera hits and their surface attributes, which depend on the mesh, camera, spp and
     seed but not on the light: kept in the run's ``memo`` (one entry per mesh) so the
     lighting conditions of a mesh cast its camera rays once."""
+    from dermis.pipeline.reuse import content_key
     key = ("camera_hits", id(mesh), repr(camera), int(spp), int(seed))
     if memo is not None and key in memo:
         return memo[key][1][:-1] + (0.0,)        # no kernel ran for this node
     pixel, sub, tri, bary, n_rays = _primary(vis, camera, spp, seed)
     cam_pos = np.asarray(camera.position, dtype=np.float64)
     surf, k_s = surface_attributes(env_cl, mesh, tri, bary, cam_pos)
-    out = (pixel, sub, tri, bary, n_rays, surf, k_s)
+    # the hits' fingerprint, as the artifact stores them: every image of the mesh finds its
+    # shared surface pass by it (stages/render.py) instead of hashing ~30 MB per image
+    hits_key = content_key(tri.astype(np.int32), bary.astype(np.float32))
+    out = (pixel, sub, tri, bary, n_rays, surf, hits_key, k_s)
     if memo is not None:
         for k in [k for k in memo if k[0] == "camera_hits" and k[1] == id(mesh)]:
             del memo[k]                      # one camera per mesh at a time
@@ -250,8 +254,8 @@ def cast(mesh, lights, camera, *, spp: int = 1, seed: int = 0,
     sampling = _light_sampling(sampling, lights)
     env_cl = cl_env or get_env()
     vis = visibility or Visibility(mesh.vertices, mesh.faces)
-    pixel, sub, tri, bary, n_rays, surf, k_s = _camera_hits(mesh, camera, spp, seed, vis,
-                                                           env_cl, memo)
+    pixel, sub, tri, bary, n_rays, surf, hits_key, k_s = _camera_hits(
+        mesh, camera, spp, seed, vis, env_cl, memo)
     # a pixel's light samples, stratified over its sub-samples (one sample: per point)
     strata = PixelStrata(pixel, sub, spp, int(seed)) if spp > 1 else None
     t_primary = time.perf_counter() - t_start
@@ -284,12 +288,9 @@ def cast(mesh, lights, camera, *, spp: int = 1, seed: int = 0,
                            env_strategy=sampling.env_strategy, share=spp,
                            strata=strata[sl] if strata is not None else None,
                            lobe=lobe[sl] if lobe is not None else None)
-        # live: any channel > 0, one comparison per channel (``np.any(weights > 0, axis=2)``
-        # reduces over a length-3 axis, several times slower); then flat indices, row-major
-        # (grouped by hit, in hit order), and one ``take`` per array
-        wt = ls.weights
-        live = (wt[..., 0] > 0) | (wt[..., 1] > 0)
-        live |= wt[..., 2] > 0
+        # the live samples by flat index, row-major (grouped by hit, in hit order), and one
+        # ``take`` per array
+        live = ls.live()
         flat = np.flatnonzero(live)
         ip = flat // live.shape[1]
         d = ls.directions.reshape(-1, 3).take(flat, axis=0)
@@ -302,7 +303,7 @@ def cast(mesh, lights, camera, *, spp: int = 1, seed: int = 0,
         ip, flat = ip.take(keep), flat.take(keep)
         counts[sl] = np.bincount(ip, minlength=sl.stop - sl.start)
         dirs.append(d.take(keep, axis=0))
-        wts.append(wt.reshape(-1, 3).take(flat, axis=0))
+        wts.append(ls.weights.reshape(-1, 3).take(flat, axis=0))
         t_shadows += time.perf_counter() - t1
         if progress is not None:
             progress(min(1.0, sl.stop / max(m, 1)))
@@ -314,7 +315,8 @@ def cast(mesh, lights, camera, *, spp: int = 1, seed: int = 0,
             "light_samples_per_hit": per_hit, "env_strategy": sampling.env_strategy,
             "env_lobe": (None if lobe is None else {"type": type(lobe).__name__,
                                                     "fraction": lobe.fraction}),
-            "primary_rays": int(n_rays), "hits": int(m), "shadow_rays": int(n_shadow),
+            "primary_rays": int(n_rays), "hits": int(m), "camera_hits_key": hits_key,
+            "shadow_rays": int(n_shadow),
             "unoccluded_samples": int(len(directions)), "triangles": int(len(mesh.faces)),
             "timings": {"primary": t_primary, "surface": t_surface,
                         "light_sampling": t_sampling, "shadows": t_shadows,
