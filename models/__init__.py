@@ -1,0 +1,2 @@
+"""Local illumination models of skin, each one unit that owns its parameters, kernels and docs
+(docs/software.md "Models")."""
