@@ -123,7 +123,7 @@ def brute_force_error(cache: Path, n_queries: int) -> dict:
     from dermis.pipeline import artifacts
     from dermis.pipeline.cl import get_env
     from dermis.pipeline.config import BssrdfConfig, load_scene
-    from dermis.physics.visibility import Visibility, camera_rays
+    from dermis.lighting.visibility import Visibility, camera_rays
     from dermis.stages import gather as G
     ld = lambda n: artifacts.load(glob.glob(str(cache / n / "*"))[0])  # noqa: E731
     mesh, pts, prof = ld("mesh_high"), ld("samples-mesh_high"), ld("profiles")
@@ -178,7 +178,7 @@ def knife_edge_table() -> dict:
     import test_knife_edge as K
     from dermis.pipeline.cl import get_env
     from dermis.pipeline.config import BssrdfConfig
-    from dermis.physics.layers import PRESETS
+    from dermis.optics.layers import PRESETS
     from dermis.stages import samples as S
     from dermis.stages.profiles import build_profiles
     env, out = get_env(), {}
@@ -211,7 +211,7 @@ def shadow_edge_colour(cache: Path, exr: Path, light_name: str = "point") -> dic
     from dermis.pipeline import artifacts
     from dermis.pipeline.config import load_scene
     from dermis.pipeline.imageio import read_image
-    from dermis.physics.visibility import Visibility, camera_rays
+    from dermis.lighting.visibility import Visibility, camera_rays
     mesh = artifacts.load(glob.glob(str(cache / "mesh_high" / "*"))[0])
     scene = load_scene(str(cache.parent / "scene.toml"))
     light = next(l for l in scene.lights if l.name == light_name)
@@ -285,8 +285,8 @@ def irradiance_profile(cache: Path, mesh_node: str = "mesh_low", light_name: str
     import pstats
     from dermis.pipeline import artifacts
     from dermis.pipeline.config import BssrdfConfig, load_scene
-    from dermis.physics.lights import LUMINANCE, irradiance
-    from dermis.physics.visibility import Visibility
+    from dermis.lighting.lights import LUMINANCE, irradiance
+    from dermis.lighting.visibility import Visibility
     from dermis.stages.brdf_models import Transmittance
     ld = lambda n: artifacts.load(glob.glob(str(cache / n / "*"))[0])  # noqa: E731
     mesh, pts = ld(mesh_node), ld(f"samples-{mesh_node}")
@@ -331,8 +331,8 @@ def energy_table() -> dict:
     profile's Rd."""
     import pyopencl as cl
     from dermis.pipeline.cl import get_env, to_device
-    from dermis.physics.fresnel import diffuse_fresnel_external
-    from dermis.physics.layers import PRESETS
+    from dermis.optics.fresnel import diffuse_fresnel_external
+    from dermis.optics.layers import PRESETS
     from dermis.stages import brdf_models as B
     from dermis.stages.profiles import build_profiles
     env = get_env()

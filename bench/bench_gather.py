@@ -90,7 +90,7 @@ def main():
 
     from dermis.pipeline.cl import get_env
     from dermis.pipeline.config import BssrdfConfig
-    from dermis.physics.layers import PRESETS
+    from dermis.optics.layers import PRESETS
     from dermis.stages import gather as G, profiles, samples
 
     shipped = BssrdfConfig()  # the scene defaults: the epsilon and leaf size the pipeline runs

@@ -1,4 +1,4 @@
-"""The BSSRDF irradiance pass (stages/irradiance.py, physics/lights.py ``irradiance``) per
+"""The BSSRDF irradiance pass (stages/irradiance.py, lighting/lights.py ``irradiance``) per
 mesh and light: wall and CPU seconds, the machine's load, and the estimate's noise.
 
 Reads the meshes, sample points and scene of an earlier ``bench_bssrdf.py`` run (its
@@ -42,8 +42,8 @@ def main() -> None:
     import dermis
     from dermis.pipeline import artifacts
     from dermis.pipeline.config import BssrdfConfig, load_scene
-    from dermis.physics.lights import LUMINANCE, irradiance
-    from dermis.physics.visibility import Visibility
+    from dermis.lighting.lights import LUMINANCE, irradiance
+    from dermis.lighting.visibility import Visibility
     from dermis.stages.brdf_models import Transmittance
     root = Path(args.cache).resolve()
     ld = lambda n: artifacts.load(glob.glob(str(root / "cache" / n / "*"))[0])  # noqa: E731

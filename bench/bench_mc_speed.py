@@ -39,7 +39,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from dermis.pipeline import cl as dcl  # noqa: E402
-from dermis.physics.layers import PRESETS, Layer, LayerStack  # noqa: E402
+from dermis.optics.layers import PRESETS, Layer, LayerStack  # noqa: E402
 from dermis.stages import mc_slab  # noqa: E402
 
 MCML_PHOTONS_PER_S_PER_CORE = 27000.0   # issue text: MCML 1.2.2, one core of this machine

@@ -37,7 +37,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from dermis.pipeline import cl as dcl  # noqa: E402
-from dermis.physics.layers import PRESETS, DEFAULT_MC_PHOTONS, Layer, LayerStack  # noqa: E402
+from dermis.optics.layers import PRESETS, DEFAULT_MC_PHOTONS, Layer, LayerStack  # noqa: E402
 from dermis.stages import mc_slab, profiles  # noqa: E402
 
 TARGET_NOISE = 0.01
@@ -83,7 +83,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--repeats", type=int, default=1)
     args = ap.parse_args()
-    from dermis.physics.layers import load_layers_toml
+    from dermis.optics.layers import load_layers_toml
     st = PRESETS[args.stack] if args.stack in PRESETS else load_layers_toml(args.stack)
     env = dcl.get_env()
     out: dict = {"device": env.description, "cpu_count": os.cpu_count(), "stack": args.stack,

@@ -27,7 +27,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from dermis.physics.layers import PRESETS, load_layers_toml  # noqa: E402
+from dermis.optics.layers import PRESETS, load_layers_toml  # noqa: E402
 from dermis.stages import profiles  # noqa: E402
 from dermis.stages.profile_cli import profile_errors, ring_edges  # noqa: E402
 

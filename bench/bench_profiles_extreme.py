@@ -31,7 +31,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 
 def _thin_white():
-    from dermis.physics.layers import Layer, LayerStack
+    from dermis.optics.layers import Layer, LayerStack
     return LayerStack((Layer(0.0001137189970100061, 1.0001,
                              (37.55372038574953, 4.8296701934996, 0.0),
                              (50.38233482866731, 83.10638502091724, 87.93605521441684), 0.99),
@@ -59,7 +59,7 @@ def _profiles_module(rev: str | None):
 
 
 def _sigma_a_zero(stack):
-    from dermis.physics.layers import Layer, LayerStack
+    from dermis.optics.layers import Layer, LayerStack
     return LayerStack(tuple(Layer(l.thickness_mm, l.eta, (0.0, 0.0, 0.0), l.sigma_s_prime, l.g)
                             for l in stack.layers), stack.eta_above, stack.eta_below)
 
@@ -83,7 +83,7 @@ def _image_sums(P) -> list:
     """Cumulative energy of weakly absorbing single layers: the module's image sum against
     the working tree's with 4000 pairs and the integral tail (relative to the sources'
     energy, at r = 0 .. 10 L)."""
-    from dermis.physics.layers import PRESETS, Layer
+    from dermis.optics.layers import PRESETS, Layer
     spec = importlib.util.spec_from_file_location("_profiles_worktree",
                                                   ROOT / "stages" / "profiles.py")
     W = importlib.util.module_from_spec(spec)
@@ -141,7 +141,7 @@ def main() -> None:
     ap.add_argument("--examples", type=int, default=10)
     a = ap.parse_args()
     P = _profiles_module(a.git)
-    from dermis.physics.layers import PRESETS
+    from dermis.optics.layers import PRESETS
     res = {"rev": a.git or "working tree", "date_utc": time.strftime("%Y-%m-%d %H:%M:%S",
                                                                     time.gmtime())}
     res["two_layer"] = _build(P, PRESETS["two_layer"])

@@ -46,7 +46,7 @@ def newest(cache: Path, node_id: str):
 def slab_check(out: Path) -> dict:
     """Mitsuba's flat-slab Rd of each preset vs the multipole (layer file) and the Monte Carlo."""
     import numpy as np
-    from dermis.physics.layers import PRESETS
+    from dermis.optics.layers import PRESETS
     from dermis.stages import mc_slab, mitsuba_scene as ms
     from dermis.stages.profiles import build_profiles
     mi = ms.load_mitsuba()

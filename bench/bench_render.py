@@ -73,7 +73,7 @@ def _lum(img):
 
 
 def timing(scene, got, env, spp: int) -> dict:
-    from dermis.physics.visibility import Visibility
+    from dermis.lighting.visibility import Visibility
     from dermis.stages.visibility import cast
     cam = scene.camera
     out = {}
@@ -107,7 +107,7 @@ def timing(scene, got, env, spp: int) -> dict:
 
 
 def spp_sweep(scene, got, env, values) -> dict:
-    from dermis.physics.visibility import Visibility
+    from dermis.lighting.visibility import Visibility
     from dermis.stages.visibility import cast
     cam, mesh = scene.camera, got["mesh_high"]
     vis = Visibility(mesh.vertices, mesh.faces)
@@ -137,7 +137,7 @@ def spp_sweep(scene, got, env, values) -> dict:
 
 def fireflies(scene, got, env, passes: int = 6) -> dict:
     from scipy.ndimage import binary_erosion
-    from dermis.physics.visibility import Visibility
+    from dermis.lighting.visibility import Visibility
     from dermis.stages.visibility import LightSampling, cast
     cam, mesh = scene.camera, got["mesh_high"]
     vis = Visibility(mesh.vertices, mesh.faces)

@@ -46,8 +46,8 @@ def model_label(model: str) -> str:
 
 
 def profile_model(scene, model: str) -> str:
-    """The layer-profile model (``physics.layers.PROFILE_MODELS``) BSSRDF ``model`` reads."""
-    from dermis.physics.layers import DEFAULT_PROFILE_MODEL
+    """The layer-profile model (``optics.layers.PROFILE_MODELS``) BSSRDF ``model`` reads."""
+    from dermis.optics.layers import DEFAULT_PROFILE_MODEL
     return BSSRDF_MODELS[model] or getattr(scene.optics, "profile", DEFAULT_PROFILE_MODEL)
 
 
@@ -56,7 +56,7 @@ def profiles_node_id(scene, profile: str) -> str:
     scene's own ``[optics] profile``, ``profiles-<profile>`` for another (the ``bssrdf_mc``
     images' Monte Carlo table beside a multipole scene).  The BSSRDF and report nodes name
     their inputs with it."""
-    from dermis.physics.layers import DEFAULT_PROFILE_MODEL
+    from dermis.optics.layers import DEFAULT_PROFILE_MODEL
     own = getattr(scene.optics, "profile", DEFAULT_PROFILE_MODEL)
     return "profiles" if profile == own else f"profiles-{profile}"
 # Models the asperity term can sit on (docs/science.md §5); the BSSRDF is not one of them.
@@ -665,7 +665,7 @@ def _merge(base: dict, over: dict) -> dict:
 
 def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | None = None) -> Scene:
     """Validate an already-parsed scene table (see :func:`load_scene`)."""
-    from dermis.physics.layers import (parse_layer_stack, PRESETS, split_profile_options,
+    from dermis.optics.layers import (parse_layer_stack, PRESETS, split_profile_options,
                                        with_profile)  # layer optics own their validation
 
     if overrides:

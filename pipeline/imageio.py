@@ -5,7 +5,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dermis.physics.color import linear_to_srgb
+from dermis.rendering.color import linear_to_srgb
 
 from .errors import DermisError
 

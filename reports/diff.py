@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from dermis.pipeline.errors import DermisError
-from dermis.physics.color import LUMINANCE
+from dermis.rendering.color import LUMINANCE
 
 __all__ = ["DiffResult", "difference", "difference_image", "difference_indices",
            "difference_palette", "DIFF_LEVELS", "diverging_lut", "diverging_colormap",

@@ -11,7 +11,7 @@ scale beside it (docs/ground-truth.md):
   ``rel_rmse`` definition), the reference's noise sigma at f, and e_true = sqrt(e^2 -
   sigma^2) (the model's error and the reference's noise are independent, so their squares
   add).  A difference counts as **resolved** when e > ``RESOLVE_K`` x sigma.
-* **Regions** (:mod:`dermis.physics.regions`): the relative difference of the model's mean
+* **Regions** (:mod:`dermis.geometry.regions`): the relative difference of the model's mean
   over the region's pixels from the reference's, per channel and in luminance, with the
   reference's standard error of that mean and the albedo tint's calibration error (the
   flat-slab Rd's standard error) added in quadrature.
@@ -43,8 +43,8 @@ from pathlib import Path
 import numpy as np
 
 from dermis.pipeline.config import BSSRDF_MODELS, MODELS, THESIS_MODELS
-from dermis.physics.color import LUMINANCE
-from dermis.physics.regions import REGION_LABELS, REGIONS, block_mean, face_regions
+from dermis.rendering.color import LUMINANCE
+from dermis.geometry.regions import REGION_LABELS, REGIONS, block_mean, face_regions
 
 __all__ = ["region_labels_for", "ground_truth_metrics", "write_ground_truth",
            "ground_truth_pages", "thesis_checks", "RESOLVE_K", "GEOMETRY"]
@@ -69,7 +69,7 @@ def region_labels_for(mesh, camera, *, width: int, height: int, with_faces: bool
     """(H, W) int8 region labels of the pixel-centre hits of ``camera`` at width x height,
     through dermis's own camera rays and Embree (and the (H, W) face index, -1 = miss)."""
     from dataclasses import replace
-    from dermis.physics.visibility import Visibility
+    from dermis.lighting.visibility import Visibility
     from dermis.stages.render import camera_rays
     cam = replace(camera, width=int(width), height=int(height))
     o, d = camera_rays(cam)
@@ -504,7 +504,7 @@ def ground_truth_pages(pdf, metrics: dict | None, images: dict, references: dict
         t.auto_set_font_size(False)
         t.set_fontsize(7)
         t.scale(1, 1.25)
-    fig.text(0.03, 0.03, "Regions are sets of mesh faces (dermis.physics.regions): the same "
+    fig.text(0.03, 0.03, "Regions are sets of mesh faces (dermis.geometry.regions): the same "
              "skin from any camera.  ± = the reference's standard error of the region mean "
              "and the albedo tint's calibration error.", fontsize=7)
     pdf.savefig(fig)

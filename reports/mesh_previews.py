@@ -11,7 +11,7 @@ import numpy as np
 
 from dermis.pipeline.artifacts import BakedMaps, Mesh, renormalise_f64
 from dermis.pipeline.graph import Node, StageResult
-from dermis.physics.color import linear_to_srgb8
+from dermis.rendering.color import linear_to_srgb8
 from dermis.stages import bake
 
 __all__ = ["save_map_previews", "save_shaded_comparison", "lambert_render", "NAME", "node", "run"]
@@ -81,8 +81,8 @@ def _camera_rays(mesh: Mesh, size: int):
 
 def _cast(mesh: Mesh, rays, memo: dict | None = None):
     """Primary hits: (mask (H, W), triangle ids, barycentrics (N, 2)), on the mesh's shared
-    Embree scene (:func:`dermis.physics.visibility.shared`: the renders built it already)."""
-    from dermis.physics.visibility import shared
+    Embree scene (:func:`dermis.lighting.visibility.shared`: the renders built it already)."""
+    from dermis.lighting.visibility import shared
     r = rays.numpy()
     hits = shared(mesh, {} if memo is None else memo).intersect(
         r[..., :3].reshape(-1, 3), r[..., 3:].reshape(-1, 3))

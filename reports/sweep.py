@@ -87,7 +87,7 @@ KNOBS = {k.path: k for k in (
 MODES = ("one_at_a_time", "grid")
 # Imported by every worker before it times a node: their first import is a per-process cost.
 WARM_IMPORTS = ("numpy", "scipy.fft", "scipy.sparse", "scipy.spatial", "open3d", "igl",
-                "pyopencl", "OpenImageIO", "dermis.physics.visibility")
+                "pyopencl", "OpenImageIO", "dermis.lighting.visibility")
 
 
 @dataclass

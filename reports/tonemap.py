@@ -11,7 +11,7 @@ from typing import Sequence
 import numpy as np
 
 from dermis.pipeline.errors import ConfigError
-from dermis.physics.color import LUMINANCE, linear_to_srgb
+from dermis.rendering.color import LUMINANCE, linear_to_srgb
 
 __all__ = ["EXPOSURE_PERCENTILE", "shared_exposure", "tonemap", "encode_srgb8"]
 

@@ -49,7 +49,7 @@ from scipy import ndimage
 from dermis.pipeline.graph import Node, StageResult
 from dermis.pipeline.artifacts import BakedMaps, Mesh, renormalise_f64
 from dermis.pipeline.errors import ConfigError, DermisError
-from dermis.physics.color import linear_to_srgb, srgb_to_linear
+from dermis.rendering.color import linear_to_srgb, srgb_to_linear
 
 __all__ = [
     "VERSION", "KERNELS", "bake_maps", "NAME", "node", "run", "triangle_tangent_frames", "bump_shading_normals",
@@ -93,7 +93,7 @@ NEUTRAL_LINEAR_ALBEDO = 0.5
 
 
 # ----------------------------------------------------------------------------------------
-# Colour helpers (the sRGB curves themselves live in physics.color)
+# Colour helpers (the sRGB curves themselves live in rendering.color)
 # ----------------------------------------------------------------------------------------
 # Encoding table: linear quantised to 1/65535 (an sRGB step of <= 12.92 / 65535 = 2e-4,
 # far below the 1/255 output step) -> sRGB uint8; 50x faster than pow() on 16M texels.

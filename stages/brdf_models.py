@@ -28,7 +28,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from dermis.pipeline.config import ASPERITY_BASES
-from dermis.physics.fresnel import fresnel_transmittance
+from dermis.optics.fresnel import fresnel_transmittance
 from dermis.pipeline.errors import ConfigError
 
 __all__ = [
@@ -359,7 +359,7 @@ def _profile_rd(layers: Sequence[HK93Layer], eta_below: float = 1.0) -> np.ndarr
     BSSRDF's own layer file, ``stages/profiles.py build_profiles`` of the same stack
     (air above, grid ``RD_GRID``), cached per stack in the process."""
     import json
-    from dermis.physics.layers import Layer, LayerStack
+    from dermis.optics.layers import Layer, LayerStack
     from dermis.stages.profiles import build_profiles
     stack = LayerStack(tuple(Layer(l.thickness_mm, l.eta, tuple(float(v) for v in l.sigma_a),
                                    tuple(float(v) for v in l.sigma_s_prime), l.g)
@@ -451,7 +451,7 @@ def _default_multiple_scattering(layers: Sequence[HK93Layer], ss_max, rd) -> np.
     hemisphere, times the profile's Rd per entering photon), and HK93's is
     int rho_ss 2 mu dmu + rho_ms.  Clamped to [0, 1 - max rho_ss] so the directional albedo
     never exceeds 1 (a white medium with strong single scattering would ask for more)."""
-    from dermis.physics.fresnel import diffuse_fresnel_external
+    from dermis.optics.fresnel import diffuse_fresnel_external
     target = (1.0 - diffuse_fresnel_external(layers[0].eta)) * np.asarray(rd, np.float64)
     return np.clip(target - _single_scattering_hemispherical(layers), 0.0, 1.0 - ss_max)
 
@@ -460,7 +460,7 @@ def _default_hk93_layers() -> tuple:
     # Same skin as the multipole model (docs/science.md §2: "derive both layers from the same
     # epidermis/dermis optical parameters"): pipeline.layers PRESETS["two_layer"], an
     # epidermis of 0.25 mm over a semi-infinite dermis, eta 1.4, g 0.8.
-    from dermis.physics.layers import PRESETS
+    from dermis.optics.layers import PRESETS
     return tuple(PRESETS["two_layer"].layers)
 
 

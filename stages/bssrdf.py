@@ -21,7 +21,7 @@ from dermis.pipeline.config import CameraConfig, LightConfig
 from dermis.pipeline.graph import Node, StageResult
 from dermis.pipeline.imageio import write_exr
 from dermis.stages import gather, render
-from dermis.physics.lights import light_params
+from dermis.lighting.lights import light_params
 
 NAME = "bssrdf"
 VERSION = 2   # 2: optics-resolved near field, entry/exit transmittance
@@ -71,7 +71,7 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     t0 = time.perf_counter()
     # far part of the profile from the points, near part at each shading point, with the
     # entry transmittance the irradiance stage applied (stages/gather.py "near field")
-    from dermis.physics.visibility import shared as shared_embree
+    from dermis.lighting.visibility import shared as shared_embree
     transmit = gather.Transmittance(params["eta"], b["surface_reflection"])
     # the mesh's Embree scene only where the near field traces it (point/directional lights'
     # shadow edges): building it for the 1M-triangle scan took 3.5 s of a 10.5 s image

@@ -1,7 +1,7 @@
 """Radiant exitance by hierarchical gather of cached irradiance (Jensen-Buhler 2002 pass 2).
 
 docs/science.md §4.  The host builds an octree over the irradiance sample points
-(``stages/samples.py``, irradiance from ``physics/lights.py``) and flattens it into arrays;
+(``stages/samples.py``, irradiance from ``lighting/lights.py``) and flattens it into arrays;
 the device (``cl/bssrdf_gather.cl``) walks it for every query point (pixel surface point)
 and sums M_o(x) = sum R(|x - p|) E A with the layer file's radial profile R
 (``stages/profiles.py``).  :func:`exitance_to_radiance` turns M_o into outgoing radiance.
@@ -78,7 +78,7 @@ import numpy as np
 from dermis.pipeline.config import BssrdfConfig
 from dermis.pipeline.errors import DermisError
 from dermis.pipeline.reuse import RecentResults, content_key
-from dermis.physics.fresnel import diffuse_fresnel_external, fresnel_transmittance
+from dermis.optics.fresnel import diffuse_fresnel_external, fresnel_transmittance
 from dermis.stages.brdf_models import Transmittance  # entry/exit transmittance (re-exported)
 
 __all__ = ["VERSION", "KERNELS", "Octree", "build_octree", "gather", "GatherTuning",
@@ -1180,7 +1180,7 @@ class ShadowEdges:
         normal
     lo, hi : (K,) segment extent along ``tangent``, mm
     irradiance : (N, 3) float32 the light's entering irradiance at the points (what
-        :func:`physics.lights.irradiance` gives for this light alone)
+        :func:`lighting.lights.irradiance` gives for this light alone)
     info : dict (pairs tested, crossings, seconds)
     """
 
@@ -1201,7 +1201,7 @@ def _unit(v: np.ndarray) -> np.ndarray:
 
 def _lit(light, visibility, p: np.ndarray, n: np.ndarray) -> np.ndarray:
     """(M,) bool: the light's one sample faces the normal and its shadow ray is free."""
-    from dermis.physics.lights import sample_lights
+    from dermis.lighting.lights import sample_lights
     ls = sample_lights(light, p, n)
     wi, wt, dist = ls.directions[:, 0], ls.weights[:, 0], ls.distance[:, 0]
     ok = (np.einsum("ij,ij->i", wi, n) > 0) & (wt.sum(axis=1) > 0)
@@ -1229,7 +1229,7 @@ def shadow_edges(positions, normals, light, visibility, spacing_mm: float, *,
     ----------
     positions, normals : (N, 3) float, the points (``SurfacePoints``) and their unit normals
     light : LightConfig of type "point" or "directional"
-    visibility : physics.visibility.Visibility of the mesh
+    visibility : lighting.visibility.Visibility of the mesh
     spacing_mm : float, the points' spacing (pairs closer than PAIR_RADIUS x it are tested)
     transmittance : callable, optional, the entry transmittance (``Transmittance``)
     irradiance : (N, 3) float, optional
@@ -1241,7 +1241,7 @@ def shadow_edges(positions, normals, light, visibility, spacing_mm: float, *,
     ShadowEdges (module section "near field" for the construction).
     """
     from scipy.spatial import cKDTree
-    from dermis.physics.lights import irradiance as point_irradiance, sample_lights
+    from dermis.lighting.lights import irradiance as point_irradiance, sample_lights
 
     t0 = time.perf_counter()
     if light.type not in SHARP_LIGHTS:
@@ -1519,7 +1519,7 @@ def sharp_near_field(queries, shading_normals, geo_normals, light, visibility,
     sums run on the device (:func:`edge_sum_cl`), else in numpy (``tree``: a scipy
     cKDTree of ``queries`` to reuse).  ``visible`` (Q,) bool: V(x) already known (the shared
     visibility, :func:`sharp_visibility`); else a shadow ray per shading point."""
-    from dermis.physics.lights import sample_lights
+    from dermis.lighting.lights import sample_lights
     x = np.asarray(queries, np.float32)
     ns = _unit(np.asarray(shading_normals, np.float64))
     ng = np.asarray(geo_normals, np.float32)
@@ -1567,7 +1567,7 @@ def exitance(points, irradiance: np.ndarray, profile, queries: np.ndarray, *,
     profile : LayerProfile
     queries, shading_normals, geo_normals : (Q, 3) the shading points
     lights : sequence of LightConfig, the lighting condition ``irradiance`` was computed for
-    visibility : physics.visibility.Visibility of the mesh the points lie on
+    visibility : lighting.visibility.Visibility of the mesh the points lie on
     epsilon, normalisation, brute_force, env, progress, tuning : as :func:`gather`
     transmittance : callable, optional, the entry transmittance (``Transmittance``)
     leaf_size : octree leaf size (scene ``[bssrdf] leaf_size``)

@@ -1,7 +1,7 @@
 """Stage ``irradiance``: irradiance at the BSSRDF sample points from one lighting condition.
 
 Jensen-Buhler pass 1: each point's irradiance with shadows, from
-:func:`dermis.physics.lights.irradiance` (thesis: 64 shadow samples for area and environment
+:func:`dermis.lighting.lights.irradiance` (thesis: 64 shadow samples for area and environment
 lights).  One node per mesh and lighting condition.  The irradiance stored is the part that
 enters the skin: each light sample is weighted by the entry transmittance
 :class:`dermis.stages.brdf_models.Transmittance` at its cosine (Fresnel, and with the BSSRDF's
@@ -16,8 +16,8 @@ import time
 from dermis.pipeline.artifacts import PointIrradiance
 from dermis.pipeline.config import LightConfig
 from dermis.pipeline.graph import Node, StageResult
-from dermis.physics.lights import light_params
-from dermis.physics.visibility import shared as shared_visibility
+from dermis.lighting.lights import light_params
+from dermis.lighting.visibility import shared as shared_visibility
 
 NAME = "irradiance"
 VERSION = 2   # 2: entering irradiance (entry transmittance per light sample)
@@ -35,7 +35,7 @@ def node(scene, mesh_node: str, label: str, lights: tuple) -> Node:
 
 
 def run(params: dict, inputs: dict, ctx) -> StageResult:
-    from dermis.physics.lights import irradiance
+    from dermis.lighting.lights import irradiance
     from dermis.stages.brdf_models import Transmittance
     pts, mesh = inputs["points"], inputs["mesh"]
     t0 = time.perf_counter()

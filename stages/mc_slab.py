@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dermis.pipeline.errors import DermisError
-from dermis.physics.layers import LayerStack
+from dermis.optics.layers import LayerStack
 
 __all__ = ["VERSION", "KERNELS", "McResult", "simulate", "combine"]
 

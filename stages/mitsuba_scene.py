@@ -19,7 +19,7 @@ layer stack into a Mitsuba scene dictionary and renders it (docs/ground-truth.md
   ``disk`` shape with an ``area`` emitter of radiance I / (pi r^2), its normal turned to
   face the mesh (dermis's disc emits from both faces; the face turned away lights nothing
   the camera sees); the environment map as ``envmap`` with dermis's radiance array
-  (:func:`physics.lights.environment_map`, the same map, scale and clamping as every
+  (:func:`lighting.lights.environment_map`, the same map, scale and clamping as every
   model), no rotation needed at ``rotation_deg = 0`` (Mitsuba's lat-long convention equals
   dermis's: centre along +z, u growing towards -x, measured) and ``rotate(+y, -rotation_deg)``
   otherwise.
@@ -285,7 +285,7 @@ def _rgb(value) -> dict:
 def environment_radiance(light, *, clamp: float = 0.0) -> tuple[np.ndarray, float]:
     """(H, W, 3) float32 radiance of an environment light as dermis samples it (scale
     applied; values above ``clamp`` cut when clamp > 0) and its rotation in degrees."""
-    from dermis.physics.lights import environment_map
+    from dermis.lighting.lights import environment_map
     env = environment_map(light)
     rad = np.asarray(env.radiance, np.float32)
     if clamp > 0:
@@ -361,7 +361,7 @@ def _boundary_bsdf(eta_in: float, eta_out: float, roughness: float, tint=None) -
 
 def tint_texture(mi, texture_srgb, rd) -> dict:
     """Bitmap texture t = sqrt(albedo / Rd) (linear albedo from the sRGB texture)."""
-    from dermis.physics.color import srgb_to_linear
+    from dermis.rendering.color import srgb_to_linear
     lin = srgb_to_linear(np.asarray(texture_srgb, np.float32) / 255.0)
     t = np.sqrt(np.maximum(lin, 0.0) / np.maximum(np.asarray(rd, np.float32), 1e-6))
     return {"type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(t, np.float32)),
@@ -394,7 +394,7 @@ def head_scene(mi, mesh, stack, camera, lights, *, width: int, height: int, roug
     surface of the texture's linear albedo (or ``lambert_albedo``), the export round-trip
     test's material, rendered with the ``path`` integrator.
     """
-    from dermis.physics.color import srgb_to_linear
+    from dermis.rendering.color import srgb_to_linear
     folder = tempfile.mkdtemp(prefix="dermis-mitsuba-")
     normals = mesh.vertex_normals()
     v, f, n, uv = unweld(mesh.vertices, mesh.faces, normals, mesh.uv, mesh.uv_faces)

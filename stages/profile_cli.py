@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from dermis.pipeline.errors import DermisError
-from dermis.physics.layers import PRESETS, load_layers_toml
+from dermis.optics.layers import PRESETS, load_layers_toml
 
 __all__ = ["add_parser", "run", "MODELS", "ERROR_BAND_MM"]
 
@@ -205,7 +205,7 @@ def _vec(v) -> str:
 
 
 def _report(stack, prof, mc, models, args, env) -> None:
-    from dermis.physics.fresnel import fresnel_normal
+    from dermis.optics.fresnel import fresnel_normal
     from dermis.stages import profiles
 
     r_sp = fresnel_normal(stack.layers[0].eta / stack.eta_above)

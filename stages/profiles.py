@@ -85,9 +85,9 @@ from numpy.polynomial.legendre import leggauss
 from dermis.pipeline.graph import Node, StageResult
 from dermis.pipeline.artifacts import LayerProfile
 from dermis.pipeline.errors import DermisError
-from dermis.physics.fresnel import (diffusion_A, diffusion_boundary, fresnel_normal,
+from dermis.optics.fresnel import (diffusion_A, diffusion_boundary, fresnel_normal,
                                     fresnel_transmittance)
-from dermis.physics.layers import (Layer, LayerStack, PROFILE_MODELS, DEFAULT_PROFILE_MODEL,
+from dermis.optics.layers import (Layer, LayerStack, PROFILE_MODELS, DEFAULT_PROFILE_MODEL,
                                    DEFAULT_MC_PHOTONS, DEFAULT_MC_SEED)
 
 __all__ = ["VERSION", "KERNELS", "NAME", "node", "run", "build_profiles", "multipole_profiles",
@@ -898,7 +898,7 @@ def build_profiles(stack: LayerStack, *, model: str = "multipole", poles: int | 
     Parameters
     ----------
     stack : LayerStack
-        Validated layers, top to bottom (see :mod:`dermis.physics.layers`).
+        Validated layers, top to bottom (see :mod:`dermis.optics.layers`).
     model : {"multipole", "monte_carlo"}
         Diffusion (layers added in frequency space) or the Monte Carlo table
         (:func:`monte_carlo_profiles`; uses ``photons``, ``seed``, ``env``).

@@ -8,7 +8,7 @@ rendered twice with independent seeds, so the reference carries its own noise:
 * the image is the mean of the two renders; (A - B) / 2 estimates its per-pixel error;
 * ``info["noise"]``: the relative RMSE noise of the image on ``factor`` x ``factor`` block
   means (factor 1 = reference pixels), the same measure as the models' relative RMSE;
-* ``info["regions"]``: per face region (:mod:`dermis.physics.regions`) the mean RGB and the
+* ``info["regions"]``: per face region (:mod:`dermis.geometry.regions`) the mean RGB and the
   standard error of that mean (sqrt(sum ((A - B) / 2)^2) / N, independent pixels), plus
   the calibration error of the albedo tint (``info["slab"]``);
 * ``info["noise_curve"]``: the same noise at 1/16 .. 1 of the samples, and the fitted
@@ -35,9 +35,9 @@ from dermis.pipeline.artifacts import RenderedImage
 from dermis.pipeline.config import CameraConfig, LightConfig
 from dermis.pipeline.errors import ConfigError
 from dermis.pipeline.graph import Node, StageResult
-from dermis.physics.layers import LayerStack
-from dermis.physics.lights import light_params
-from dermis.physics.regions import REGIONS, REGION_LABELS, block_mean, face_regions, region_stats
+from dermis.optics.layers import LayerStack
+from dermis.lighting.lights import light_params
+from dermis.geometry.regions import REGIONS, REGION_LABELS, block_mean, face_regions, region_stats
 
 NAME = "reference"
 VERSION = 1

@@ -17,7 +17,7 @@ Pipeline of :func:`render` (docs/software.md "Where the work runs"):
 
 Decisions touched here (docs/science.md §6):
 
-* Disc lights emit from both faces (physics/lights.py docstring): only the axis matters.
+* Disc lights emit from both faces (lighting/lights.py docstring): only the axis matters.
 * Every camera hit is shaded: back faces are two-sided, and shading normals facing away from
   the camera are bent towards it (cl/surface.cl), so creases at eyelids, lips and nostrils
   are no longer black outlines.  The BRDF models stay one-sided in their own frame.
@@ -51,7 +51,7 @@ from dermis.pipeline.errors import ConfigError, DermisError
 from dermis.pipeline.graph import Node, StageResult
 from dermis.pipeline.cl import to_device
 from dermis.pipeline.imageio import write_exr
-from dermis.physics.visibility import Visibility, camera_rays, camera_vectors
+from dermis.lighting.visibility import Visibility, camera_rays, camera_vectors
 from dermis.stages.visibility import (LightSampling, _global_size, cast,
                                       surface_attributes)
 
@@ -407,7 +407,7 @@ def render(mesh, light, model: str, params, camera, *, maps=None, bump: str | No
         Bump-map the shading normal with ``maps.bump`` or ``maps.bump_blur`` (needs maps and UVs).
     seed : int
         Seed of the camera jitter and light samples when they are cast here.
-    visibility : physics.visibility.Visibility, optional
+    visibility : lighting.visibility.Visibility, optional
         Embree scene of ``mesh`` built earlier (build once, render many).
     asperity_base : {"none", "lambert", "lafortune", "hk93"}, optional
         Base model under the asperity term (default ``params.base``); "none" = term alone.
@@ -538,7 +538,7 @@ def model_params(model: str, asperity_base: str | None, optics: dict | None,
     HK93Params per layer stack: building one integrates the layers' albedo (~0.8 s), and
     the 12 HK93 images of a matrix share it."""
     import json
-    from dermis.physics.layers import LayerStack
+    from dermis.optics.layers import LayerStack
     from dermis.stages.brdf_models import AsperityParams, HK93Params, LafortuneParams
 
     def hk():

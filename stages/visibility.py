@@ -4,14 +4,14 @@ cast once and shared by every model rendered with them (BRDF models and the BSSR
 Per (mesh, lighting condition, camera, ``[render] spp``, seed) this stage
 
 1. casts ``spp`` stratified camera rays per pixel through Embree
-   (:func:`dermis.physics.visibility.subpixel_offsets`; one ray through the pixel centre
+   (:func:`dermis.lighting.visibility.subpixel_offsets`; one ray through the pixel centre
    when spp = 1);
 2. evaluates the model-independent surface attributes at the hits with ``cl/surface.cl``
    (position, two-sided geometric normal facing the camera, interpolated vertex normal);
-3. draws the light samples of every hit (:func:`dermis.physics.lights.sample_lights` with
+3. draws the light samples of every hit (:func:`dermis.lighting.lights.sample_lights` with
    ``share = spp``: a disc or environment light's S samples per pixel are spread over the
    pixel's sub-pixel samples, ceil(S / spp) each, so anti-aliasing costs no extra light
-   samples, and stratified over the whole pixel, :class:`~dermis.physics.lights.PixelStrata`)
+   samples, and stratified over the whole pixel, :class:`~dermis.lighting.lights.PixelStrata`)
    and traces their shadow rays;
 4. keeps the unoccluded samples above the geometric horizon: direction and weight per sample,
    grouped by hit (:class:`dermis.pipeline.artifacts.PixelSamples`).
@@ -37,11 +37,11 @@ from dermis.pipeline.artifacts import PixelSamples
 from dermis.pipeline.config import CameraConfig, LightConfig
 from dermis.pipeline.errors import ConfigError
 from dermis.pipeline.graph import Node, StageResult
-from dermis.physics.color import srgb_to_linear
-from dermis.physics.lights import (ENV_STRATEGIES, RETRO_FRACTION, RETRO_G_MAX,
+from dermis.rendering.color import srgb_to_linear
+from dermis.lighting.lights import (ENV_STRATEGIES, RETRO_FRACTION, RETRO_G_MAX,
                                    EnvironmentMap, GlossyLobe, PixelStrata, RetroLobe,
                                    environment_map, light_params, sample_lights)
-from dermis.physics.visibility import (Visibility, camera_rays, shared as shared_visibility,
+from dermis.lighting.visibility import (Visibility, camera_rays, shared as shared_visibility,
                                        subpixel_offsets)
 
 __all__ = ["NAME", "VERSION", "KERNELS", "LightSampling", "cast", "surface_attributes",
@@ -66,13 +66,13 @@ class LightSampling:
         light's ``samples``, 16 in the thesis); spread over the pixel's camera samples
     env : pre-built EnvironmentMap for an environment light (None: from ``light.map``, cached)
     env_strategy : "product" (luminance x cosine and cosine samples about the geometric
-        normal), "mis" (luminance and cosine) or "luminance" (:func:`physics.lights.sample_lights`)
+        normal), "mis" (luminance and cosine) or "luminance" (:func:`lighting.lights.sample_lights`)
     glossy_fraction, glossy_exponent, glossy_tilt : under "mis", the share of environment
         samples drawn about the glossy reflection of the view
-        (:class:`physics.lights.GlossyLobe`; fraction 0 = none)
+        (:class:`lighting.lights.GlossyLobe`; fraction 0 = none)
     retro_fraction, retro_k : the share of environment samples drawn about the view
         direction from a Henyey-Greenstein lobe of mean cosine ``retro_k``
-        (:class:`physics.lights.RetroLobe`; fraction 0 = none); :func:`retro_lobe` sets it
+        (:class:`lighting.lights.RetroLobe`; fraction 0 = none); :func:`retro_lobe` sets it
         for a scene whose HK93 layers scatter backwards
     """
 
@@ -232,7 +232,7 @@ def cast(mesh, lights, camera, *, spp: int = 1, seed: int = 0,
     camera : pipeline.config.CameraConfig
     spp : int >= 1, camera samples per pixel (1 = the pixel centre)
     seed : int, seeds the sub-pixel jitter and the light samples (deterministic)
-    visibility : physics.visibility.Visibility of ``mesh`` built earlier, optional
+    visibility : lighting.visibility.Visibility of ``mesh`` built earlier, optional
     sampling : LightSampling, optional research options
     cl_env : pipeline.cl.ClEnv, optional
     progress : callable(float), optional

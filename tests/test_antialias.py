@@ -18,7 +18,7 @@ import pytest
 
 from dermis.pipeline.artifacts import Mesh
 from dermis.pipeline.config import CameraConfig, LightConfig
-from dermis.physics.visibility import camera_rays, subpixel_offsets
+from dermis.lighting.visibility import camera_rays, subpixel_offsets
 from dermis.stages.render import LambertParams, pixel_surface, render
 from dermis.stages.visibility import cast
 

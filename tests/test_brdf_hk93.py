@@ -11,8 +11,8 @@ import pytest
 from brdf_testutil import hemisphere, mc_albedo, sample_pairs, with_cos
 from dermis.pipeline.cl import CL_DIR
 from dermis.pipeline.errors import ConfigError
-from dermis.physics.layers import PRESETS, Layer
-from dermis.physics.fresnel import dipole_Rd
+from dermis.optics.layers import PRESETS, Layer
+from dermis.optics.fresnel import dipole_Rd
 from brdf_reference import hk93_f_np
 from dermis.stages.brdf_models import (HK93_NPARAMS, HK93Params, evaluate,
                                        hk93_params_from_layers, hk93_single_scattering_albedo)
@@ -181,7 +181,7 @@ def test02_default_multiple_scattering():
     """rho_ms = (1 - Fdr_ext(eta)) Rd - int rho_ss 2 mu dmu with Rd the layer profile's
     (the BSSRDF's own layer file): HK93 then reflects what the BSSRDF does under uniform
     light (tests/test_energy.py checks the whole BRDF's reflectance)."""
-    from dermis.physics.fresnel import diffuse_fresnel_external
+    from dermis.optics.fresnel import diffuse_fresnel_external
     skin1 = PRESETS["skin1"].layers[0]
     p = HK93Params([Layer(math.inf, 1.3, skin1.sigma_a, skin1.sigma_s_prime, 0.8)])
     mu = (np.arange(64) + 0.5) / 64

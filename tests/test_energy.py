@@ -23,8 +23,8 @@ import numpy as np
 import pytest
 
 from dermis.pipeline.config import BssrdfConfig, LightConfig
-from dermis.physics.fresnel import diffuse_fresnel_external
-from dermis.physics.layers import PRESETS
+from dermis.optics.fresnel import diffuse_fresnel_external
+from dermis.optics.layers import PRESETS
 from dermis.stages import gather as G
 from dermis.stages.brdf_models import AsperityParams, HK93Params, LafortuneParams
 
@@ -149,7 +149,7 @@ def test04_bssrdf_surface_plus_subsurface_at_most_one(cl_env):
         total = lobes + a * t(mu)
         assert np.all(total <= 1.0 + ALBEDO_TOL), (a, total.max(axis=1))
     # T is Fresnel's except where the lobes reflect more (near normal incidence)
-    from dermis.physics.fresnel import fresnel_transmittance
+    from dermis.optics.fresnel import fresnel_transmittance
     ft = fresnel_transmittance(mu, eta)[:, None]
     # (T is looked up at the nearest of 2^16 + 1 cosines: <= 5e-5 off at grazing)
     assert np.all(t(mu) <= ft + 5e-5)
@@ -185,8 +185,8 @@ def test05_flat_slab_exitance_with_entry_fresnel(cl_env):
 def _flat_slab_exitance(cl_env, stack, prof, thetas, n_query=300):
     """(theta, M / (E cos T(cos)), gather stats) on a flat slab under a directional light of
     irradiance E = 2, through the production path (test05's set-up)."""
-    from dermis.physics.lights import irradiance
-    from dermis.physics.visibility import Visibility
+    from dermis.lighting.lights import irradiance
+    from dermis.lighting.visibility import Visibility
     from dermis.stages import samples as S
     cfg = BssrdfConfig()
     spacing = S.spacing_from_mfp(stack, cfg.point_density)

@@ -15,7 +15,7 @@ from dermis.pipeline.artifacts import LayerProfile
 from dermis.pipeline.config import BssrdfConfig
 from dermis.pipeline.errors import DermisError
 from dermis.stages import gather as G
-from dermis.physics.fresnel import diffuse_fresnel_external
+from dermis.optics.fresnel import diffuse_fresnel_external
 from dermis.stages import samples as S
 
 # The shipped settings: the scene schema's [bssrdf] defaults (the library has no others).
@@ -213,7 +213,7 @@ def test04_flat_slab_energy(cl_env, skin1, rng):
 @pytest.fixture(scope="module")
 def preset_profiles():
     from dermis.stages import profiles
-    from dermis.physics.layers import PRESETS
+    from dermis.optics.layers import PRESETS
     return {k: (PRESETS[k], profiles.build_profiles(PRESETS[k])) for k in ("skin1", "skin2", "two_layer")}
 
 
@@ -486,7 +486,7 @@ def test11_albedo_replace_mode(skin1):
 def test12_flat_slab_with_profiles_stage(cl_env, rng):
     """The flat-slab test with stages/profiles.py's own skin1 layer file."""
     from dermis.stages import profiles
-    from dermis.physics.layers import PRESETS
+    from dermis.optics.layers import PRESETS
     prof = profiles.build_profiles(PRESETS["skin1"])
     half = float(prof.cutoff_mm.max()) + 12.0
     p, a = hex_plane(half, 0.5)
@@ -516,7 +516,7 @@ def _edges_on_a_plane(rng, n=400):
 def test13_edge_sums_device_matches_numpy(cl_env, rng):
     """The device edge sums (grid, midpoint rule for short far segments) agree with the
     numpy reference (kd-tree, exact table) to 2e-3 of the near part's energy (measured 2e-4)."""
-    from dermis.physics.layers import PRESETS
+    from dermis.optics.layers import PRESETS
     from dermis.stages import profiles
     prof = profiles.build_profiles(PRESETS["skin2"])
     table = G.near_tables(G.split_profile(prof, 1.25))

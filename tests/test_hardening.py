@@ -719,7 +719,7 @@ def _two_layer(g: float) -> dict:
 
 def test23_hk93_with_g_minus_0_99_under_the_sunset_has_no_fireflies(warm, tmp_path, capsys):
     """Item 10: a valid extreme with visible trouble (max 20 vs 0.44 normally, measured).
-    Fixed by the retro lobe (physics/lights.py RetroLobe, stages/visibility.py retro_lobe):
+    Fixed by the retro lobe (lighting/lights.py RetroLobe, stages/visibility.py retro_lobe):
     at 128 x 128 max 20.0 -> 0.27, pixels above 5x their 3x3 median 2.2 % -> 0.09 % (0.07 %
     at g = 0.8)."""
     _, cache = warm

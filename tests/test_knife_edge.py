@@ -28,9 +28,9 @@ import numpy as np
 import pytest
 
 from dermis.pipeline.config import BssrdfConfig, LightConfig
-from dermis.physics.layers import PRESETS
-from dermis.physics.lights import irradiance
-from dermis.physics.visibility import Visibility
+from dermis.optics.layers import PRESETS
+from dermis.lighting.lights import irradiance
+from dermis.lighting.visibility import Visibility
 from dermis.stages import gather as G
 from dermis.stages import samples as S
 

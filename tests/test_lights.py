@@ -15,11 +15,11 @@ import pytest
 
 from dermis.pipeline.config import LightConfig
 from dermis.pipeline.errors import ConfigError
-from dermis.physics.lights import (ENV_STRATEGIES, LUMINANCE, EnvironmentMap, concentric_disc,
+from dermis.lighting.lights import (ENV_STRATEGIES, LUMINANCE, EnvironmentMap, concentric_disc,
                              cosine_hemisphere, environment_map, irradiance, procedural_sunset,
                              sample_lights, SUNSET_SUN_AZIMUTH_DEG, SUNSET_SUN_ELEVATION_DEG,
                              SUNSET_SUN_IRRADIANCE)
-from dermis.physics.visibility import Visibility
+from dermis.lighting.visibility import Visibility
 
 sys.path.insert(0, str(Path(__file__).parent))
 from render_fixtures import merge, plane  # noqa: E402
@@ -355,7 +355,7 @@ RETRO_MIN_VARIANCE_RATIO = 1000.0
 
 
 def test15c_retro_lobe_is_unbiased_and_tames_a_backscatter_peak():
-    from dermis.physics.lights import RetroLobe
+    from dermis.lighting.lights import RetroLobe
     env = EnvironmentMap(procedural_sunset(256))
     light = LightConfig(name="e", type="environment", samples=16)
     m = 8000

@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from dermis.physics.layers import PRESETS, Layer, LayerStack
+from dermis.optics.layers import PRESETS, Layer, LayerStack
 from dermis.stages import mc_slab as M
 from dermis.stages import profiles as P
 

@@ -120,7 +120,7 @@ def test08_results_kept_across_runs_by_content():
     first, and an equal mesh loaded again (a new run) finds its Embree scene."""
     import numpy as np
     from dermis.pipeline.reuse import RecentResults, content_key
-    from dermis.physics import visibility
+    from dermis.lighting import visibility
     a = np.arange(6, dtype=np.float32)
     assert content_key(a) == content_key(a.copy())
     assert len({content_key(a), content_key(a.astype(np.float64)), content_key(a.reshape(2, 3)),

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from dermis.pipeline.artifacts import LayerProfile
-from dermis.physics.layers import PRESETS, LayerStack, load_layers_toml
+from dermis.optics.layers import PRESETS, LayerStack, load_layers_toml
 from dermis.stages import mc_slab as M
 from dermis.stages import profiles as P
 

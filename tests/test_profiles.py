@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from dermis.pipeline.errors import ConfigError, DermisError
-from dermis.physics.layers import PRESETS, Layer, LayerStack, parse_layer_stack
+from dermis.optics.layers import PRESETS, Layer, LayerStack, parse_layer_stack
 from dermis.stages import profiles as P
-from dermis.physics.fresnel import dipole_Rd, diffusion_boundary, fresnel_moments
+from dermis.optics.fresnel import dipole_Rd, diffusion_boundary, fresnel_moments
 
 SKIN1 = PRESETS["skin1"].layers[0]
 EPI = PRESETS["two_layer"].layers[0]

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from dermis.pipeline.config import CameraConfig, LightConfig, load_scene
-from dermis.physics.regions import REGION_LABELS, face_regions
+from dermis.geometry.regions import REGION_LABELS, face_regions
 
 REPO = Path(__file__).resolve().parents[1]
 QUICK = REPO / "scenes" / "quick.toml"
@@ -124,7 +124,7 @@ def test04_camera_rays_round_trip(mi, quick_mesh):
 def test05_environment_orientation_and_rotation(mi):
     """Mitsuba's envmap radiance along a direction equals dermis's lookup (0 and 40 deg)."""
     import drjit as dr
-    from dermis.physics.lights import EnvironmentMap
+    from dermis.lighting.lights import EnvironmentMap
     from dermis.stages import mitsuba_scene as ms
     rng = np.random.default_rng(3)
     # 4x4-pixel blocks of constant radiance: bilinear (Mitsuba) and nearest (dermis) lookups
@@ -156,7 +156,7 @@ def test06_lambert_export_agrees_with_dermis_within_noise(mi, quick_mesh, cl_env
     """A Lambertian head (the albedo texture) under each light type: dermis (block-averaged
     4x4 pixel centres) and Mitsuba (box filter, direct light only) agree on the mean over
     the face within 3 standard errors of the pair, and per 4x4 block within the noise."""
-    from dermis.physics.regions import block_mean
+    from dermis.geometry.regions import block_mean
     from dermis.stages import mitsuba_scene as ms
     from dermis.stages.render import LambertParams, render
     lights = [
@@ -200,7 +200,7 @@ def test07_flat_slab_matches_monte_carlo_and_catches_the_units_trap(mi):
     changes it 2-5x): Mitsuba's Rd per entered flux agrees with dermis's Monte Carlo and the
     multipole within the rough boundary's measured energy loss (GGX alpha 0.3 loses ~10 %
     of red in skin; docs/ground-truth.md) plus 4 standard errors."""
-    from dermis.physics.layers import Layer, LayerStack
+    from dermis.optics.layers import Layer, LayerStack
     from dermis.stages import mc_slab, mitsuba_scene as ms
     from dermis.stages.profiles import build_profiles
 

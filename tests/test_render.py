@@ -15,8 +15,8 @@ import pytest
 from dermis.pipeline.artifacts import BakedMaps
 from dermis.pipeline.config import CameraConfig, LightConfig
 from dermis.pipeline.errors import ConfigError, DermisError
-from dermis.physics.color import srgb_to_linear
-from dermis.physics.visibility import Visibility
+from dermis.rendering.color import srgb_to_linear
+from dermis.lighting.visibility import Visibility
 from dermis.reports.tonemap import shared_exposure, tonemap
 from dermis.stages.render import LambertParams, LightSampling, camera_rays, render
 
@@ -326,7 +326,7 @@ def test11_lambert_sphere_constant_environment_is_albedo_L(sphere, cl_env, strat
     every point (nothing occludes its hemisphere), so every pixel's expected radiance is
     albedo x L; both environment strategies must be unbiased through the renderer (which
     samples about the geometric normal and shades with the shading normal)."""
-    from dermis.physics.lights import EnvironmentMap
+    from dermis.lighting.lights import EnvironmentMap
 
     mesh, vis = sphere
     cam = _sphere_camera(64)
@@ -353,7 +353,7 @@ MIS_MIN_RENDER_NOISE_RATIO = 2.0
 
 
 def test12_mis_lowers_environment_render_noise(sphere, cl_env):
-    from dermis.physics.lights import EnvironmentMap, procedural_sunset
+    from dermis.lighting.lights import EnvironmentMap, procedural_sunset
 
     mesh, vis = sphere
     cam = _sphere_camera(64)

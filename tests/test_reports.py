@@ -287,7 +287,7 @@ def test_bssrdf_mc_in_sheets_differences_and_report(tmp_path):
     "BSSRDF (Monte Carlo profile)" in the sheets and the PDF, kept out of the summary's
     closest/farthest ranking (it is the same model) and given a line of its own; the report
     node's profile page adds one page."""
-    from dermis.physics.layers import PRESETS
+    from dermis.optics.layers import PRESETS
     from dermis.reports.images import contact_sheet_image
     from dermis.reports.sheets import caption
     from dermis.reports.pdf_report import report_page_count, summary_text, write_report

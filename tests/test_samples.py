@@ -123,7 +123,7 @@ def test07_partition_of_unity_areas():
 def test05_spacing_from_mfp():
     """One point per pi l^2 / multiplier with l the smallest 1 / (sigma_a + sigma_s'),
     capped at MFP_CAP_MM: every preset gets the two-layer skin's spacing at equal density."""
-    from dermis.physics.layers import PRESETS
+    from dermis.optics.layers import PRESETS
     two = PRESETS["two_layer"]
     l_min = 1.0 / (0.8926 + 9.209)  # blue channel, two_layer epidermis (docs/science.md §3)
     assert l_min < S.MFP_CAP_MM

@@ -29,7 +29,7 @@ from hypothesis import strategies as st
 
 from brdf_reference import asperity_f_np, hk93_f_np, lafortune_f_np
 from brdf_testutil import hemisphere, sample_pairs, with_cos
-from dermis.physics.layers import PRESETS, Layer, LayerStack
+from dermis.optics.layers import PRESETS, Layer, LayerStack
 
 EXAMPLES = settings().max_examples          # of the loaded profile (ci or thorough)
 THOROUGH = EXAMPLES >= 100
@@ -400,7 +400,7 @@ def test12c_non_scattering_layers_of_different_eta_conserve_energy():
     into a shared zero spectrum in place, leaking it into every later layer and channel.
     Exact here: Rd = the Fresnel r0 at 1.0001 / 1.4, Rd + Tt = 1 - absorption (2e-6)."""
     from dermis.stages.profiles import build_profiles
-    from dermis.physics.fresnel import fresnel_normal
+    from dermis.optics.fresnel import fresnel_normal
     lay = [Layer(1e-6, e, (1.0,) * 3, (0.0,) * 3, 0.0) for e in (1.0, 1.0001)]
     prof = build_profiles(LayerStack(tuple(lay), 1.0, 1.4))
     np.testing.assert_allclose(prof.Rd, fresnel_normal(1.4 / 1.0001), rtol=1e-3)
@@ -460,7 +460,7 @@ ENV_MAPS = st.sampled_from(["sunset", "black", "one_pixel", "one_bright_pixel"])
 
 
 def _env_map(kind: str):
-    from dermis.physics.lights import EnvironmentMap, procedural_sunset
+    from dermis.lighting.lights import EnvironmentMap, procedural_sunset
     if kind == "sunset":
         return EnvironmentMap(procedural_sunset(64))
     if kind == "black":
@@ -477,7 +477,7 @@ def test_irradiance_is_finite_nonnegative_and_bounded(light_scale, env_kind, see
     """E at points near and far from the light (down to 1e-9 mm), facing it, grazing and
     facing away: finite, >= 0 and below the unshadowed bound (point: I / d^2, disc: I pi r^2
     ... / d^2 bounded by I / d_min^2 per unit area, directional: |E_dir|, map: 2 pi^2 L_max)."""
-    from dermis.physics.lights import irradiance
+    from dermis.lighting.lights import irradiance
     light, scale = light_scale
     rng = np.random.default_rng(seed)
     n = 64

@@ -80,7 +80,7 @@ def test05_the_wheel_installs_one_top_level_name(wheel):
     names = zipfile.ZipFile(wheel).namelist()
     tops = {n.split("/")[0] for n in names}
     assert tops == {"dermis", next(t for t in tops if t.endswith(".dist-info"))}, tops
-    for must in ("dermis/__init__.py", "dermis/pipeline/api.py", "dermis/physics/fresnel.py",
+    for must in ("dermis/__init__.py", "dermis/pipeline/api.py", "dermis/optics/fresnel.py",
                  "dermis/stages/bssrdf.py", "dermis/reports/report.py", "dermis/cl/common.h",
                  "dermis/scenes/default.toml", "dermis/scenes/layers/two_layer.toml"):
         assert must in names, must
@@ -128,10 +128,10 @@ PROBE = {
     "stages/render.py": {"render", "bssrdf"},          # pixel_surface + surface term
     "stages/brdf_models.py": {"render", "bssrdf", "irradiance"},  # the BSSRDF's surface lobes
                                                        # and the entry transmittance they cap
-    # the previews cast their rays on the renders' shared Embree scenes (physics/visibility.py,
-    # which imports physics/lights.py)
-    "physics/visibility.py": {"render", "bssrdf", "irradiance", "visibility", "mesh_previews"},
-    "physics/lights.py": {"render", "bssrdf", "irradiance", "visibility", "mesh_previews"},
+    # the previews cast their rays on the renders' shared Embree scenes (lighting/visibility.py,
+    # which imports lighting/lights.py)
+    "lighting/visibility.py": {"render", "bssrdf", "irradiance", "visibility", "mesh_previews"},
+    "lighting/lights.py": {"render", "bssrdf", "irradiance", "visibility", "mesh_previews"},
     "stages/visibility.py": {"visibility", "render", "bssrdf"},   # shared rays, hit attributes
     "pipeline/plan.py": set(),                         # decides which nodes exist, runs in none
     "reports/diff.py": {"report", "differences"},

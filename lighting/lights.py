@@ -97,7 +97,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from dermis.pipeline.errors import ConfigError, DermisError
-from dermis.physics.color import LUMINANCE
+from dermis.rendering.color import LUMINANCE
 
 __all__ = [
     "LightSamples", "EnvironmentMap", "sample_lights", "irradiance", "environment_map",

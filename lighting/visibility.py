@@ -227,10 +227,10 @@ def subpixel_offsets(n_pixels: int, spp: int, rng: np.random.Generator | None) -
     spp = 1: the pixel centre (0.5, 0.5), so one sample per pixel is the classic pinhole
     image.  spp > 1: stratified (Shirley 1991, "Discrepancy as a quality measure for sample
     distributions"): a jittered m x m grid when spp = m^2, else Latin hypercube strata
-    (``physics.lights`` stratified_2d), one independent jitter per pixel from ``rng``.
+    (``lighting.lights`` stratified_2d), one independent jitter per pixel from ``rng``.
     (x, y) = (right, down) from the pixel's top-left corner.
     """
-    from dermis.physics.lights import stratified_2d
+    from dermis.lighting.lights import stratified_2d
     if spp == 1:
         return np.full((n_pixels, 1, 2), 0.5)
     return stratified_2d(rng, n_pixels, spp)
