@@ -7,7 +7,7 @@ report), ``dermis.cl`` (OpenCL kernels) and ``dermis.scenes`` (scene presets).
 See docs/software.md in this repository ("Layout").
 """
 __version__ = "0.2.0"
-__all__ = ["__version__", "STAGES", "COMMANDS"]
+__all__ = ["__version__", "STAGES", "MODELS", "COMMANDS"]
 
 # The stages, in pipeline order: (name, module).  The composition root: the engine
 # (dermis.pipeline) imports no stage module; it loads these by name (pipeline/registry.py).
@@ -16,7 +16,7 @@ STAGES = (
     ("mesh_high", "dermis.stages.mesh_high"),
     ("mesh_low", "dermis.stages.mesh_low"),
     ("bake", "dermis.stages.bake"),
-    ("mesh_previews", "dermis.reports.mesh_previews"),
+    ("mesh_previews", "dermis.stages.mesh_previews"),
     ("profiles", "dermis.stages.profiles"),
     ("samples", "dermis.stages.samples"),
     ("irradiance", "dermis.stages.irradiance"),
@@ -24,10 +24,20 @@ STAGES = (
     ("render", "dermis.stages.render"),
     ("bssrdf", "dermis.stages.bssrdf"),
     ("reference", "dermis.stages.reference"),
-    ("images", "dermis.reports.images"),
-    ("differences", "dermis.reports.differences"),
-    ("report", "dermis.reports.report"),
+    ("images", "dermis.stages.images"),
+    ("differences", "dermis.stages.differences"),
+    ("report", "dermis.stages.report"),
+)
+
+# The local illumination models, in the order scenes list them: (name, module declaring
+# ``MODEL``, models/model.py).  Loaded by name too (pipeline/registry.py model).
+MODELS = (
+    ("lafortune", "dermis.models.lafortune"),
+    ("asperity", "dermis.models.asperity"),
+    ("hk93", "dermis.models.hk93"),
+    ("bssrdf", "dermis.models.bssrdf"),
+    ("bssrdf_mc", "dermis.models.bssrdf_mc"),
 )
 
 # CLI subcommands provided by the physics packages: (name, module with add_parser and run).
-COMMANDS = (("profile", "dermis.stages.profile_cli"), ("sweep", "dermis.reports.sweep"))
+COMMANDS = (("profile", "dermis.optics.profile_command"), ("sweep", "dermis.reports.sweep"))

@@ -1,4 +1,4 @@
-"""Benchmark of stages/bake.py: wall time per sub-step and peak memory of a 4096^2 bake.
+"""Benchmark of geometry/bake.py: wall time per sub-step and peak memory of a 4096^2 bake.
 
 Cases (each run in its own subprocess so its peak RSS is its own):
   synthetic  high = bumpy lat-long sphere, ~1.1M triangles, 2048x4096 procedural texture;
@@ -89,7 +89,7 @@ def lps_case():
     import igl
 
     from dermis.pipeline.artifacts import Mesh
-    from dermis.stages.bake import _bilinear
+    from dermis.geometry.texture_lookup import bilinear
     v_cm, f, vt, ft = _read_obj(DATA / "LeePerrySmith_cm.obj")
     v = v_cm * 10.0                                                 # cm -> mm
     low = Mesh(vertices=v, faces=f.astype(np.int32), uv=vt.astype(np.float32),
@@ -104,7 +104,7 @@ def lps_case():
     disp = _read_image(DATA / "Infinite-Level_02_Disp_NoSmoothUV-4096.jpg")[..., 0].astype(np.float32)
     corner_uv = np.zeros((len(vh), 2))
     corner_uv[fh.ravel()] = uvh[fth.ravel()]                        # one UV per welded vertex
-    h = (_bilinear(disp, corner_uv) - np.median(disp)) / 128.0 * LPS_DISP_AMPLITUDE_MM
+    h = (bilinear(disp, corner_uv) - np.median(disp)) / 128.0 * LPS_DISP_AMPLITUDE_MM
     tex = _read_image(DATA / "Map-COL.jpg")[..., :3]
     high = Mesh(vertices=vh + h[:, None] * n, faces=fh.astype(np.int32), uv=uvh.astype(np.float32),
                 uv_faces=fth.astype(np.int32), texture_srgb=np.ascontiguousarray(tex))
@@ -112,21 +112,21 @@ def lps_case():
 
 
 def worker(case: str, resolution: int, preview_dir: str | None) -> dict:
-    from dermis.stages import bake
+    from dermis.geometry.bake import bake_maps
     t0 = time.perf_counter()
     low, high = synthetic_case() if case == "synthetic" else lps_case()
     build_s = time.perf_counter() - t0
     rss_before = _rss_mb("VmRSS")
     reset = _reset_peak()
     t0 = time.perf_counter()
-    maps = bake.bake_maps(low, high, resolution=resolution)
+    maps = bake_maps(low, high, resolution=resolution)
     wall = time.perf_counter() - t0
     peak = _rss_mb("VmHWM")
     if preview_dir:
-        from dermis.reports import mesh_previews
+        from dermis.reports import previews
         out = Path(preview_dir) / case
-        mesh_previews.save_map_previews(maps, out)
-        mesh_previews.save_shaded_comparison(high, low, maps, out / "shaded.png", size=800)
+        previews.save_map_previews(maps, out)
+        previews.save_shaded_comparison(high, low, maps, out / "shaded.png", size=800)
     info = {k: v for k, v in maps.info.items()}
     return {"case": case, "resolution": resolution, "low_triangles": len(low.faces),
             "high_triangles": len(high.faces), "case_build_s": round(build_s, 2),

@@ -18,8 +18,7 @@ import numpy as np
 import pyopencl as cl
 
 from dermis.pipeline.cl import event_seconds, get_env, to_device
-from dermis.stages.brdf_models import (KERNEL_FILES, MODELS, AsperityParams, HK93Params,
-                                LafortuneParams)
+from dermis.models import asperity, hk93, lafortune
 
 SIDE = 800                      # thesis images are 800 x 800 (docs/science.md §7, the thesis's timings)
 
@@ -45,15 +44,14 @@ def main(argv=None) -> dict:
     rng = np.random.default_rng(800)
     wo, wi = _pairs(rng, n)
     albedo = rng.random((n, 3)).astype(np.float32)
-    params = {"lafortune": LafortuneParams(), "hk93": HK93Params(), "asperity": AsperityParams()}
     out_buf = cl.Buffer(env.context, cl.mem_flags.WRITE_ONLY, n * 3 * 4)
     results = {}
-    for model in MODELS:
+    for model in (lafortune.MODEL, hk93.MODEL, asperity.MODEL):
         t0 = time.perf_counter()
-        prg = env.program(KERNEL_FILES[model])
+        prg = env.program(model.kernel)
         build_s = time.perf_counter() - t0
-        kernel = cl.Kernel(prg, f"{model}_eval")
-        arrays = [wo, wi] + ([albedo] if model == "lafortune" else []) + [params[model].pack()]
+        kernel = cl.Kernel(prg, f"{model.name}_eval")
+        arrays = [wo, wi] + ([albedo] if model.albedo else []) + [model.params().pack()]
         bufs = [to_device(env, a) for a in arrays]
         kernel.set_args(*bufs, out_buf, np.int32(n))
         cl.enqueue_nd_range_kernel(env.queue, kernel, (n,), None).wait()      # warm-up
@@ -65,12 +63,12 @@ def main(argv=None) -> dict:
             wall.append(time.perf_counter() - t0)
             dev.append(event_seconds(ev))
         dev_s, wall_s = statistics.median(dev), statistics.median(wall)
-        results[model] = {
+        results[model.name] = {
             "pairs": n, "kernel_s_median": dev_s, "wall_s_median": wall_s,
             "evals_per_s_kernel": n / dev_s, "evals_per_s_wall": n / wall_s,
             "build_or_cache_s": build_s, "repeats": args.repeats,
         }
-        print(f"{model:10s} {n / dev_s / 1e6:8.1f} M eval/s (kernel {dev_s * 1e3:7.2f} ms, "
+        print(f"{model.name:10s} {n / dev_s / 1e6:8.1f} M eval/s (kernel {dev_s * 1e3:7.2f} ms, "
               f"wall {wall_s * 1e3:7.2f} ms for {SIDE}x{SIDE} pairs)")
     report = {"device": env.description, "host": platform.node(),
               "cpu_count_note": "PoCL CPU uses all host cores", "models": results}

@@ -124,7 +124,8 @@ def brute_force_error(cache: Path, n_queries: int) -> dict:
     from dermis.pipeline.cl import get_env
     from dermis.pipeline.config import BssrdfConfig, load_scene
     from dermis.lighting.visibility import Visibility, camera_rays
-    from dermis.stages import gather as G
+    from dermis.optics.transmittance import Transmittance
+    from dermis.subsurface.exitance import ExitanceOptions, ShadingPoints, exitance
     ld = lambda n: artifacts.load(glob.glob(str(cache / n / "*"))[0])  # noqa: E731
     mesh, pts, prof = ld("mesh_high"), ld("samples-mesh_high"), ld("profiles")
     scene = load_scene(str(cache.parent / "scene.toml"))
@@ -144,7 +145,7 @@ def brute_force_error(cache: Path, n_queries: int) -> dict:
     pick = np.random.default_rng(0).choice(np.flatnonzero(front), n_queries, replace=False)
     cfg = BssrdfConfig()
     eta = scene.optics.layers[0].eta / scene.optics.eta_above
-    T = G.Transmittance(eta, cfg.surface_reflection)
+    T = Transmittance(eta, cfg.surface_reflection)
     env = get_env()
     out = {}
     for label, lights in scene.light_groups():
@@ -152,13 +153,14 @@ def brute_force_error(cache: Path, n_queries: int) -> dict:
             irr = ld(f"irradiance-mesh_high-{label}")
         except IndexError:
             continue
-        kw = dict(shading_normals=ns[pick], geo_normals=ng[pick], lights=lights, visibility=vis,
-                  transmittance=T, env=env)
+        shading = ShadingPoints(pos[pick], ns[pick], ng[pick])
+        kw = dict(lights=lights, visibility=vis)
         t0 = time.perf_counter()
-        m, st = G.exitance(pts, irr.irradiance, prof, pos[pick], epsilon=cfg.epsilon, **kw)
+        m, st = exitance(pts, irr.irradiance, prof, shading, **kw, options=ExitanceOptions(
+            epsilon=cfg.epsilon, transmittance=T, env=env))
         t1 = time.perf_counter()
-        mb, _ = G.exitance(pts, irr.irradiance, prof, pos[pick], epsilon=None, brute_force=True,
-                           **kw)
+        mb, _ = exitance(pts, irr.irradiance, prof, shading, **kw, options=ExitanceOptions(
+            epsilon=None, brute_force=True, transmittance=T, env=env))
         t2 = time.perf_counter()
         rmse = np.sqrt(((m - mb) ** 2).mean(0) / np.maximum((mb ** 2).mean(0), 1e-30))
         out[label] = {"queries": n_queries, "rel_rmse": float(rmse.max()),
@@ -179,8 +181,8 @@ def knife_edge_table() -> dict:
     from dermis.pipeline.cl import get_env
     from dermis.pipeline.config import BssrdfConfig
     from dermis.optics.layers import PRESETS
-    from dermis.stages import samples as S
-    from dermis.stages.profiles import build_profiles
+    from dermis.optics.layer_profiles import build_profiles
+    from dermis.subsurface import points as S
     env, out = get_env(), {}
     for preset in ("two_layer", "skin1", "skin2"):
         prof, stack = build_profiles(PRESETS[preset]), PRESETS[preset]
@@ -285,9 +287,11 @@ def irradiance_profile(cache: Path, mesh_node: str = "mesh_low", light_name: str
     import pstats
     from dermis.pipeline import artifacts
     from dermis.pipeline.config import BssrdfConfig, load_scene
-    from dermis.lighting.lights import LUMINANCE, irradiance
+    from dermis.lighting.emitters import SamplingOptions
+    from dermis.lighting.irradiance import irradiance
+    from dermis.rendering.color import LUMINANCE
     from dermis.lighting.visibility import Visibility
-    from dermis.stages.brdf_models import Transmittance
+    from dermis.optics.transmittance import Transmittance
     ld = lambda n: artifacts.load(glob.glob(str(cache / n / "*"))[0])  # noqa: E731
     mesh, pts = ld(mesh_node), ld(f"samples-{mesh_node}")
     scene = load_scene(str(cache.parent / "scene.toml"))
@@ -304,9 +308,9 @@ def irradiance_profile(cache: Path, mesh_node: str = "mesh_low", light_name: str
             la, t0, c0 = os.getloadavg(), time.perf_counter(), time.process_time()
             if prof:
                 prof.enable()
-            E = irradiance(pts.positions, pts.normals, lights, vis.occluded,
-                           samples=cfg.irradiance_samples, seed=seed, transmittance=T,
-                           env_strategy=strategy)
+            E = irradiance(pts.positions, pts.normals, lights, vis.occluded, seed=seed,
+                           options=SamplingOptions(samples=cfg.irradiance_samples,
+                                                   env_strategy=strategy), transmittance=T)
             if prof:
                 prof.disable()
                 st = pstats.Stats(prof).stats
@@ -333,8 +337,11 @@ def energy_table() -> dict:
     from dermis.pipeline.cl import get_env, to_device
     from dermis.optics.fresnel import diffuse_fresnel_external
     from dermis.optics.layers import PRESETS
-    from dermis.stages import brdf_models as B
-    from dermis.stages.profiles import build_profiles
+    from dermis.models.asperity import AsperityParams
+    from dermis.models.hk93 import HK93Params
+    from dermis.models.lafortune import LafortuneParams
+    from dermis.optics.transmittance import Transmittance
+    from dermis.optics.layer_profiles import build_profiles
     env = get_env()
     theta = [0.0, 30.0, 60.0, 80.0, 85.0, 87.0, 89.0, 89.9]
     albedos = np.linspace(0.0, 1.0, 11)
@@ -366,13 +373,13 @@ def energy_table() -> dict:
         cl.enqueue_copy(env.queue, outb, d_out)
         return (outb.reshape(h, n, 3) * weight[None, :, None]).sum(1)
 
-    hk = B.HK93Params(PRESETS["two_layer"])
+    hk = HK93Params(PRESETS["two_layer"])
     ref = hk.texture_reference()
-    laf = B.LafortuneParams()
+    laf = LafortuneParams()
     models = {"lambert": (0, None, None), "lafortune": (1, laf, None), "hk93": (2, hk, None),
-              "asperity+lambert": (0, None, B.AsperityParams()),
-              "asperity+lafortune": (1, laf, B.AsperityParams()),
-              "asperity+hk93": (2, hk, B.AsperityParams())}
+              "asperity+lambert": (0, None, AsperityParams()),
+              "asperity+lafortune": (1, laf, AsperityParams()),
+              "asperity+hk93": (2, hk, AsperityParams())}
     table = {}
     for name, (base, bp, asp) in models.items():
         worst = np.zeros(len(theta))
@@ -381,17 +388,16 @@ def energy_table() -> dict:
             worst = np.maximum(worst, albedo(base, bp, asp, alb, theta).max(axis=1))
         table[name] = dict(zip([str(t) for t in theta], worst.round(4).tolist()))
     # the BSSRDF: lobes (rho_d = 0) + a T(mu), a <= 1
-    if hasattr(B, "Transmittance"):
-        lobes = albedo(1, B.LafortuneParams(rho_d=(0, 0, 0)), None, np.zeros(3), theta)
-        t = B.Transmittance(1.4, "lafortune_lobes")(np.cos(np.radians(theta)))
-        table["bssrdf (lobes + T a)"] = dict(zip([str(x) for x in theta],
-                                                 (lobes + t).max(axis=1).round(4).tolist()))
+    lobes = albedo(1, LafortuneParams(rho_d=(0, 0, 0)), None, np.zeros(3), theta)
+    t = Transmittance(1.4, "lafortune_lobes")(np.cos(np.radians(theta)))
+    table["bssrdf (lobes + T a)"] = dict(zip([str(x) for x in theta],
+                                             (lobes + t).max(axis=1).round(4).tolist()))
     hk_res = {}
     x12, w12 = np.polynomial.legendre.leggauss(12)
     mu12 = 0.5 * (x12 + 1)
     for preset in ("two_layer", "skin1", "skin2"):
         stack = PRESETS[preset]
-        p = B.HK93Params(stack)
+        p = HK93Params(stack)
         a = albedo(2, p, None, np.ones(3), np.degrees(np.arccos(mu12)).tolist())  # untinted
         rho_hh = (a * (mu12 * w12)[:, None]).sum(0)
         rd = build_profiles(stack).Rd
@@ -449,11 +455,9 @@ def main():
     if not args.skip_pipeline:
         res["pipeline"] = pipeline(args)
         print(json.dumps(res["pipeline"], indent=1))
-    from dermis.stages import gather as G
-    if hasattr(G, "exitance"):
-        res["brute_force"] = brute_force_error(Path(args.cache).resolve() / "cache",
-                                               args.brute_queries)
-        print(json.dumps(res["brute_force"], indent=1))
+    res["brute_force"] = brute_force_error(Path(args.cache).resolve() / "cache",
+                                           args.brute_queries)
+    print(json.dumps(res["brute_force"], indent=1))
     if not args.skip_energy:
         res["energy"] = energy_table()
         print(json.dumps(res["energy"], indent=1))

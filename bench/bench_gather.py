@@ -1,9 +1,9 @@
-"""Benchmark of the hierarchical BSSRDF gather (stages/gather.py) against brute force.
+"""Benchmark of the hierarchical BSSRDF gather (subsurface/gather.py) against brute force.
 
 Scene: the LPS head OBJ (/work/shared/data/lps_head, centimetres -> mm, ~369,000 mm^2), blue-
-noise points from stages/samples.py, irradiance of one directional light from the upper
+noise points from subsurface/points.py, irradiance of one directional light from the upper
 front right, E = max(0, n.l) with a hard shadow ray per point (open3d), profile from
-stages/profiles.py (default preset skin2, cut-off 24 mm).  Query points: the surface points
+optics/layer_profiles.py (default preset skin2, cut-off 24 mm).  Query points: the surface points
 seen by an orthographic camera looking down -z at the face, in scanline order, up to
 --queries of them.  Falls back to a unit-sphere-like synthetic mesh if the asset is absent.
 
@@ -91,7 +91,10 @@ def main():
     from dermis.pipeline.cl import get_env
     from dermis.pipeline.config import BssrdfConfig
     from dermis.optics.layers import PRESETS
-    from dermis.stages import gather as G, profiles, samples
+    from dermis.optics.layer_profiles import build_profiles
+    from dermis.subsurface import gather as G
+    from dermis.subsurface.octree import build_octree
+    from dermis.subsurface.points import mesh_area, sample_points
 
     shipped = BssrdfConfig()  # the scene defaults: the epsilon and leaf size the pipeline runs
     env = get_env()
@@ -99,15 +102,15 @@ def main():
            "shipped": {"epsilon": shipped.epsilon, "leaf_size": shipped.leaf_size}, "note":
            "2-core shared machine, other jobs running: times noisy (+-20 %)",
            "loadavg_start": list(__import__("os").getloadavg())}
-    prof = profiles.build_profiles(PRESETS[args.preset])
+    prof = build_profiles(PRESETS[args.preset])
     res["cutoff_mm"] = prof.cutoff_mm.tolist()
     v, f, mesh_name = load_mesh()
-    area = samples.mesh_area(v, f)
+    area = mesh_area(v, f)
     res["mesh"] = mesh_name
     res["mesh_area_mm2"] = area
 
     def make_points(n, seed=1):
-        sp = samples.sample_points(v, f, spacing_mm=float(np.sqrt(area / n)), seed=seed)
+        sp = sample_points(v, f, spacing_mm=float(np.sqrt(area / n)), seed=seed)
         e, scene = irradiance(v, f, sp.positions.astype(np.float64), sp.normals.astype(np.float64))
         return sp, e, scene
 
@@ -123,7 +126,7 @@ def main():
     sub = rng.choice(len(q), min(args.brute_queries, len(q)), replace=False)
 
     t = time.perf_counter()
-    tree = G.build_octree(sp.positions, sp.areas, e, leaf_size=shipped.leaf_size,
+    tree = build_octree(sp.positions, sp.areas, e, leaf_size=shipped.leaf_size,
                           kernel_sigma_mm=sp.info.get("kernel_sigma_mm"))
     res["octree_build_seconds"] = time.perf_counter() - t
     res["octree"] = tree.info
@@ -179,7 +182,7 @@ def main():
     # leaf size (at the shipped epsilon and at 0.6)
     leaf_rows = []
     for ls in (4, 8, 16, 32):
-        tr = G.build_octree(sp.positions, sp.areas, e, leaf_size=ls,
+        tr = build_octree(sp.positions, sp.areas, e, leaf_size=ls,
                             kernel_sigma_mm=sp.info.get("kernel_sigma_mm"))
         for eps in (shipped.epsilon, 0.6):
             h, st = G.gather(tr, prof, q, env=env, epsilon=eps)
@@ -194,7 +197,7 @@ def main():
     qg = q[rng.choice(len(q), min(64_000, len(q)), replace=False)]
     for n in sorted({args.points // 16, args.points // 4, args.points}):
         spn, en, _ = make_points(n, seed=2) if n != args.points else (sp, e, None)
-        tr = G.build_octree(spn.positions, spn.areas, en,
+        tr = build_octree(spn.positions, spn.areas, en,
                             kernel_sigma_mm=spn.info.get("kernel_sigma_mm"))
         _, st = G.gather(tr, prof, qg, env=env, epsilon=shipped.epsilon)
         _, sbn = G.gather(tr, prof, qg[:500], epsilon=None, env=env, brute_force=True)

@@ -1,7 +1,7 @@
 """HK93 under the sunset at g = 0.8 and -0.99 (tests/test_hardening.py test23's scene: the
 quick procedural head, 128 x 128): max, 99th percentile, mean, and the fraction of head
-pixels above 5x their 3x3 median (outliers).  Issue 16 item 10; the before/after numbers of
-bench/results/hk93_retro.json (the retro lobe, lighting/lights.py RetroLobe).
+pixels above 5x their 3x3 median (outliers): the before/after numbers of
+bench/results/hk93_retro.json (the retro lobe, lighting/lobes.py RetroLobe; docs/hardening.md).
 
 Usage: python bench/bench_hk93_retro.py WORKDIR [LABEL]   (merges LABEL into the JSON)"""
 import sys, json, os, time

@@ -1,4 +1,4 @@
-"""The BSSRDF irradiance pass (stages/irradiance.py, lighting/lights.py ``irradiance``) per
+"""The BSSRDF irradiance pass (stages/irradiance.py, lighting/irradiance.py ``irradiance``) per
 mesh and light: wall and CPU seconds, the machine's load, and the estimate's noise.
 
 Reads the meshes, sample points and scene of an earlier ``bench_bssrdf.py`` run (its
@@ -42,9 +42,11 @@ def main() -> None:
     import dermis
     from dermis.pipeline import artifacts
     from dermis.pipeline.config import BssrdfConfig, load_scene
-    from dermis.lighting.lights import LUMINANCE, irradiance
+    from dermis.lighting.emitters import SamplingOptions
+    from dermis.lighting.irradiance import irradiance
+    from dermis.rendering.color import LUMINANCE
     from dermis.lighting.visibility import Visibility
-    from dermis.stages.brdf_models import Transmittance
+    from dermis.optics.transmittance import Transmittance
     root = Path(args.cache).resolve()
     ld = lambda n: artifacts.load(glob.glob(str(root / "cache" / n / "*"))[0])  # noqa: E731
     scene = load_scene(str(root / "scene.toml"))
@@ -60,7 +62,8 @@ def main() -> None:
             lights = [l for l in scene.lights if l.name in label.split("+")]
             run = lambda seed, sl=slice(None), **kw: irradiance(  # noqa: E731
                 pts.positions[sl], pts.normals[sl], lights, vis.occluded,
-                samples=cfg.irradiance_samples, seed=seed, transmittance=T, **kw)
+                seed=seed, options=SamplingOptions(samples=cfg.irradiance_samples),
+                transmittance=T, **kw)
             run(0, slice(0, 1000))  # warm: the environment map's tables, first calls
             entry = {"points": int(len(pts.positions))}
             lum = []

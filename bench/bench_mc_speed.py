@@ -1,4 +1,4 @@
-"""Benchmark the OpenCL Monte Carlo slab tracer (stages/mc_slab.py, cl/mc_slab.cl).
+"""Benchmark the OpenCL Monte Carlo slab tracer (optics/monte_carlo_slab.py, cl/mc_slab.cl).
 
 Usage: python bench/bench_mc_speed.py [--out bench/results/mc_speed.json] [--photons N]
        [--repeats K] [--baseline-commit REV | --baseline-commit none]
@@ -40,7 +40,7 @@ sys.path.insert(0, str(ROOT))
 
 from dermis.pipeline import cl as dcl  # noqa: E402
 from dermis.optics.layers import PRESETS, Layer, LayerStack  # noqa: E402
-from dermis.stages import mc_slab  # noqa: E402
+from dermis.optics import monte_carlo_slab  # noqa: E402
 
 MCML_PHOTONS_PER_S_PER_CORE = 27000.0   # issue text: MCML 1.2.2, one core of this machine
 TARGET_PHOTONS_PER_S = 4 * MCML_PHOTONS_PER_S_PER_CORE
@@ -111,13 +111,16 @@ def _run_old(env, prg, stack: LayerStack, photons: int) -> dict:
 
 
 def _time_case(env, stack: LayerStack, photons: int, repeats: int) -> dict:
-    """Best of ``repeats`` runs of mc_slab.run (wall-clock kernel time and CPU time)."""
-    mc_slab.simulate(stack, photons=2000, r_max_mm=10.0, bins=100, env=env)   # build, warm up
+    """Best of ``repeats`` runs of monte_carlo_slab.simulate (wall-clock kernel time and CPU
+    time)."""
+    # build, warm up
+    monte_carlo_slab.simulate(stack, photons=2000, r_max_mm=10.0, bins=100, env=env)
     runs = []
     for i in range(repeats):
         load = os.getloadavg()
         c0 = time.process_time()
-        r = mc_slab.simulate(stack, photons=photons, r_max_mm=10.0, bins=100, seed=i, env=env)
+        r = monte_carlo_slab.simulate(stack, photons=photons, r_max_mm=10.0, bins=100, seed=i,
+                                      env=env)
         cpu = time.process_time() - c0
         runs.append({"photons_per_second": r.photons_per_second,
                      "per_cpu_second": 3 * r.photons / cpu,

@@ -85,7 +85,11 @@ def main() -> int:
         print(f"skip: {DATA} not found")
         return 0
     from dermis.pipeline.artifacts import angle_weighted_normals
-    from dermis.stages import mesh_prep as mp, scan_io
+    from dermis.geometry.scan import load_scan, read_grey_image
+    from dermis.geometry.simplification import simplify
+    from dermis.geometry.subdivision import LPS_DISPLACEMENT_MID, LPS_DISPLACEMENT_SCALE_MM, make_high
+    from dermis.geometry.uv_transfer import transfer_uv
+    from dermis.geometry.validation import validate
 
     res: dict = {"machine": f"{os.cpu_count()} cores", "steps": {}}
 
@@ -97,15 +101,15 @@ def main() -> int:
         return out
 
     obj = DATA / "LeePerrySmith_cm.obj"
-    scan = record("load", lambda: scan_io.load_scan(obj, units="cm"))
-    base, _ = record("validate", lambda: mp.validate(scan, source=str(obj)))
-    disp = scan_io.read_grey_image(DATA / "Infinite-Level_02_Disp_NoSmoothUV-4096.jpg")
-    high = record("make_high", lambda: mp.make_high(
-        base, target_triangles=1_000_000, displacement=disp, displacement_scale_mm=mp.LPS_DISPLACEMENT_SCALE_MM,
-        displacement_mid=mp.LPS_DISPLACEMENT_MID))
+    scan = record("load", lambda: load_scan(obj, units="cm"))
+    base, _ = record("validate", lambda: validate(scan, source=str(obj)))
+    disp = read_grey_image(DATA / "Infinite-Level_02_Disp_NoSmoothUV-4096.jpg")
+    high = record("make_high", lambda: make_high(
+        base, target_triangles=1_000_000, displacement=disp, displacement_scale_mm=LPS_DISPLACEMENT_SCALE_MM,
+        displacement_mid=LPS_DISPLACEMENT_MID))
     record("normals", lambda: angle_weighted_normals(high.vertices, high.faces).shape)
-    low = record("simplify", lambda: mp.simplify(high, target_triangles=16750))
-    low_uv, rep = record("transfer_uv", lambda: mp.transfer_uv(high, low))
+    low = record("simplify", lambda: simplify(high, target_triangles=16750))
+    low_uv, rep = record("transfer_uv", lambda: transfer_uv(high, low))
     res["high_triangles"] = int(len(high.faces))
     res["low_triangles"] = int(len(low.faces))
     res["transfer_uv"] = rep

@@ -22,7 +22,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from dermis.stages import procedural_head as ph  # noqa: E402
+from dermis.geometry import procedural_head as ph  # noqa: E402
 
 
 def _peak_rss_mb():

@@ -5,8 +5,8 @@ Usage: python bench/bench_profile_table.py [--out bench/results/profiles_table.j
 
 Target (issue 12): a two-layer skin R(r) table with <= 1 % relative noise per ring over
 [0.05, 5] mm in all three channels, in <= 15 s on the 2-core machine.  It times
-``stages.profiles.monte_carlo_profiles`` (the stage's own call: diffusion guide, ring edges,
-weight window, OpenCL run) for the stack and reports photons/s, the noise reached per
+``optics.monte_carlo_table.monte_carlo_profiles`` (the stage's own call: diffusion guide,
+ring edges, weight window, OpenCL run) for the stack and reports photons/s, the noise reached per
 channel (largest, 90th percentile and median over the rings in the band; the per-ring errors
 come from 32 independent batches, so the largest is itself ~13 % uncertain) and the ring
 layout.
@@ -38,7 +38,7 @@ sys.path.insert(0, str(ROOT))
 
 from dermis.pipeline import cl as dcl  # noqa: E402
 from dermis.optics.layers import PRESETS, DEFAULT_MC_PHOTONS, Layer, LayerStack  # noqa: E402
-from dermis.stages import mc_slab, profiles  # noqa: E402
+from dermis.optics import monte_carlo_slab, monte_carlo_table  # noqa: E402
 
 TARGET_NOISE = 0.01
 TARGET_SECONDS = 15.0
@@ -92,20 +92,21 @@ def main() -> None:
                  "load_average_start": os.getloadavg(), "runs": []}
     # the analog tracer on the two-layer preset, as bench_mc_speed times it, around each run
     def analog() -> float:
-        r = mc_slab.simulate(PRESETS["two_layer"], photons=200000, r_max_mm=10.0, bins=100,
-                             seed=5, env=env)
+        r = monte_carlo_slab.simulate(PRESETS["two_layer"], photons=200000, r_max_mm=10.0,
+                                      bins=100, seed=5, env=env)
         return r.photons_per_second
 
     unloaded = unloaded_analog(env.description)
-    mc_slab.simulate(PRESETS["two_layer"], photons=2000, r_max_mm=10.0, bins=100, env=env)
-    profiles.monte_carlo_profiles(st, photons=2000, seed=99, env=env)      # build, warm up
+    # build, warm up
+    monte_carlo_slab.simulate(PRESETS["two_layer"], photons=2000, r_max_mm=10.0, bins=100, env=env)
+    monte_carlo_table.monte_carlo_profiles(st, photons=2000, seed=99, env=env)
     for k in range(args.repeats):
-        profiles._diffusion_guide.cache_clear()             # time the guide as the stage does
+        monte_carlo_table._diffusion_guide.cache_clear()   # time the guide as the stage does
         load = os.getloadavg()
         a0 = analog()
         w0, c0 = time.perf_counter(), time.process_time()
-        prof = profiles.monte_carlo_profiles(st, photons=args.photons, seed=args.seed + k,
-                                             env=env)
+        prof = monte_carlo_table.monte_carlo_profiles(st, photons=args.photons,
+                                                      seed=args.seed + k, env=env)
         wall, cpu = time.perf_counter() - w0, time.process_time() - c0
         a1 = analog()
         factor = unloaded / (0.5 * (a0 + a1)) if unloaded else None

@@ -9,7 +9,7 @@ Carlo reference (per photon entering: the specular reflection at entry is not co
 their standard errors, and per model (multipole = the default; diffusion = the same
 diffusion with its own totals, i.e. the diffusion model's own error; dj2005 = dermis <= 1,
 "before") the relative error of Rd and Tt and the R(r) error over [0.05, 5] mm (misplaced
-energy, rms and largest relative error on 24 log rings: stages/profile_cli.py
+energy, rms and largest relative error on 24 log rings: optics/profile_command.py
 ``profile_errors``).  The reference runs on the union of the layer file's and the Monte
 Carlo table's rings, so every comparison sums whole rings.
 """
@@ -28,13 +28,15 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from dermis.optics.layers import PRESETS, load_layers_toml  # noqa: E402
-from dermis.stages import profiles  # noqa: E402
-from dermis.stages.profile_cli import profile_errors, ring_edges  # noqa: E402
+from dermis.optics.layer_file import RD_CONVENTION  # noqa: E402
+from dermis.optics.layer_profiles import MultipoleOptions, build_profiles  # noqa: E402
+from dermis.optics.monte_carlo_table import mc_bin_edges, monte_carlo_profiles  # noqa: E402
+from dermis.optics.profile_command import profile_errors, ring_edges  # noqa: E402
 
 CASES = ("two_layer", "two_layer_skin", "thin_epidermis", "thin_epidermis_from_below",
          "slab_1mm", "low_albedo", "skin1", "skin2")
-MODELS = {"multipole": {}, "diffusion": {"totals": "diffusion"},
-          "dj2005": {"diffusion": "dj2005"}}
+MODELS = {"multipole": MultipoleOptions(), "diffusion": MultipoleOptions(totals="diffusion"),
+          "dj2005": MultipoleOptions(diffusion="dj2005")}
 
 
 def load(name: str):
@@ -49,24 +51,24 @@ def main() -> None:
     ap.add_argument("--cases", default=",".join(CASES))
     args = ap.parse_args()
     out: dict = {"load_average_start": os.getloadavg(), "photons_per_channel": args.photons,
-                 "convention": profiles.RD_CONVENTION, "cases": {}}
+                 "convention": RD_CONVENTION, "cases": {}}
     times = []
     for _ in range(3):
         t = time.perf_counter()
-        profiles.build_profiles(PRESETS["two_layer"])
+        build_profiles(PRESETS["two_layer"])
         times.append(time.perf_counter() - t)
     out["layer_file_two_layer_s"] = {"min": min(times), "median": float(np.median(times)),
                                      "load_average": os.getloadavg()}
     print(f"two_layer layer file: min {min(times):.2f} s, median {np.median(times):.2f} s")
     for name in args.cases.split(","):
         st = load(name)
-        built = {m: profiles.build_profiles(st, **kw) for m, kw in MODELS.items()}
+        built = {m: build_profiles(st, options=o) for m, o in MODELS.items()}
         edges = ring_edges(built["multipole"])
-        mc_edges = profiles.mc_bin_edges(st)
+        mc_edges = mc_bin_edges(st)
         union = np.unique(np.concatenate([edges, mc_edges]))
         union = union[union <= max(edges[-1], mc_edges[-1])]
         t = time.perf_counter()
-        ref = profiles.monte_carlo_profiles(st, photons=args.photons, seed=1, edges=union)
+        ref = monte_carlo_profiles(st, photons=args.photons, seed=1, edges=union)
         entry = {"mc": {"Rd": ref.Rd.tolist(), "Rd_err": ref.info["Rd_err"],
                         "Tt": ref.Tt.tolist(), "Tt_err": ref.info["Tt_err"],
                         "photons_per_second": ref.info["photons_per_second"],

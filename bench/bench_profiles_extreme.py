@@ -1,13 +1,14 @@
-"""Benchmark the layer file at the weakly absorbing extremes (issue 16, test_stability test10 /
-test11): build time of two_layer and of two_layer with sigma_a = 0 on both layers, the image
+"""Benchmark the layer file at the weakly absorbing extremes (test_stability test10 / test11):
+build time of two_layer and of two_layer with sigma_a = 0 on both layers, the image
 sums of weakly absorbing finite layers against a 4000-pair reference, and the per-example
 build times of test11's strategy (whole property domain, derandomized examples).
 
 Usage: python bench/bench_profiles_extreme.py [--out bench/results/profiles_extreme.json]
        [--label after] [--git REV] [--examples 10]
 
-``--git REV`` measures stages/profiles.py as of REV (loaded from ``git show``) instead of the
-working tree; each run adds or replaces its ``--label`` entry in the JSON.  The machine is
+``--git REV`` measures the layer file of revision REV, where it was one module,
+stages/profiles.py (loaded from ``git show``), instead of the working tree's optics/ modules;
+each run adds or replaces its ``--label`` entry in the JSON.  The machine is
 shared: the load average is recorded with every timing.
 """
 from __future__ import annotations
@@ -41,21 +42,31 @@ def _thin_white():
                              -0.07790825929450951)), 1.0, 1.4)
 
 
-def _profiles_module(rev: str | None):
+@dataclasses.dataclass(frozen=True)
+class _Profiles:
+    """The functions measured: the working tree's, or those of a revision's stages/profiles.py."""
+
+    build_profiles: object
+    diffusion_constants: object
+    beam_sources: object
+    image_sum: object
+
+
+def _profiles_module(rev: str | None) -> _Profiles:
     if rev is None:
-        from dermis.stages import profiles
-        return profiles
-    import dermis.stages
+        from dermis.optics import multipole
+        from dermis.optics.layer_profiles import build_profiles
+        return _Profiles(build_profiles, multipole.diffusion_constants, multipole.beam_sources,
+                         multipole.image_sum)
     src = subprocess.run(["git", "show", f"{rev}:stages/profiles.py"], cwd=ROOT, check=True,
                          capture_output=True, text=True).stdout
     path = Path(f"/tmp/dermis_profiles_{rev}.py")
     path.write_text(src)
-    spec = importlib.util.spec_from_file_location("dermis.stages.profiles", path)
+    spec = importlib.util.spec_from_file_location("_profiles_at_rev", path)
     mod = importlib.util.module_from_spec(spec)
-    sys.modules["dermis.stages.profiles"] = mod
+    sys.modules["_profiles_at_rev"] = mod       # dataclasses look their module up
     spec.loader.exec_module(mod)
-    dermis.stages.profiles = mod
-    return mod
+    return _Profiles(mod.build_profiles, mod._chan, mod._sources, mod._image_sum)
 
 
 def _sigma_a_zero(stack):
@@ -80,15 +91,11 @@ def _build(P, stack) -> dict:
 
 
 def _image_sums(P) -> list:
-    """Cumulative energy of weakly absorbing single layers: the module's image sum against
+    """Cumulative energy of weakly absorbing single layers: the measured image sum against
     the working tree's with 4000 pairs and the integral tail (relative to the sources'
     energy, at r = 0 .. 10 L)."""
+    from dermis.optics import multipole as W
     from dermis.optics.layers import PRESETS, Layer
-    spec = importlib.util.spec_from_file_location("_profiles_worktree",
-                                                  ROOT / "stages" / "profiles.py")
-    W = importlib.util.module_from_spec(spec)
-    sys.modules["_profiles_worktree"] = W       # dataclasses look their module up
-    spec.loader.exec_module(W)
     top = PRESETS["two_layer"].layers[0]
     cases = [("two_layer epidermis, sigma_a = 0",
               Layer(top.thickness_mm, 1.4, (0.0,) * 3, top.sigma_s_prime, 0.8), 1.0, 1.0),
@@ -98,17 +105,17 @@ def _image_sums(P) -> list:
               1.33, 1.0)]
     out = []
     for name, lay, ea, eb in cases:
-        ch = P._chan(lay, 0, lay.eta / ea, lay.eta / eb, "pbd", None)
-        src = P._sources(ch)
+        ch = P.diffusion_constants(lay, 0, lay.eta / ea, lay.eta / eb, "pbd", None)
+        src = P.beam_sources(ch)
         L = ch.d + ch.zb_t + ch.zb_b
         r = np.array([0.0, 0.1, 0.3, 1.0, 3.0, 10.0]) * L
-        ref = W._chan(lay, 0, lay.eta / ea, lay.eta / eb, "pbd", None)
+        ref = W.diffusion_constants(lay, 0, lay.eta / ea, lay.eta / eb, "pbd", None)
         ref = dataclasses.replace(ref, poles=4000, reach=math.inf, tail=True)
         src_ref = src                           # the same beam nodes (4000 pairs would cut them)
         row = {"case": name, "pairs": ch.poles, "L_mm": L}
         for side in ("top", "bot"):
-            e = P._image_sum(ch, src, side, "energy", r)
-            e_ref = W._image_sum(ref, src_ref, side, "energy", r)
+            e = P.image_sum(ch, src, side, "energy", r)
+            e_ref = W.image_sum(ref, src_ref, side, "energy", r)
             row[f"max_err_{side}"] = float(np.abs(e - e_ref).max() / src.w.sum())
         out.append(row)
     return out
@@ -137,7 +144,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "profiles_extreme.json"))
     ap.add_argument("--label", default="after")
-    ap.add_argument("--git", default=None, help="measure stages/profiles.py as of this rev")
+    ap.add_argument("--git", default=None, help="measure the layer file of this rev "
+                    "(stages/profiles.py there)")
     ap.add_argument("--examples", type=int, default=10)
     a = ap.parse_args()
     P = _profiles_module(a.git)

@@ -47,9 +47,11 @@ def slab_check(out: Path) -> dict:
     """Mitsuba's flat-slab Rd of each preset vs the multipole (layer file) and the Monte Carlo."""
     import numpy as np
     from dermis.optics.layers import PRESETS
-    from dermis.stages import mc_slab, mitsuba_scene as ms
-    from dermis.stages.profiles import build_profiles
-    mi = ms.load_mitsuba()
+    from dermis.groundtruth.mitsuba import load_mitsuba
+    from dermis.groundtruth.slab import slab_reflectance
+    from dermis.optics import monte_carlo_slab as mc_slab
+    from dermis.optics.layer_profiles import build_profiles
+    mi = load_mitsuba()
     res = {}
     for name in ("skin1", "two_layer"):
         st = PRESETS[name]
@@ -58,7 +60,7 @@ def slab_check(out: Path) -> dict:
         rec["mc_Rd"], rec["mc_Rd_err"] = mc.Rd.tolist(), mc.Rd_err.tolist()
         for alpha in (0.3, 0.1):
             t = time.perf_counter()
-            r = ms.slab_reflectance(mi, st, roughness=alpha, samples=1 << 17)
+            r = slab_reflectance(mi, st, roughness=alpha, samples=1 << 17)
             rec[f"mitsuba_alpha{alpha}"] = {
                 "Rd_incident": r.Rd.tolist(), "Rd_entered": r.Rd_entered.tolist(),
                 "stderr": r.Rd_stderr.tolist(), "specular": r.specular.tolist(),

@@ -54,18 +54,25 @@ def _inputs(cache):
 
 
 def _models(scene):
-    from dermis.stages.render import model_params
-    optics = scene.optics.to_dict()
-    return {"lafortune": model_params("lafortune", None, None),
-            "hk93": model_params("hk93", None, optics),
-            "asperity": model_params("asperity", scene.render.asperity_base, optics)}
+    """name -> (Model, its parameters, its base's parameters, its base) of the scene's three
+    BRDF models, built as the render stage builds them (``Model.scene_params``)."""
+    from dermis.pipeline.registry import model
+    out = {}
+    for name in ("lafortune", "hk93", "asperity"):
+        m = model(name)
+        base = scene.render.asperity_base if m.bases else None
+        config = {"optics": scene.optics.to_dict(), "asperity_base": base}
+        out[name] = (m, m.scene_params(config, None),
+                     m.base(base).scene_params(config, None) if base else None, base)
+    return out
 
 
-def _shade(mesh, samples, model, pb, cam, env, scene, **kw):
-    from dermis.stages.render import render
-    p, bp = pb
-    return render(mesh, [], model, p, cam, samples=samples, cl_env=env, base_params=bp,
-                  asperity_base=scene.render.asperity_base if model == "asperity" else None, **kw)
+def _shade(mesh, samples, pb, cam, env, **kw):
+    from dermis.rendering.options import RenderOptions
+    from dermis.rendering.shade import render
+    m, p, bp, base = pb
+    return render(mesh, [], m, p, cam,
+                  RenderOptions(samples=samples, base=base, base_params=bp, **kw), cl_env=env)
 
 
 def _lum(img):
@@ -74,7 +81,8 @@ def _lum(img):
 
 def timing(scene, got, env, spp: int) -> dict:
     from dermis.lighting.visibility import Visibility
-    from dermis.stages.visibility import cast
+    from dermis.rendering.cast import cast
+    from dermis.rendering.options import RenderOptions
     cam = scene.camera
     out = {}
     for mesh_node, extra in (("mesh_high", {}),
@@ -86,14 +94,14 @@ def timing(scene, got, env, spp: int) -> dict:
                "lights": {}}
         for label, lights in scene.light_groups():
             t, c = time.perf_counter(), time.process_time()
-            s = cast(mesh, lights, cam, spp=spp, seed=0, visibility=vis, cl_env=env)
+            s = cast(mesh, lights, cam, RenderOptions(spp=spp, seed=0, visibility=vis), cl_env=env)
             row = {"visibility_s": time.perf_counter() - t, "visibility_cpu_s": time.process_time() - c,
                    "visibility_parts": s.info["timings"], "hits": s.info["hits"],
                    "shadow_rays": s.info["shadow_rays"],
                    "unoccluded_samples": s.info["unoccluded_samples"], "models": {}}
             for model, pb in _models(scene).items():
                 t, c = time.perf_counter(), time.process_time()
-                r = _shade(mesh, s, model, pb, cam, env, scene, **extra)
+                r = _shade(mesh, s, pb, cam, env, **extra)
                 row["models"][model] = {"seconds": time.perf_counter() - t,
                                         "cpu_seconds": time.process_time() - c,
                                         "surface_s": r.timings["surface"],
@@ -108,7 +116,8 @@ def timing(scene, got, env, spp: int) -> dict:
 
 def spp_sweep(scene, got, env, values) -> dict:
     from dermis.lighting.visibility import Visibility
-    from dermis.stages.visibility import cast
+    from dermis.rendering.cast import cast
+    from dermis.rendering.options import RenderOptions
     cam, mesh = scene.camera, got["mesh_high"]
     vis = Visibility(mesh.vertices, mesh.faces)
     pb = _models(scene)["lafortune"]
@@ -116,14 +125,14 @@ def spp_sweep(scene, got, env, values) -> dict:
     out = {}
     for label in ("point", "sunset"):
         lights = groups[label]
-        ref = _shade(mesh, cast(mesh, lights, cam, spp=64, seed=99, visibility=vis, cl_env=env),
-                     "lafortune", pb, cam, env, scene).linear
+        ref = _shade(mesh, cast(mesh, lights, cam, RenderOptions(spp=64, seed=99, visibility=vis),
+                                cl_env=env), pb, cam, env).linear
         head = _lum(ref) > 0
         rows = {}
         for spp in values:
             t, c = time.perf_counter(), time.process_time()
-            s = cast(mesh, lights, cam, spp=spp, seed=1, visibility=vis, cl_env=env)
-            img = _shade(mesh, s, "lafortune", pb, cam, env, scene).linear
+            s = cast(mesh, lights, cam, RenderOptions(spp=spp, seed=1, visibility=vis), cl_env=env)
+            img = _shade(mesh, s, pb, cam, env).linear
             secs, cpu = time.perf_counter() - t, time.process_time() - c
             d = (img - ref)[head]
             rows[spp] = {"seconds": secs, "cpu_seconds": cpu,
@@ -138,24 +147,26 @@ def spp_sweep(scene, got, env, values) -> dict:
 def fireflies(scene, got, env, passes: int = 6) -> dict:
     from scipy.ndimage import binary_erosion
     from dermis.lighting.visibility import Visibility
-    from dermis.stages.visibility import LightSampling, cast
+    from dermis.rendering.cast import cast
+    from dermis.rendering.options import LightSampling, RenderOptions
     cam, mesh = scene.camera, got["mesh_high"]
     vis = Visibility(mesh.vertices, mesh.faces)
     lights = dict(scene.light_groups())["sunset"]
     models = _models(scene)
     acc = {m: 0.0 for m in models}
     for k in range(passes):          # converged: passes x 64 light samples per pixel
-        s = cast(mesh, lights, cam, spp=4, seed=5000 + k, visibility=vis, cl_env=env,
-                 sampling=LightSampling(shadow_samples=64))
+        s = cast(mesh, lights, cam, RenderOptions(spp=4, seed=5000 + k, visibility=vis,
+                                                  sampling=LightSampling(shadow_samples=64)),
+                 cl_env=env)
         for m, pb in models.items():
-            acc[m] = acc[m] + _shade(mesh, s, m, pb, cam, env, scene).linear.astype(np.float64)
-    s = cast(mesh, lights, cam, spp=scene.render.spp, seed=scene.mesh.seed, visibility=vis,
-             cl_env=env)
+            acc[m] = acc[m] + _shade(mesh, s, pb, cam, env).linear.astype(np.float64)
+    s = cast(mesh, lights, cam, RenderOptions(spp=scene.render.spp, seed=scene.mesh.seed,
+                                              visibility=vis), cl_env=env)
     out = {"reference_samples_per_pixel": 64 * passes, "spp": scene.render.spp,
            "light_samples_per_pixel": lights[0].samples, "models": {}}
     for m, pb in models.items():
         ref = _lum(acc[m] / passes)
-        img = _lum(_shade(mesh, s, m, pb, cam, env, scene).linear)
+        img = _lum(_shade(mesh, s, pb, cam, env).linear)
         inner = binary_erosion(ref > 0)
         sel = inner & (ref > 0.01 * np.percentile(ref[inner], 99))
         out["models"][m] = {f">{f}x": float(np.mean(img[sel] > f * ref[sel]))

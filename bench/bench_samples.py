@@ -1,4 +1,4 @@
-"""Benchmark of stages/samples.py: seconds per sub-step, before (the committed HEAD version,
+"""Benchmark of subsurface/points.py: seconds per sub-step, before (the committed HEAD version,
 loaded from git) and after (the working tree), on the Lee Perry-Smith head at ~1M triangles
 and spacing 1.22 mm (~245k points), plus the accuracy numbers the speed must not cost:
 nearest-neighbour CV, the partition-of-unity spread over random probes on the head, and the
@@ -30,12 +30,18 @@ STEP_KEYS = ("seconds_sampling", "seconds_relax", "seconds_normals", "seconds_ar
 
 
 def load_module(ref: str | None):
-    """stages.samples from the working tree (ref None) or from git at ``ref``."""
+    """subsurface.points from the working tree (ref None) or from git at ``ref``
+    (``stages/samples.py`` at a commit without subsurface/points.py)."""
     if ref is None:
-        from dermis.stages import samples
-        return samples
-    src = subprocess.run(["git", "show", f"{ref}:stages/samples.py"], cwd=ROOT, check=True,
-                         capture_output=True, text=True).stdout
+        from dermis.subsurface import points
+        return points
+    for path in ("subsurface/points.py", "stages/samples.py"):
+        shown = subprocess.run(["git", "show", f"{ref}:{path}"], cwd=ROOT, capture_output=True,
+                               text=True)
+        if shown.returncode == 0:
+            break
+    shown.check_returncode()
+    src = shown.stdout
     tmp = Path(tempfile.mkdtemp()) / "samples_baseline.py"
     tmp.write_text(src)
     spec = importlib.util.spec_from_file_location("samples_baseline", tmp)
@@ -92,8 +98,8 @@ def main():
     args = ap.parse_args()
     if not DATA.exists():
         sys.exit(f"bench_samples: {DATA} not found")
-    from dermis.stages.mesh_prep import make_high
-    from dermis.stages.scan_io import load_scan
+    from dermis.geometry.subdivision import make_high
+    from dermis.geometry.scan import load_scan
     load = os.getloadavg()
     print(f"load average before timing: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} "
           f"({os.cpu_count()} cores)")

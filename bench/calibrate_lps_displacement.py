@@ -32,14 +32,16 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 DATA = ROOT.parent / "shared" / "data" / "lps_head"
 
-from dermis.stages import mesh_prep as mp, scan_io  # noqa: E402
+from dermis.geometry.scan import load_scan, read_grey_image  # noqa: E402
+from dermis.geometry.subdivision import make_high, sample_image, vertex_uv_pairs  # noqa: E402
+from dermis.geometry.validation import validate  # noqa: E402
 
 
 def vertex_samples(mesh, image):
     """Per-vertex mean of the image over the vertex's UVs, and whether the vertex has a single UV."""
     f = mesh.faces.astype(np.int64)
-    pv, pt = mp._vertex_uv_pairs(f, mesh.uv_faces.astype(np.int64), len(mesh.uv))
-    s = mp.sample_image(image, mesh.uv[pt])
+    pv, pt = vertex_uv_pairs(f, mesh.uv_faces.astype(np.int64), len(mesh.uv))
+    s = sample_image(image, mesh.uv[pt])
     cnt = np.bincount(pv, minlength=len(mesh.vertices))
     if s.ndim == 1:
         out = np.bincount(pv, weights=s, minlength=len(mesh.vertices)) / np.maximum(cnt, 1)
@@ -77,8 +79,8 @@ def main() -> int:
         print(f"skip: {DATA} not found")
         return 0
     t0 = time.perf_counter()
-    base, _ = mp.validate(scan_io.load_scan(DATA / "LeePerrySmith_cm.obj", units="cm"), source="lps")
-    disp = scan_io.read_grey_image(DATA / "Infinite-Level_02_Disp_NoSmoothUV-4096.jpg")
+    base, _ = validate(load_scan(DATA / "LeePerrySmith_cm.obj", units="cm"), source="lps")
+    disp = read_grey_image(DATA / "Infinite-Level_02_Disp_NoSmoothUV-4096.jpg")
     import OpenImageIO as oiio
     nm = np.asarray(oiio.ImageBuf(str(DATA / "Infinite-Level_02_Tangent_SmoothUV.jpg")).get_pixels(oiio.FLOAT))[:, :, :3]
     result: dict = {"map_min": float(disp.min()), "map_max": float(disp.max()), "map_median": float(np.median(disp))}
@@ -87,7 +89,7 @@ def main() -> int:
     reg = {}
     nb = len(base.vertices)
     for k in (1, 2, 3):
-        smooth = mp.make_high(base, target_triangles=len(base.faces) * 4 ** k - 1)
+        smooth = make_high(base, target_triangles=len(base.faces) * 4 ** k - 1)
         delta = np.einsum("ij,ij->i", base.vertices - smooth.vertices[:nb], smooth.normals[:nb].astype(np.float64))
         dv, _ = vertex_samples(smooth, disp)
         dv = dv[:nb]
@@ -104,15 +106,15 @@ def main() -> int:
     h, w = disp.shape
     f4 = h // nm.shape[0]
     disp_lo = disp.reshape(h // f4, f4, w // f4, f4).mean(axis=(1, 3))
-    smooth = mp.make_high(base, target_triangles=len(base.faces) * 64 - 1)
+    smooth = make_high(base, target_triangles=len(base.faces) * 64 - 1)
     T, B, N = tangent_frames(smooth)
     nmv, single = vertex_samples(smooth, nm)
     target = 2.0 * nmv - 1.0
     target /= np.maximum(np.linalg.norm(target, axis=1, keepdims=True), 1e-12)
     curve = {}
     for scale in [0.0, 2.0, 4.0, 5.0, 6.0, 6.5, 7.0, 8.0, 10.0, 12.0]:
-        hm = mp.make_high(base, target_triangles=len(base.faces) * 64 - 1, displacement=disp_lo,
-                          displacement_scale_mm=scale, displacement_mid=mid_a)
+        hm = make_high(base, target_triangles=len(base.faces) * 64 - 1, displacement=disp_lo,
+                       displacement_scale_mm=scale, displacement_mid=mid_a)
         n = hm.normals.astype(np.float64)
         loc = np.stack([np.sum(n * T, 1), np.sum(n * B, 1), np.sum(n * N, 1)], 1)
         errs = {}

@@ -65,7 +65,7 @@ def main():
     ap.add_argument("--size", type=int, default=600)
     a = ap.parse_args()
     import OpenImageIO as oiio
-    from dermis.stages import procedural_head
+    from dermis.geometry import procedural_head
     t0 = time.perf_counter()
     mesh = procedural_head.make_head(triangles=a.triangles, texture_size=a.texture,
                                detail=not a.no_detail, seed=a.seed)

@@ -16,7 +16,7 @@
  * checked in tests/test_asperity.py.  albedo is the scatterers' single-scattering albedo
  * (K-P use 1).
  * This is a term ADDED on top of a skin model (the base is the renderer's choice; the default
- * is documented with stages/brdf_models.py AsperityParams), never a material on its own.
+ * is documented with models/asperity.py AsperityParams), never a material on its own.
  * The base lies under the layer, so its light crosses the layer twice (flag [5];
  * docs/science.md §5, asperity scattering).  To the model's own first order the layer intercepts
  * e1(mu) = tau (1 - tau/2) / max(mu, tau) of a beam (same clamp), scatters a of it (half
@@ -30,7 +30,7 @@
  * Conventions: local frame, z = shading normal; wo, wi unit, pointing away from the surface;
  * f excludes the cosine; float32; Delta and lambda in mm (only their ratio enters f).
  * f = 0 when wo or wi is on or below the horizon.  Symmetric, hence reciprocal.
- * Parameter block (ASPERITY_NPARAMS floats, __constant; packed by stages/brdf_models.py):
+ * Parameter block (ASPERITY_NPARAMS floats, __constant; packed by models/asperity.py):
  *   [0] tau = Delta/lambda  [1] f_max  [2..4] albedo (R,G,B)  [5] attenuate the base
  *   (1) or not (0)  [6..7] unused (0)
  * Guarded by tests/test_asperity.py (float64 reference, closed forms, reciprocity, albedo,

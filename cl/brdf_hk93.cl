@@ -37,14 +37,14 @@
  *  - rho_ms (the thesis's constant) defaults, on the host, to the diffusion total reflectance
  *    of the same layers (Jensen 2001 dipole, thin/thick top-layer blend) minus the largest
  *    single-scattering directional albedo, so the directional albedo stays <= 1
- *    (stages/brdf_models.py HK93Params; test04_energy_albedo_at_most_one).
+ *    (models/hk93.py HK93Params; test04_energy_albedo_at_most_one).
  *  - Splitting a medium into a slab over the same medium leaves f unchanged
  *    (test02_layer_split_invariance): the check that layer 1 attenuates both ways.
  *
  * Conventions: local frame, z = shading normal; wo, wi unit, pointing away from the surface;
  * f excludes the cosine; float32; coefficients were turned into W and tau = sigma_t d on the
  * host (mm and 1/mm there).  f = 0 when wo or wi is on or below the horizon.
- * Parameter block (HK93_NPARAMS floats, __constant; packed by stages/brdf_models.py):
+ * Parameter block (HK93_NPARAMS floats, __constant; packed by models/hk93.py):
  *   [0] eta_1  [1] eta_2  [2] g_1  [3] g_2  [4..6] W_1  [7..9] tau_1  [10..12] W_2
  *   [13..15] tau_2  [16..18] rho_ms (multiple-scattering albedo)  [19] unused (0)
  * Guarded by tests/test_brdf_hk93.py (float64 reference, single-layer and thin-layer limits,

@@ -4,7 +4,7 @@
  * approximation of reflectance functions", SIGGRAPH 1997, eq. 4, isotropic (Cx = Cy):
  *     f(wo, wi) = albedo / pi + sum_k max(0, Cxy_k (wo.x wi.x + wo.y wi.y) + Cz_k wo.z wi.z)^n_k
  * per RGB channel.  Coefficients: the three-lobe skin fit shipped in pbrt-v1
- * materials/skin.cpp (table in docs/science.md §1, defaults in stages/brdf_models.py
+ * materials/skin.cpp (table in docs/science.md §1, defaults in models/lafortune.py
  * LafortuneParams).  Variant: per-lobe rho_s folded into C (as pbrt-v1), and the constant
  * rho_d replaced by a linear-RGB albedo per shading point, as the thesis did (Arizpe 2006).
  * Energy: the fitted lobes alone reflect L(theta) = (0.031, 0.022, 0.022) at normal incidence
@@ -16,7 +16,7 @@
  *     f_d = albedo (1 - L(mu_i)) (1 - L(mu_o)) / (pi (1 - L_mean)),  L_mean = int L 2 mu dmu,
  * whose directional albedo is albedo (1 - L(mu_o)), so the whole BRDF reflects
  * L + albedo (1 - L) <= 1 for any albedo <= 1, and stays reciprocal (docs/science.md §1).
- * L is tabulated on the host (stages/brdf_models.py lafortune_lobe_albedo) at
+ * L is tabulated on the host (models/lafortune.py lafortune_lobe_albedo) at
  * LAFORTUNE_ALBEDO_NODES cosines and interpolated linearly here; flag [27] = 0 gives the
  * uncoupled fit (the thesis's).  Guarded by tests/test_energy.py and
  * tests/test_brdf_lafortune.py test04_*.

@@ -3,9 +3,9 @@
  *
  * Model: M_o(x) = sum_p R(|x - p|) E_p A_p  (docs/science.md §4; Jensen & Buhler 2002,
  * "A rapid hierarchical rendering technique for translucent materials", eq. 3-4).  R(r) is
- * the layer file's radial profile R(r) in 1/mm^2 (stages/profiles.py), resampled on the
+ * the layer file's radial profile R(r) in 1/mm^2 (optics/layer_file.py), resampled on the
  * host into a uniform table that is zero beyond the per-channel cut-off radius.  The host
- * passes R convolved with the points' reconstruction Gaussian (stages/gather.py
+ * passes R convolved with the points' reconstruction Gaussian (subsurface/profile_table.py
  * blurred_profile; the flat-slab bound rests on it), so nothing here depends on which.
  *
  * Tree walk: the octree is flattened in depth-first pre-order with one "skip" index per
@@ -168,7 +168,7 @@ __kernel void gather_tree(__global const float4 *query,     /* (Q) x, y, z, unus
     visits[q] = count;
 }
 
-/* Tile walk (the default; stages/gather.py GatherTuning.tile): one work-item gathers for
+/* Tile walk (the default; subsurface/gather.py GatherTuning.tile): one work-item gathers for
  * TILE queries that are neighbours on the Morton curve, walking the tree once for all of
  * them.  The tile is bounded by a sphere (centre c, radius rt, host-computed), and every test
  * uses the lower bound d_c - rt of the distance from any of its queries to the node: a node
@@ -243,7 +243,7 @@ inline void xlookup(__global const float4 *xtab, float t, float4 *r, float4 *r1,
  * every sub-tile is expanded about each sub-tile's centre: 4 contiguous xtab lookups instead
  * of 16 gathered table rows.  Same formula and error bound per sub-tile as the tile
  * expansion, with the sub-tile's radius (median ~1/3 of the tile's on the bench head).
- * Measured on bench/bench_gather.py's head: see stages/gather.py (GatherTuning.subtiles). */
+ * Measured on bench/bench_gather.py's head: see subsurface/gather.py (GatherTuning.subtiles). */
 #if TILE == 16
 #define SUBTILE 1
 #define S16(v) (float16)(v, v, v, v)
@@ -501,7 +501,7 @@ __kernel void gather_brute(__global const float4 *query,
     out[q] = finish(m, w, rd);
 }
 
-/* Near field of point and directional lights (stages/gather.py "near field", edge_sum):
+/* Near field of point and directional lights (subsurface/shadow_edges.py edge_sum):
  * for each shading point x, the sum over the located shadow-edge segments within r_out of
  * the boundary integral of the near profile, sign(w) [Q(|w|, phi2) - Q(|w|, phi1)], with
  * w = (e - x).n_out the signed distance of x from the segment's line, t0 = (x - e).tangent

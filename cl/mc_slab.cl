@@ -18,7 +18,7 @@
  * SIMD layout (why: PoCL vectorises across work-items only for loop-free kernels, and a
  * photon is a loop; docs/software.md "what was measured").  Each work-item carries LANES
  * photons (LANES = 8 fills one AVX2 register, 16 one AVX-512 register; the host picks by
- * the device's preferred float vector width, stages/mc_slab.py lanes_for.  On a 2-core
+ * the device's preferred float vector width, optics/monte_carlo_slab.py lanes_for.  On a 2-core
  * AVX-512 machine the first loop, without splitting, ran 8 lanes at half the speed of 16;
  * on the 2-core AVX2 machine the present one, whose window and splitting keep ~20 vectors
  * live, spills at 16 and ran 8 lanes 1.25x faster, A/B on two_layer)
@@ -70,7 +70,7 @@
  * The host sums the slices in float64 and groups work-items into batches for standard
  * errors.
  *
- * Layer table (host: stages/mc_slab.py _layer_table), per channel and layer 8 floats:
+ * Layer table (host: optics/monte_carlo_slab.py _layer_table), per channel and layer 8 floats:
  * z_top, z_bot, sigma_t, 1/sigma_t, sigma_a/sigma_t, g, eta, log(1 - sigma_a/sigma_t).
  *
  * Conventions: z down into the slab, mm and 1/mm, float32.
@@ -83,7 +83,7 @@
 #define ROULETTE_M 10.0f
 #define MAX_STEPS 1000000
 /* per work-item totals: R, T, absorbed, lost, interactions, busy lane-trips, trips (the
- * last two measure lane occupancy, reported by stages/mc_slab.py and the benchmark) */
+ * last two measure lane occupancy, reported by optics/monte_carlo_slab.py and the benchmark) */
 #define N_TOTALS 7
 
 #ifndef LANES

@@ -6,7 +6,7 @@
  *
  * Conventions (common.h): float32; cosines measured from the shading normal; "eta" is
  * always the RELATIVE index n_transmitted / n_incident unless the name says otherwise.
- * Guarded by tests/test_brdf_hk93.py (through hk93_f) and stages/brdf_models.py's float64
+ * Guarded by tests/test_brdf_hk93.py (through hk93_f) and models/hk93.py's float64
  * references.
  */
 #ifndef DERMIS_OPTICS_H

@@ -1,4 +1,4 @@
-/* shade.cl - reflected radiance of light samples through a BRDF (renderer, stages/render.py).
+/* shade.cl - reflected radiance of light samples through a BRDF (renderer, rendering/shade.py).
  *
  * One work-item per (surface point, light sample) pair that survived the host's culling
  * (above both horizons, unoccluded).  It writes

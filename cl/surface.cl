@@ -1,4 +1,4 @@
-/* surface.cl - surface attributes at primary-ray hits (renderer, stages/render.py).
+/* surface.cl - surface attributes at primary-ray hits (renderer, rendering/surface.py).
  *
  * For each hit (triangle id + Embree barycentrics b1, b2 with p = (1-b1-b2) p0 + b1 p1 + b2 p2)
  * this computes: position (mm), unit geometric normal (counter-clockwise winding = outside),
@@ -8,13 +8,13 @@
  * Albedo: bilinear lookup of an sRGB uint8 texture, each texel decoded to linear through a
  * 256-entry IEC 61966-2-1 table BEFORE weighting (interpolating encoded values would darken
  * edges).  Texel centres at u = col / (W-1), v = 1 - row / (H-1), clamp to edge: the
- * convention of pipeline/artifacts.py and stages/bake.py _bilinear.
+ * convention of pipeline/artifacts.py and geometry/texture_lookup.py bilinear.
  * Shading normal with BUMP: Blinn 1978 bump mapping, height outward-positive in mm,
  *     n' = normalize(n + s (h_u (n x dpdv) - h_v (n x dpdu)) / |dpdu x dpdv|),
  *     s = sign((dpdu x dpdv) . n),
  * h_u, h_v central differences (half-width BUMP_STEP texels) of bilinear lookups, dpdu/dpdv
  * from the triangle's positions and UVs (pbrt's derivation) - the same definition as
- * stages/bake.py bump_shading_normals(), which tests/test_render.py compares against.
+ * geometry/bump.py bump_shading_normals(), which tests/test_render.py compares against.
  * Degenerate UV triangles (|det| <= 1e-20) and zero-area ones switch the bump off.
  * Two-sided: when the camera sees the back of a triangle (geometric normal facing away, e.g.
  * a folded scan triangle at an eyelid) both normals are flipped to the camera's side, as a
@@ -30,7 +30,7 @@
  * Compile-time options (-D): HAS_UV (0/1), HAS_TEXTURE (0/1, needs HAS_UV), HAS_BUMP (0/1,
  * needs HAS_UV).  Conventions: float32, mm.  One work-item per hit, straight-line code.
  * Guarded by tests/test_render.py (analytic sphere image, texture lookup vs numpy, bump vs
- * stages/bake.py, no NaN).
+ * geometry/bump.py, no NaN).
  */
 #include "common.h"
 
@@ -43,9 +43,9 @@
 #ifndef HAS_BUMP
 #define HAS_BUMP 0
 #endif
-/* half-width of the bump central difference, texels (stages/bake.py default step_texels) */
+/* half-width of the bump central difference, texels (geometry/bump.py default step_texels) */
 #define BUMP_STEP 1.0f
-/* below this |det| the UV parameterisation is degenerate (stages/bake.py uses 1e-20 too) */
+/* below this |det| the UV parameterisation is degenerate (geometry/bump.py uses 1e-20 too) */
 #define UV_DET_MIN 1e-20f
 /* smallest cosine between the shading normal and wo (84.3 deg): our choice, small enough to
  * leave every normally seen pixel alone, large enough that the Fresnel exit of the BSSRDF

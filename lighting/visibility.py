@@ -22,11 +22,13 @@ tests/test_lights.py (penumbra trend).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from dermis.pipeline.errors import DermisError
+from dermis.lighting.strata import stratified_2d
+from dermis.pipeline.errors import ConfigError, DermisError
 from dermis.pipeline.reuse import RecentResults, content_key
 
 __all__ = ["Visibility", "Hits", "OFFSET_FRACTION", "MISS", "camera_rays", "camera_vectors",
@@ -67,7 +69,7 @@ class Visibility:
     """
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray):
-        import open3d as o3d
+        import open3d as o3d   # heavy (Embree, ~1 s to import): only where a scene is built
 
         v = np.ascontiguousarray(vertices, dtype=np.float32)
         f = np.asarray(faces)
@@ -162,7 +164,7 @@ class Visibility:
                                            tfar=1.0).numpy().astype(bool, copy=False)
 
     def occlusion_fn(self):
-        """``occluded`` with the signature expected by :func:`pipeline.lights.irradiance`."""
+        """``occluded`` with the signature expected by :func:`lighting.irradiance.irradiance`."""
         return self.occluded
 
 
@@ -205,7 +207,6 @@ def shared(mesh, memo: dict) -> "Visibility":
 # --------------------------------------------------------------------------- camera
 def camera_vectors(camera) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Position and orthonormal forward/right/up of a CameraConfig (errors name the key)."""
-    from dermis.pipeline.errors import ConfigError
     pos = np.asarray(camera.position, dtype=np.float64)
     look = np.asarray(camera.look_at, dtype=np.float64)
     up = np.asarray(camera.up, dtype=np.float64)
@@ -227,10 +228,9 @@ def subpixel_offsets(n_pixels: int, spp: int, rng: np.random.Generator | None) -
     spp = 1: the pixel centre (0.5, 0.5), so one sample per pixel is the classic pinhole
     image.  spp > 1: stratified (Shirley 1991, "Discrepancy as a quality measure for sample
     distributions"): a jittered m x m grid when spp = m^2, else Latin hypercube strata
-    (``lighting.lights`` stratified_2d), one independent jitter per pixel from ``rng``.
+    (lighting/strata.py ``stratified_2d``), one independent jitter per pixel from ``rng``.
     (x, y) = (right, down) from the pixel's top-left corner.
     """
-    from dermis.lighting.lights import stratified_2d
     if spp == 1:
         return np.full((n_pixels, 1, 2), 0.5)
     return stratified_2d(rng, n_pixels, spp)
@@ -247,8 +247,6 @@ def camera_rays(camera, offsets: np.ndarray | None = None, *,
     rows r0 <= row < r1.  Returns origins and unit directions, (N*S, 3) float32 each (N pixels),
     the S rays of a pixel consecutive.
     """
-    import math
-    from dermis.pipeline.errors import ConfigError
     w = int(camera.width)
     h = int(camera.height)
     if w < 1 or h < 1:

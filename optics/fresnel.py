@@ -8,7 +8,8 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["fresnel_diffuse_reflectance", "diffusion_A", "dipole_Rd", "fresnel_transmittance",
-           "diffuse_fresnel_external", "fresnel_normal", "fresnel_moments", "diffusion_boundary"]
+           "diffuse_fresnel_external", "fresnel_normal", "fresnel_reflectance_inside",
+           "fresnel_moments", "diffusion_boundary"]
 
 
 def fresnel_diffuse_reflectance(eta: float) -> float:
@@ -65,6 +66,13 @@ def fresnel_normal(eta: float) -> float:
     return ((eta - 1.0) / (eta + 1.0)) ** 2
 
 
+def fresnel_reflectance_inside(mu: np.ndarray, eta: float) -> np.ndarray:
+    """Unpolarised Fresnel reflectance F(mu) seen from inside a medium of relative index
+    ``eta`` at inside cosine ``mu`` (1 beyond the critical angle; 0 everywhere at eta = 1):
+    light going out sees the outside medium at relative index 1/eta."""
+    return np.zeros_like(mu) if eta == 1.0 else 1.0 - fresnel_transmittance(mu, 1.0 / eta)
+
+
 def fresnel_moments(eta: float, n: int = 20000) -> tuple[float, float]:
     """Fresnel moments seen from inside, C1 = int_0^1 F(mu) mu dmu and C2 = int_0^1 F(mu) mu^2 dmu.
 
@@ -76,8 +84,7 @@ def fresnel_moments(eta: float, n: int = 20000) -> tuple[float, float]:
     if eta == 1.0:
         return 0.0, 0.0
     mu = (np.arange(n) + 0.5) / n
-    # light going out: the outside medium has relative index 1/eta seen from inside
-    F = 1.0 - fresnel_transmittance(mu, 1.0 / eta)
+    F = fresnel_reflectance_inside(mu, eta)
     return float(np.sum(F * mu) / n), float(np.sum(F * mu * mu) / n)
 
 

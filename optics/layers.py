@@ -107,7 +107,7 @@ PROFILE_KEYS = ("profile", "photons", "seed")
 # table is the reference (docs/profiles.md: where diffusion is still off, and by how much).
 DEFAULT_PROFILE_MODEL = "multipole"
 # Photons per channel of the Monte Carlo table, on average (the channels share 3 x this by a
-# pilot run, stages/profiles.py MC_PILOT): bench/bench_profile_table.py measured <= 1 %
+# pilot run, optics/monte_carlo_table.py MC_PILOT): bench/bench_profile_table.py measured <= 1 %
 # relative noise per ring over [0.05, 5] mm on two_layer in all channels with this many
 # (bench/results/profiles_table.json; 0.95 % at most).
 DEFAULT_MC_PHOTONS = 2_400_000
@@ -318,6 +318,10 @@ def load_layers_toml(path: str | Path) -> LayerStack:
         text = path.read_text()
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read layer file ({exc.strerror})") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not a text (UTF-8) file: byte 0x{exc.object[exc.start]:02x} "
+                          f"at offset {exc.start} is not UTF-8 (layer files are TOML, which "
+                          "is UTF-8)") from None
     try:
         table = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

@@ -6,11 +6,10 @@
 """
 from __future__ import annotations
 
-import json
 import os
-import shutil
 import threading
-import uuid
+import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -18,13 +17,15 @@ import numpy as np
 
 from .config import Scene, load_scene, scene_warnings
 from .errors import DermisError
-from .graph import RunSummary, execute
+from .graph import RunSummary, execute, plan_order
+from .imageio import ImageRangeWarning
+from .outputs import export as export_outputs, output_folder
 from .plan import build_graph
-from .registry import STAGE_NAMES, stage
+from .registry import STAGE_NAMES
 from .store import CACHE_ENV_VAR, Store
 
 __all__ = ["load_scene", "run", "status", "clean", "devices", "cache_dir_for", "RunContext",
-           "output_folder", "dark_renders"]
+           "dark_renders"]
 
 
 @dataclass
@@ -126,14 +127,16 @@ def run(scene: Scene, *, cache=None, until: str | None = None, force=(), device:
     until : str, optional
         Build only what the named stage needs (and that stage).
     force : iterable of str
-        Stage names or node ids to recompute even when cached.
+        Stage names or node ids to recompute even when cached; each must be one this run
+        runs (in the scene's graph, and needed for ``until``), else :class:`DermisError`.
     device : str, optional
         OpenCL device spec (see :mod:`pipeline.cl`).
     progress : callable(node, fraction), optional
     notice : callable(str), optional
         One-line notices, e.g. a corrupted cache entry being rebuilt (default: stderr).
     export : bool
-        Copy file outputs (previews, images) into ``output_dir/<scene name>/``.
+        Copy file outputs (previews, images) into ``output_dir/<scene name>/``, replacing
+        the previous run's outputs whole (:mod:`pipeline.outputs`).
     jobs : int, optional
         Nodes run at once (threads of this process): the argument > $DERMIS_JOBS >
         :data:`DEFAULT_JOBS`.  Any value gives the same artifacts.
@@ -144,6 +147,7 @@ def run(scene: Scene, *, cache=None, until: str | None = None, force=(), device:
             _check_stage(f, "--force")
     nodes, targets = build_graph(scene)
     targets = _targets(nodes, targets, until)
+    _check_force(nodes, plan_order(nodes, targets), force, until)
     store = Store(cache_dir_for(scene, cache))
     ctx = RunContext(device=device)
     from .cl import check_device
@@ -156,47 +160,64 @@ def run(scene: Scene, *, cache=None, until: str | None = None, force=(), device:
     for text in warnings:
         notice(f"warning: {text}")
     with store.locked():
-        summary = execute(nodes, targets, store, ctx, force=tuple(force), progress=progress,
-                          notice=notice, jobs=jobs)
+        with _image_warnings(notice) as image_warnings:
+            summary = execute(nodes, targets, store, ctx, force=tuple(force),
+                              progress=progress, notice=notice, jobs=jobs)
         dark = dark_renders(scene, summary)
         for text in dark:
             notice(f"warning: {text}")
-        summary.warnings = warnings + dark
+        summary.warnings = warnings + image_warnings + dark
         if export:
-            _export(scene, store, summary)
+            export_outputs(scene, store, summary)
     return summary
+
+
+def _check_force(nodes: dict, planned: list[str], force, until: str | None) -> None:
+    """Refuse ``--force`` of a stage or node this run would not run: not in the scene's graph
+    (nothing the scene asks for needs it), or not needed for ``--until``."""
+    stages = sorted({n.stage for n in nodes.values()})
+    planned_stages = {nodes[nid].stage for nid in planned}
+    for f in force:
+        is_stage = f in STAGE_NAMES
+        if (f not in stages) if is_stage else (f not in nodes):
+            what = (f"this scene's graph has no {f} stage: nothing the scene asks for (render."
+                    f"models, render.lights, render.geometries, output) needs it; its stages: "
+                    + ", ".join(stages)) if is_stage else (
+                f"this scene's graph has no node {f!r}; its nodes: " + _some(sorted(nodes)))
+            raise DermisError(f"--force {f}: {what}")
+        if (f not in planned_stages) if is_stage else (f not in planned):
+            raise DermisError(f"--force {f}: --until {until} does not run {f} ({until} does not "
+                              f"need it), so it would not be recomputed; the stages --until "
+                              f"{until} runs: " + ", ".join(sorted(planned_stages)))
+
+
+def _some(names: list[str], n: int = 8) -> str:
+    return ", ".join(names[:n]) + (f", ... ({len(names) - n} more)" if len(names) > n else "")
+
+
+@contextmanager
+def _image_warnings(notice):
+    """Route :class:`ImageRangeWarning` (an EXR holding values float32 cannot represent, from
+    any node's thread) to ``notice`` as warnings; yield the list of their texts."""
+    texts: list[str] = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("always", ImageRangeWarning)
+        shown = warnings.showwarning
+
+        def show(message, category, filename, lineno, file=None, line=None):
+            if issubclass(category, ImageRangeWarning):
+                texts.append(str(message))
+                notice(f"warning: {message}")
+            else:
+                shown(message, category, filename, lineno, file, line)
+
+        warnings.showwarning = show
+        yield texts
 
 
 def _stderr_notice(text: str) -> None:
     import sys
     print(f"dermis: {text}", file=sys.stderr)
-
-
-def output_folder(scene: Scene) -> Path:
-    """``output_dir/<scene.name>/``, created; refused (exit 2, naming ``output.output_dir``)
-    when it cannot be written.  Checked before any stage runs."""
-    base = Path(scene.output.output_dir)
-    out = base / scene.scene.name
-    key = f"output.output_dir = {json.dumps(scene.output.output_dir)}"
-    for p in (base, out):
-        if p.exists() and not p.is_dir():
-            raise DermisError(f"{scene.path}: {key}: {p} is a file, not a folder; choose "
-                              "another output_dir (or remove the file)")
-    probe = out / f".write-check-{uuid.uuid4().hex}"
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        probe.mkdir()
-        probe.rmdir()
-    except OSError as exc:
-        raise DermisError(f"{scene.path}: {key}: outputs cannot be written to {out}: "
-                          f"{exc.strerror or exc}; choose another output_dir") from None
-    return out
-
-
-def _owned_entries() -> set[str]:
-    """The entries of ``output_dir/<scene>/`` a run writes (and replaces): run.json and the
-    stage output folders.  Anything else there (a sweep's folder, a user's notes) is kept."""
-    return {"run.json"} | {getattr(stage(n), "OUTPUT_FOLDER", n) for n in STAGE_NAMES}
 
 
 def dark_renders(scene: Scene, summary: RunSummary) -> list[str]:
@@ -218,55 +239,10 @@ def dark_renders(scene: Scene, summary: RunSummary) -> list[str]:
                        "camera.position, camera.look_at and mesh.units")
         elif not float(np.max(linear)) > 0.0:
             out.append(f"{rep.id}: the image is black although the camera sees the mesh: the "
-                       "light emits nothing (zero intensity or scale), the light is inside the "
+                       "light emits nothing (zero intensity or scale) or so little that every "
+                       "pixel rounds to 0 in float32, the light is inside the "
                        "mesh or behind the visible surface, or the camera is inside the mesh "
                        "(it sees back faces only); check [[lights]] and camera.position")
-    return out
-
-
-def _export(scene: Scene, store: Store, summary: RunSummary) -> Path:
-    """Copy file artifacts to ``output_dir/<scene>/<stage>/`` and write run.json beside them.
-
-    The folder then holds exactly this run's outputs: they are assembled in a temporary folder
-    beside them and swapped in per entry, replacing every entry an earlier run wrote
-    (:func:`_owned_entries`), so nothing of an earlier run (of another scene with the same
-    name, or with other models) is left among them."""
-    out = output_folder(scene)
-    tmp = out / f".export-{uuid.uuid4().hex}"
-    trash = out / f".old-{uuid.uuid4().hex}"
-    files = []
-    try:
-        tmp.mkdir()
-        for rep in summary.nodes:
-            meta = store.meta(rep.id, rep.key)
-            folder = (getattr(stage(rep.stage), "OUTPUT_FOLDER", rep.stage)
-                      if rep.stage in STAGE_NAMES else rep.stage)
-            for name in meta.get("files", []):
-                src = Path(rep.path) / name
-                if src.is_file():
-                    (tmp / folder).mkdir(exist_ok=True)
-                    shutil.copy2(src, tmp / folder / name)
-                    files.append(f"{folder}/{name}")
-        (tmp / "run.json").write_text(json.dumps({
-            "scene": scene.path, "cache": str(store.root), "files": sorted(files),
-            "warnings": list(getattr(summary, "warnings", [])),
-            "nodes": [{"id": r.id, "status": r.status, "seconds": r.seconds,
-                       "kernel_seconds": r.kernel_seconds, "key": r.key, "reasons": r.reasons}
-                      for r in summary.nodes]}, indent=1))
-        trash.mkdir()
-        for name in sorted(_owned_entries() | {p.name for p in tmp.iterdir()}):
-            if (out / name).exists() or (out / name).is_symlink():
-                os.rename(out / name, trash / name)
-            if (tmp / name).exists():
-                os.rename(tmp / name, out / name)
-    except OSError as exc:
-        raise DermisError(f"{scene.path}: output.output_dir: writing the outputs to {out} "
-                          f"failed: {exc.strerror or exc} ({exc.filename or out}); the cache "
-                          "is intact: free space or choose another output_dir and run again") \
-            from None
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-        shutil.rmtree(trash, ignore_errors=True)
     return out
 
 

@@ -216,7 +216,7 @@ class PixelSamples:
     counts : (M,) int32 unoccluded light samples of each hit; their rows in ``directions`` and
         ``weights`` are consecutive, in hit order
     directions : (K, 3) float32 unit, towards the light; weights : (K, 3) float32 RGB, so a
-        hit's radiance is sum f(wo, wi) weight cos(theta_i) (lighting/lights.py)
+        hit's radiance is sum f(wo, wi) weight cos(theta_i) (lighting/emitters.py)
     info : dict (rays traced, samples per hit, light names)
     """
 

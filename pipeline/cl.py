@@ -10,14 +10,26 @@ Programs are built from files in ``cl/`` with ``cl/`` on the include path, so
 every kernel can ``#include "common.h"``.  A ``#line`` directive makes compiler
 messages name the real file, and a failed build raises :class:`KernelBuildError`
 with the file, line, ``-D`` options, device and the compiler log.
+
+Running out of memory is :class:`DeviceMemoryError`, a :class:`MemoryError`: an OpenCL
+allocation failure (``MEM_OBJECT_ALLOCATION_FAILURE``, ``OUT_OF_RESOURCES``,
+``OUT_OF_HOST_MEMORY``, :func:`allocation_failure`) where buffers are created or programs
+built, or too little address space left under a ``ulimit -v`` limit for PoCL to compile and
+load a kernel (:func:`check_headroom`): PoCL aborts the whole process (SIGABRT, exit 134) when
+it cannot map a kernel's library, so the headroom is checked before every program use and
+buffer copy instead.  The command line reports a MemoryError in a stage as "out of memory in
+stage X" (exit 2).
 """
 from __future__ import annotations
 
 import hashlib
 import os
 import re
+import resource
+import sys
 import threading
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -28,7 +40,8 @@ from .errors import DermisError
 
 __all__ = [
     "ClEnv", "KernelBuildError", "NoOpenCLError", "CL_DIR", "get_env", "list_devices",
-    "kernel_sources_hash", "kernel_closure", "event_seconds", "check_device",
+    "kernel_sources_hash", "kernel_closure", "event_seconds", "check_device", "to_device",
+    "DeviceMemoryError", "allocation_failure", "check_headroom",
 ]
 
 ENV_VAR = "DERMIS_CL_DEVICE"
@@ -48,6 +61,86 @@ class NoOpenCLError(DermisError):
 
 class KernelBuildError(DermisError):
     """An OpenCL program failed to compile; the message names file:line and the log."""
+
+
+class DeviceMemoryError(MemoryError):
+    """The OpenCL device (or the process, for PoCL) has no memory left for a buffer, a
+    program or a kernel; the message names what was asked for and the OpenCL error."""
+
+
+# OpenCL status codes of an allocation that failed (CL/cl.h): pyopencl raises them as
+# pyopencl.MemoryError (-4, -6) or pyopencl.RuntimeError (-5), named in the message
+_ALLOCATION_FAILURES = {-4: "MEM_OBJECT_ALLOCATION_FAILURE", -5: "OUT_OF_RESOURCES",
+                        -6: "OUT_OF_HOST_MEMORY"}
+
+
+def allocation_failure(exc: BaseException) -> bool:
+    """Whether ``exc`` is an OpenCL allocation failure (see :data:`_ALLOCATION_FAILURES`):
+    a ``pyopencl.MemoryError``, or a pyopencl error or RuntimeError naming one of the codes."""
+    if isinstance(exc, DeviceMemoryError):
+        return True
+    cl = sys.modules.get("pyopencl")
+    is_cl = cl is not None and isinstance(exc, cl.Error)
+    if is_cl and isinstance(exc, cl.MemoryError):
+        return True
+    if not (is_cl or isinstance(exc, RuntimeError)):
+        return False
+    try:
+        code = exc.code if is_cl else None
+    except Exception:   # an Error built from a bare message has no status code
+        code = None
+    return code in _ALLOCATION_FAILURES or any(
+        name in str(exc) for name in _ALLOCATION_FAILURES.values())
+
+
+@contextmanager
+def allocating(what: str):
+    """Turn an OpenCL allocation failure inside the block into :class:`DeviceMemoryError`
+    naming ``what`` (e.g. "a 64.0 MiB buffer on Portable Computing Language / ...")."""
+    try:
+        yield
+    except Exception as exc:
+        if isinstance(exc, DeviceMemoryError) or not allocation_failure(exc):
+            raise
+        raise DeviceMemoryError(f"{what}: the OpenCL device could not allocate it "
+                                f"({type(exc).__name__}: {exc})") from exc
+
+
+# Address space PoCL needs beyond the data to build and load one more kernel: LLVM's code
+# generation, the mapped kernel library and its work-group threads (measured on the 2-core
+# PoCL 5 machine: a context takes ~380 MiB of address space, a first build ~110 MiB).
+POCL_HEADROOM_BYTES = 256 << 20
+
+
+def _address_space_used() -> int | None:
+    try:
+        with open("/proc/self/statm") as fh:
+            return int(fh.read().split()[0]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def check_headroom(nbytes: int, what: str) -> None:
+    """Raise :class:`DeviceMemoryError` when the process's address-space limit (``ulimit -v``,
+    RLIMIT_AS) leaves less than ``nbytes`` + :data:`POCL_HEADROOM_BYTES`: PoCL aborts the
+    process when it cannot map a kernel, so the shortage is reported before it gets there.
+    Without such a limit (the usual case) this does nothing."""
+    limit = resource.getrlimit(resource.RLIMIT_AS)[0]
+    if limit == resource.RLIM_INFINITY:
+        return
+    used = _address_space_used()
+    if used is None:
+        return
+    left = limit - used
+    if int(nbytes) + POCL_HEADROOM_BYTES > left:
+        need = (f"{_mib(nbytes)} plus " if nbytes else "") + (
+            f"{_mib(POCL_HEADROOM_BYTES)} to compile and load kernels")
+        raise DeviceMemoryError(f"{what}: {need} are needed, {_mib(max(left, 0))} of the "
+                                f"address-space limit (ulimit -v {limit >> 10}) are left")
+
+
+def _mib(nbytes: int) -> str:
+    return f"{nbytes / 2**20:.1f} MiB"
 
 
 def _cl():
@@ -197,6 +290,7 @@ class ClEnv:
         opts = [f"-I{CL_DIR}", "-cl-mad-enable"]
         opts += [f"-D{k}={v}" for k, v in defines.items()]
         key = (name, kernel_sources_hash([name]), tuple(opts))
+        check_headroom(0, f"OpenCL program {name} on {self.description}")
         with self._lock:
             if key in self._programs:
                 return self._programs[key]
@@ -206,7 +300,8 @@ class ClEnv:
             src = f'#line 1 "{path}"\n' + path.read_text()
             t0 = time.perf_counter()
             try:
-                prg = cl.Program(self.context, src).build(options=opts)
+                with allocating(f"building OpenCL program {name} on {self.description}"):
+                    prg = cl.Program(self.context, src).build(options=opts)
             except cl.RuntimeError as exc:
                 log = str(exc)
                 where = _first_error_location(log, path)
@@ -264,8 +359,9 @@ def get_env(spec: str | None = None) -> ClEnv:
     platform, device = _pick(spec)
     key = f"{platform.name}|{device.name}|{device.int_ptr}"
     if key not in _ENVS:
-        ctx = cl.Context([device])
-        queue = cl.CommandQueue(ctx, properties=cl.command_queue_properties.PROFILING_ENABLE)
+        with allocating(f"an OpenCL context on {platform.name.strip()} / {device.name.strip()}"):
+            ctx = cl.Context([device])
+            queue = cl.CommandQueue(ctx, properties=cl.command_queue_properties.PROFILING_ENABLE)
         _ENVS[key] = ClEnv(ctx, queue, device, platform)
     return _ENVS[key]
 
@@ -291,5 +387,8 @@ def to_device(env: ClEnv, array: np.ndarray):
     array = np.ascontiguousarray(array)
     if not array.nbytes:
         array = np.zeros(4, array.dtype)
-    return cl.Buffer(env.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
-                     hostbuf=array)
+    what = f"a {_mib(array.nbytes)} buffer on {env.description}"
+    check_headroom(array.nbytes, what)
+    with allocating(what):
+        return cl.Buffer(env.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
+                         hostbuf=array)

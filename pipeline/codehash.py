@@ -93,7 +93,7 @@ def _imported_names(name: str, tree: ast.AST) -> set[str]:
             else:
                 mod = node.module or ""
             found.add(mod)
-            # "from dermis.stages import mesh_prep": the names may be submodules themselves
+            # "from dermis.geometry import scan": the names may be submodules themselves
             found.update(f"{mod}.{a.name}" for a in node.names if _is_module(f"{mod}.{a.name}"))
     return {m for m in found if m == ROOT_PACKAGE or m.startswith(ROOT_PACKAGE + ".")}
 

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable
 
 from . import artifacts
+from .cl import DeviceMemoryError, allocation_failure
 from .codehash import closure_hash
 from .errors import DermisError
 from .reuse import KeyedLocks
@@ -290,10 +291,17 @@ def _load(store: Store, node_id: str, key: str):
         raise DermisError(f"cache entry {store.artifact_dir(node_id, key)} is corrupted "
                           f"({problem}); run again to rebuild it")
     d = store.artifact_dir(node_id, key)
-    if (d / "fields.json").is_file():
-        return restore_measurements(artifacts.load(d), store.meta(node_id, key)
-                                    .get("measurements", {}))
-    return d  # file-only artifacts (images): their directory
+    if not (d / "fields.json").is_file():
+        return d  # file-only artifacts (images): their directory
+    try:
+        measured = store.meta(node_id, key).get("measurements", {})
+        return restore_measurements(artifacts.load(d), measured if isinstance(measured, dict)
+                                    else {})
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        # intact by its checksums yet unreadable (e.g. written by an incompatible version)
+        store.discard(node_id, key)
+        raise DermisError(f"cache entry {d} cannot be read ({type(exc).__name__}: {exc}); it "
+                          "was removed: run again to rebuild it") from None
 
 
 @contextmanager
@@ -420,7 +428,8 @@ class _NodeRunner:
             except DermisError:
                 raise
             except Exception as exc:
-                raise StageFailure(nid, exc, traceback.format_exc()) from exc
+                cause = _exhaustion(exc) or exc   # out of memory: exit 2, not a traceback
+                raise StageFailure(nid, cause, traceback.format_exc()) from cause
             seconds = time.perf_counter() - t0
             if result.artifact is not None:
                 bad = artifacts.nonfinite_fields(result.artifact)
@@ -437,6 +446,8 @@ class _NodeRunner:
             build_s = self.ctx.build_seconds - build0   # OpenCL program builds: once per process
             meta = {"node": nid, "stage": node.stage, "key": key,
                     "parts": self.parts[nid],
+                    "artifact": (type(result.artifact).__name__ if result.artifact is not None
+                                 else None),
                     "seconds": seconds, "kernel_seconds": kernel_s, "info": info,
                     "build_seconds": build_s,
                     "measurements": measured if result.artifact is not None else {},
@@ -459,6 +470,22 @@ class _NodeRunner:
         rep.status, rep.seconds, rep.kernel_seconds = "ran", seconds, kernel_s
         rep.path = str(store.artifact_dir(nid, key))
         self.progress(node, 1.0)
+
+
+def _exhaustion(exc: BaseException) -> MemoryError | None:
+    """``exc`` as the MemoryError it stands for, or None: an OpenCL allocation failure
+    (:func:`pipeline.cl.allocation_failure`), or a thread that could not start (its stack
+    did not fit under the address-space limit, ``ulimit -v``)."""
+    if isinstance(exc, MemoryError):
+        return None
+    if allocation_failure(exc):
+        mem = DeviceMemoryError(f"{type(exc).__name__}: {exc}")
+    elif isinstance(exc, RuntimeError) and "can't start new thread" in str(exc):
+        mem = MemoryError(f"no memory for a new thread ({exc})")
+    else:
+        return None
+    mem.__cause__ = exc
+    return mem
 
 
 @functools.lru_cache(maxsize=1)

@@ -1,6 +1,16 @@
-"""Image files through OpenImageIO: read textures/HDRs, write linear EXR and sRGB PNG."""
+"""Image files through OpenImageIO: read textures/HDRs, write linear EXR and sRGB PNG.
+
+EXRs are written in 32-bit float, the precision of the rendered data: in half floats (largest
+65504, smallest subnormal 6e-8) the head under a point light of 1e12 is +Inf and under one of
+1e-3 all zero, while the float32 data are finite and non-zero (docs/hardening.md, "Outputs
+and the cache").  Where an image holds values that float32
+cannot represent (beyond +-3.4e38, NaN, Inf, or non-zero values below its smallest
+subnormal), :func:`write_exr` still writes it and warns with :class:`ImageRangeWarning`,
+naming the image and its value range.
+"""
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -9,7 +19,11 @@ from dermis.rendering.color import linear_to_srgb
 
 from .errors import DermisError
 
-__all__ = ["read_image", "write_exr", "write_png"]
+__all__ = ["read_image", "write_exr", "write_png", "ImageRangeWarning", "unrepresentable"]
+
+
+class ImageRangeWarning(UserWarning):
+    """An image holds values its file cannot represent (written anyway, see the message)."""
 
 
 def read_image(path: str | Path, *, channels: int | None = None, what: str = "image") -> np.ndarray:
@@ -72,9 +86,46 @@ def _write(path: Path, img: np.ndarray, fmt: str) -> Path:
     return path
 
 
+def unrepresentable(values: np.ndarray, stored: np.ndarray) -> str | None:
+    """Why ``stored`` (float32) does not hold ``values``, or None when it does: NaN or Inf,
+    finite values beyond float32's range (stored as Inf), non-zero values below its smallest
+    subnormal (stored as 0).  The reason names the value range of the finite values."""
+    values = np.asarray(values)
+    finite = np.isfinite(values)
+    problems = []
+    if not finite.all():
+        problems.append(f"{int(values.size - np.count_nonzero(finite))} NaN or Inf values")
+    lost_big = finite & ~np.isfinite(stored)
+    if lost_big.any():
+        problems.append(f"{int(np.count_nonzero(lost_big))} values beyond the float32 maximum "
+                        f"{float(np.finfo(np.float32).max):.3g}, stored as Inf")
+    lost_small = finite & (values != 0) & (stored == 0)
+    if lost_small.any():
+        problems.append(f"{int(np.count_nonzero(lost_small))} non-zero values below the "
+                        f"smallest float32 {float(np.finfo(np.float32).smallest_subnormal):.3g}, "
+                        "stored as 0")
+    if not problems:
+        return None
+    held = values[finite]
+    span = (f"finite values from {float(held.min()):.6g} to {float(held.max()):.6g}"
+            if held.size else "no finite values")
+    return f"{'; '.join(problems)} ({span})"
+
+
 def write_exr(path: str | Path, linear: np.ndarray) -> Path:
-    """Write a linear float image as half-float EXR."""
-    return _write(Path(path), np.asarray(linear, dtype=np.float32), "half")
+    """Write a linear image as a 32-bit float EXR (the precision of the rendered data).
+
+    Values float32 cannot hold (see :func:`unrepresentable`) are written as float32 stores
+    them, with an :class:`ImageRangeWarning` naming the file and the value range."""
+    path = Path(path)
+    values = np.asarray(linear)
+    with np.errstate(over="ignore", under="ignore", invalid="ignore"):
+        stored = values.astype(np.float32, copy=False)
+    why = unrepresentable(values, stored)
+    if why is not None:
+        warnings.warn(f"{path.name}: {why}; the EXR holds them as float32 stores them",
+                      ImageRangeWarning, stacklevel=2)
+    return _write(path, stored, "float")
 
 
 def write_png(path: str | Path, img: np.ndarray, *, encode_srgb: bool = False) -> Path:

@@ -1,12 +1,14 @@
-"""Stage lookup by name.  The stage list itself is the composition root's
-(``dermis.STAGES``, ``dermis.COMMANDS``); the engine imports stage modules only through
-:func:`stage` and :func:`command`."""
+"""Stage and model lookup by name.  The lists themselves are the composition root's
+(``dermis.STAGES``, ``dermis.MODELS``, ``dermis.COMMANDS``); the engine imports stage and
+model modules only through :func:`stage`, :func:`model` and :func:`command`."""
 from __future__ import annotations
 
 import importlib
 from types import ModuleType
 
-__all__ = ["STAGE_NAMES", "stage", "COMMANDS", "command"]
+from .errors import ConfigError
+
+__all__ = ["STAGE_NAMES", "stage", "MODEL_NAMES", "model", "COMMANDS", "command"]
 
 
 def _stages() -> dict[str, str]:
@@ -33,3 +35,19 @@ def command(name: str) -> ModuleType:
 def stage(name: str) -> ModuleType:
     """The module of stage ``name``: exports NAME, VERSION, KERNELS, node(...) and run(...)."""
     return importlib.import_module(_stages()[name])
+
+
+def _models() -> dict[str, str]:
+    import dermis
+    return dict(dermis.MODELS)
+
+
+MODEL_NAMES: tuple[str, ...] = tuple(_models())
+
+
+def model(name: str):
+    """The :class:`~dermis.models.model.Model` named ``name`` (its module's ``MODEL``)."""
+    modules = _models()
+    if name not in modules:
+        raise ConfigError(f"model = {name!r}: must be one of {', '.join(modules)}")
+    return importlib.import_module(modules[name]).MODEL

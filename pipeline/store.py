@@ -14,8 +14,11 @@ only by renaming a complete temporary directory, so distinct keys never block ea
 a key written twice is harmless (the second writer finds a valid entry and drops its own
 copy).  A run killed mid-stage leaves only ``.tmp`` debris, never trusted; debris of dead
 processes on this host is removed by the next run.  Integrity: an entry counts only if its
-``meta.json`` is there and every data file matches its recorded checksum
-(:meth:`Store.verify`); anything else is reported corrupted and rebuilt, never used.
+``meta.json`` is a JSON object that records every data file of the entry (plain names of
+files inside it, nothing else) with its size and checksum, every file it lists as an output
+is among them, an entry that held an artifact still holds both its files, and every data
+file matches its record (:meth:`Store.verify`, :func:`entry_problem`); anything else is
+reported corrupted and rebuilt, never used.
 """
 from __future__ import annotations
 
@@ -32,10 +35,11 @@ from pathlib import Path
 
 from .errors import CacheLockedError, DermisError
 
-__all__ = ["Store", "CACHE_ENV_VAR", "file_digest"]
+__all__ = ["Store", "CACHE_ENV_VAR", "file_digest", "entry_problem"]
 
 CACHE_ENV_VAR = "DERMIS_CACHE"
 META = "meta.json"
+ARTIFACT_FILES = ("data.npz", "fields.json")   # pipeline/artifacts.py save(): both or none
 
 
 def file_digest(path: str | os.PathLike) -> str:
@@ -64,18 +68,34 @@ class Store:
     def meta(self, node: str, key: str) -> dict:
         path = self.artifact_dir(node, key) / META
         try:
-            return json.loads(path.read_text())
+            meta = json.loads(path.read_text())
         except (OSError, ValueError) as exc:
-            raise DermisError(f"cache entry {path} is unreadable ({exc}); remove it with "
-                              f"`dermis clean --cache {self.root}`") from None
+            meta, why = None, f"{exc}"
+        else:
+            why = entry_problem(meta)
+        if why is not None:
+            raise DermisError(f"cache entry {path.parent} is damaged ({why}); run again to "
+                              "rebuild it") from None
+        return meta
+
+    def output_files(self, node: str, key: str) -> list[Path]:
+        """The files the entry lists as outputs (its ``files``): each one of its recorded data
+        files, so a path inside the entry (:func:`entry_problem` refuses anything else)."""
+        meta = self.meta(node, key)
+        return [self.artifact_dir(node, key) / name for name in meta.get("files", [])]
 
     # -- index (last key parts per node, for staleness reasons)
     def read_index(self, node: str) -> dict | None:
+        """The node's newest key and key parts, or None (none written, or unreadable)."""
         path = self.root / "index" / f"{node}.json"
         try:
-            return json.loads(path.read_text())
+            entry = json.loads(path.read_text())
         except (OSError, ValueError):
             return None
+        if not (isinstance(entry, dict) and isinstance(entry.get("key"), str)
+                and isinstance(entry.get("parts", {}), dict)):
+            return None
+        return entry
 
     def write_index(self, node: str, entry: dict) -> None:
         self._atomic_write_text(self.root / "index" / f"{node}.json",
@@ -97,14 +117,14 @@ class Store:
             return "not built"
         except (OSError, ValueError) as exc:
             return f"{META} unreadable ({exc})"
-        sums = meta.get("checksums")
-        if not isinstance(sums, dict):
-            return f"{META} records no checksums"
-        sizes = meta.get("sizes", {})
+        problem = entry_problem(meta) or _unrecorded(d, meta["checksums"])
+        if problem is not None:
+            return problem
+        sums, sizes = meta["checksums"], meta.get("sizes", {})
         for name, digest in sums.items():
             f = d / name
-            if not f.is_file():
-                return f"{name} is missing"
+            if f.is_symlink() or not f.is_file():
+                return f"{name} is missing" if not f.is_symlink() else f"{name} is a link"
             if name in sizes and f.stat().st_size != sizes[name]:
                 return f"{name} has {f.stat().st_size} bytes, not {sizes[name]}"
             if deep and file_digest(f) != digest:
@@ -148,6 +168,12 @@ class Store:
         finally:
             if tmp.exists():
                 shutil.rmtree(tmp, ignore_errors=True)
+
+    def discard(self, node: str, key: str) -> None:
+        """Remove an entry (atomically: readers see all of it or none)."""
+        d = self.artifact_dir(node, key)
+        _VERIFIED.pop(d, None)
+        self._discard(d)
 
     def _discard(self, path: Path) -> None:
         """Move an entry aside atomically, then delete it (readers never see half of it)."""
@@ -200,10 +226,8 @@ class Store:
         for d in tmp_root.iterdir():
             host, _, rest = d.name.partition("-")
             pid = rest.partition("-")[0]
-            if host == _host() and pid.isdigit() and _alive(int(pid)):
-                continue
-            if host != _host() and pid.isdigit():
-                continue  # another machine's work in progress
+            if pid.isdigit() and not owner_gone(host, int(pid)):
+                continue  # work in progress here, or on another machine
             shutil.rmtree(d, ignore_errors=True)
 
     def clean(self, node_prefix: str | None = None) -> int:
@@ -227,6 +251,59 @@ class Store:
         return removed
 
 
+def _plain_name(name) -> bool:
+    """A file directly inside an entry: no separator, not ``.``/``..``, not meta.json."""
+    return (isinstance(name, str) and name not in ("", ".", "..", META)
+            and not any(c in name for c in "/\\\0"))
+
+
+def entry_problem(meta) -> str | None:
+    """Why a parsed ``meta.json`` cannot describe a valid entry, or None.
+
+    An entry names only files inside itself: its ``checksums`` and ``sizes`` record the same
+    plain file names, every name in ``files`` (the outputs copied to the output folder) is one
+    of them, and an entry that held an artifact (``"artifact"`` set, or either of
+    :data:`ARTIFACT_FILES` recorded) records both of its files.  An entry that records no data
+    file at all is valid only when it says it held none (``"artifact": null``, no files)."""
+    if not isinstance(meta, dict):
+        return f"{META} holds {json.dumps(meta)[:40]}, not an object"
+    sums, sizes = meta.get("checksums"), meta.get("sizes")
+    if not isinstance(sums, dict) or not all(isinstance(v, str) for v in sums.values()):
+        return f"{META} records no checksums"
+    if sizes is not None and (not isinstance(sizes, dict) or set(sizes) != set(sums) or not all(
+            isinstance(v, int) for v in sizes.values())):
+        return f"{META} records sizes of other files than its checksums"
+    outside = sorted(str(n) for n in sums if not _plain_name(n))
+    if outside:
+        return f"{META} names {outside[0]!r}, which is not a file inside the entry"
+    files = meta.get("files", [])
+    if not isinstance(files, list):
+        return f"{META} lists its output files as {json.dumps(files)[:40]}, not a list"
+    foreign = [n for n in files if not isinstance(n, str) or n not in sums]
+    if foreign:
+        return (f"{META} lists the output {str(foreign[0])!r}, which is not one of the entry's "
+                "recorded files")
+    held = [n for n in ARTIFACT_FILES if n in sums]
+    if (meta.get("artifact") or held) and len(held) != len(ARTIFACT_FILES):
+        missing = next(n for n in ARTIFACT_FILES if n not in sums)
+        return f"{META} records no {missing} (the entry held an artifact)"
+    if not sums and "artifact" not in meta:
+        return f"{META} records no data files"
+    return None
+
+
+def _unrecorded(d: Path, sums: dict) -> str | None:
+    """A data file in the entry that its meta.json does not record (names starting with a
+    dot, e.g. NFS's ``.nfs*`` placeholders, and folders are not data files)."""
+    try:
+        names = sorted(p.name for p in d.iterdir() if not p.name.startswith(".")
+                       and p.name != META and (p.is_symlink() or not p.is_dir()))
+    except OSError as exc:
+        return f"entry unreadable ({exc.strerror or exc})"
+    extra = [n for n in names if n not in sums]
+    return f"{extra[0]} is not recorded in its {META}" if extra else None
+
+
 # Entries deep-verified by this process, with the (size, mtime) of every file then: a file
 # rewritten since is hashed again.
 _VERIFIED: dict[Path, tuple] = {}
@@ -242,6 +319,19 @@ def _stamp(d: Path) -> tuple | None:
 
 def _host() -> str:
     return socket.gethostname().replace("-", "_") or "host"
+
+
+def owner_token() -> str:
+    """``<host>-<pid>`` of this process, for names of work in progress (the host without
+    dashes, so the token splits at them)."""
+    return f"{_host()}-{os.getpid()}"
+
+
+def owner_gone(host: str, pid: int) -> bool:
+    """Whether the process ``pid`` of ``host`` (as :func:`owner_token` spells it) no longer
+    exists; a process of another host is never judged gone (it may be working on a shared
+    file system)."""
+    return host == _host() and not _alive(pid)
 
 
 def _alive(pid: int) -> bool:

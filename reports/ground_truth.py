@@ -6,7 +6,7 @@ scale beside it (docs/ground-truth.md):
 
 * **Blocks.**  A model image (camera size) is averaged over the block of camera pixels
   each reference pixel covers (the reference's box filter), then both are averaged further
-  over f x f blocks, f in :data:`dermis.stages.reference.NOISE_FACTORS`.  Only blocks whose
+  over f x f blocks, f in :data:`dermis.groundtruth.noise.NOISE_FACTORS`.  Only blocks whose
   every camera pixel hits the mesh count.  At each f: the relative RMSE e (the report's
   ``rel_rmse`` definition), the reference's noise sigma at f, and e_true = sqrt(e^2 -
   sigma^2) (the model's error and the reference's noise are independent, so their squares
@@ -45,13 +45,14 @@ import numpy as np
 from dermis.pipeline.config import BSSRDF_MODELS, MODELS, THESIS_MODELS
 from dermis.rendering.color import LUMINANCE
 from dermis.geometry.regions import REGION_LABELS, REGIONS, block_mean, face_regions
+from dermis.groundtruth.noise import NOISE_FACTORS
 
 __all__ = ["region_labels_for", "ground_truth_metrics", "write_ground_truth",
-           "ground_truth_pages", "thesis_checks", "RESOLVE_K", "GEOMETRY"]
+           "ground_truth_pages", "ground_truth_section", "thesis_checks", "RESOLVE_K",
+           "GEOMETRY"]
 
 RESOLVE_K = 2.0          # a difference must exceed 2 sigma of the reference to count
 GEOMETRY = "high"        # the references are rendered on the high mesh
-FACTORS = (1, 2, 4, 8)   # as dermis.stages.reference.NOISE_FACTORS (not imported: no Mitsuba)
 # Models are ranked on 4x4 blocks of reference pixels: at single pixels a CPU reference's
 # noise (~50 % at 128 spp) buries the differences between models (measured, docs/ground-truth.md)
 RANK_FACTOR = 4
@@ -70,7 +71,7 @@ def region_labels_for(mesh, camera, *, width: int, height: int, with_faces: bool
     through dermis's own camera rays and Embree (and the (H, W) face index, -1 = miss)."""
     from dataclasses import replace
     from dermis.lighting.visibility import Visibility
-    from dermis.stages.render import camera_rays
+    from dermis.lighting.visibility import camera_rays
     cam = replace(camera, width=int(width), height=int(height))
     o, d = camera_rays(cam)
     hits = Visibility(mesh.vertices, mesh.faces).intersect(o, d)
@@ -198,7 +199,7 @@ def ground_truth_metrics(images: dict, references: dict, *, mesh, camera,
             valid = full & rmask
             rec = {"model": model, "light": light, "factor_to_reference": im.linear.shape[0] // h,
                    "pixels": int(valid.sum()), "scales": {}, "regions": {}}
-            for f in FACTORS:
+            for f in NOISE_FACTORS:
                 Db, mb = block_mean(D, valid, f)
                 Mb, _ = block_mean(M, valid, f)
                 if not mb.any():
@@ -573,3 +574,24 @@ def ground_truth_pages(pdf, metrics: dict | None, images: dict, references: dict
     plt.close(fig)
     pages += 1
     return pages
+
+
+def ground_truth_section(images: dict, references: dict, out_dir, files: list, *, mesh, camera,
+                         extra_seconds: dict, skip_reason: str | None):
+    """The report's distance-to-ground-truth section: metrics and files of ``references``
+    (light -> RenderedImage; ``mesh`` and ``camera`` as :func:`ground_truth_metrics`, unused
+    when there are none), and a function adding its pages to the open PDF.
+
+    Its files are appended to ``files``.  Returns that function and an info dict whose
+    ``pages`` is filled in when the function has run."""
+    info = {"references": sorted(references), "pages": 0}
+    gt = None
+    if references:
+        gt = ground_truth_metrics(images, references, mesh=mesh, camera=camera,
+                                  extra_seconds=extra_seconds)
+        files.extend(write_ground_truth(gt, images, references, out_dir))
+        info["ranking"] = gt["ranking"]
+
+    def add_pages(pdf):
+        info["pages"] = ground_truth_pages(pdf, gt, images, references, skip_reason=skip_reason)
+    return add_pages, info

@@ -487,7 +487,8 @@ def write_report(images: dict, metrics: dict, out_pdf, *, scene_name: str, devic
     tiles : the ``tiles_out`` of :func:`reports.diff.write_differences`, optional: its
         difference images are placed as they are (else recomputed)
     image_tiles : {(model, light, geometry): uint8 thumbnail}, optional: the images stage's
-        tone-mapped thumbnails (:func:`reports.images.load_thumbnails`), else tone-mapped here
+        tone-mapped thumbnails (:func:`reports.comparison_images.load_thumbnails`), else
+        tone-mapped here
     timings_extra : dict (light, mesh) -> seconds, optional
         The BSSRDF's irradiance pass per lighting condition and mesh ("mesh_high"/"mesh_low",
         or "high"/"low"); added to the BSSRDF's time in the table, summary and scatter plot.

@@ -10,20 +10,22 @@ One page (issue 12; the models and the measurements behind them: docs/profiles.m
   with the table's own +-2 standard-error band (what the comparison cannot resolve);
 * bottom: Rd and Tt of every model per channel, their error against the Monte Carlo (with
   its standard error) and the R(r) error over [0.05, 5] mm
-  (:func:`dermis.stages.profile_cli.profile_errors`: misplaced energy, largest error).
+  (:func:`dermis.optics.profile_command.profile_errors`: misplaced energy, largest error).
 
 Rd and Tt are per photon that entered the top surface (the specular reflection at entry
-not counted; ``stages.profiles.RD_CONVENTION``).  Without a Monte Carlo table in the scene
+not counted; ``optics.layer_file.RD_CONVENTION``).  Without a Monte Carlo table in the scene
 the page shows the scene's profile alone and says how to add the table.
 """
 from __future__ import annotations
 
 import numpy as np
 
+from dermis.optics.profile_command import ERROR_BAND_MM, profile_errors, ring_energy
+
 __all__ = ["profile_pages", "PAGES", "BAND_MM", "NOISE_BAND_SIGMA"]
 
 PAGES = 1
-BAND_MM = (0.02, 10.0)          # radii drawn (mm); the error columns use profile_cli's band
+BAND_MM = (0.02, 10.0)          # radii drawn (mm); the error columns use profile_command's band
 NOISE_BAND_SIGMA = 2.0          # the Monte Carlo band: +-2 standard errors per ring
 Y_DECADES = 1e-5                # r R(r) drawn over five decades below its peak (a drawing choice)
 # Minor grid lines of the log axes at 2 and 5 x each decade (a 1-2-5 grid) instead of
@@ -56,8 +58,6 @@ def profile_pages(pdf, profiles: dict) -> int:
     ``profiles``: node id -> :class:`pipeline.artifacts.LayerProfile` (the scene's profiles
     nodes; at most one Monte Carlo table is the reference, the first by node id).
     """
-    from dermis.stages.profile_cli import ERROR_BAND_MM, profile_errors, ring_energy
-
     import matplotlib.pyplot as plt
 
     if not profiles:
@@ -69,7 +69,6 @@ def profile_pages(pdf, profiles: dict) -> int:
 
 def _page(pdf, plt, profiles: dict) -> int:
     from matplotlib.ticker import LogLocator
-    from dermis.stages.profile_cli import ERROR_BAND_MM, profile_errors, ring_energy
     profs = [profiles[k] for k in sorted(profiles)]
     mcs = [p for p in profs if p.info.get("model") == "monte_carlo"]
     mc = mcs[0] if mcs else None
@@ -149,7 +148,6 @@ def _pct(x, se=None) -> str:
 
 def _table(fig, models, mc, errs) -> None:
     """Rd, Tt and the errors against the table, one row per model and channel."""
-    from dermis.stages.profile_cli import ERROR_BAND_MM
     header = ["model / channel", "Rd", "Tt", "Rd vs MC", "Tt vs MC",
               f"R(r) misplaced {ERROR_BAND_MM[0]:g}-{ERROR_BAND_MM[1]:g} mm",
               "largest R(r) error (at r)"]

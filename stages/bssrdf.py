@@ -1,9 +1,10 @@
 """Stage ``bssrdf``: Jensen-Buhler pass 2 at every pixel of one BSSRDF image.
 
 Per pixel: the surface seen by the camera (shared with the BRDF renderer,
-:func:`dermis.stages.render.pixel_surface`), the radiant exitance from the hierarchical
-gather over the irradiance points (:mod:`dermis.stages.gather`), the Fresnel-weighted exit
-to radiance (:func:`dermis.stages.gather.exitance_to_radiance`), and the surface reflection
+:func:`dermis.rendering.surface.pixel_surface`), the radiant exitance from the hierarchical
+gather over the irradiance points (:func:`dermis.subsurface.exitance.exitance`), the
+Fresnel-weighted exit to radiance (:func:`dermis.subsurface.radiance.exitance_to_radiance`),
+and the surface reflection
 term (Lafortune's specular lobes with rho_d = 0, so the images compare with the BRDF
 models').  One node per BSSRDF model (``bssrdf``: the scene's profile model; ``bssrdf_mc``: the
 Monte Carlo-tabulated profile), lighting condition and geometry; pass 1 is the
@@ -17,11 +18,21 @@ from dataclasses import asdict
 import numpy as np
 
 from dermis.pipeline.artifacts import RenderedImage
-from dermis.pipeline.config import CameraConfig, LightConfig
+from dermis.pipeline.config import CameraConfig, LightConfig, profile_model, profiles_node_id
 from dermis.pipeline.graph import Node, StageResult
 from dermis.pipeline.imageio import write_exr
-from dermis.stages import gather, render
-from dermis.lighting.lights import light_params
+from dermis.stages import render
+from dermis.models import lafortune
+from dermis.optics.transmittance import Transmittance
+from dermis.rendering.options import RenderOptions
+from dermis.rendering import shade
+from dermis.rendering.surface import pixel_surface
+from dermis.subsurface.exitance import ExitanceOptions, ShadingPoints, exitance
+from dermis.subsurface.near_field import SHARP_LIGHTS
+from dermis.subsurface.radiance import exitance_to_radiance
+from dermis.subsurface.shadow_edges import sharp_visibility
+from dermis.lighting.emitters import light_params
+from dermis.lighting.visibility import shared as shared_embree
 
 NAME = "bssrdf"
 VERSION = 2   # 2: optics-resolved near field, entry/exit transmittance
@@ -33,7 +44,6 @@ def node(scene, label: str, lights: tuple, geometry: str, model: str = "bssrdf")
     """One BSSRDF image; ``model`` (a key of ``config.BSSRDF_MODELS``) picks the profiles
     node its gather reads: ``bssrdf`` the scene's ``[optics] profile``, ``bssrdf_mc`` the
     Monte Carlo table.  Points, irradiance and visibility are the same for both."""
-    from dermis.pipeline.config import profile_model, profiles_node_id
     mesh_node, bump = render.GEOMETRY[geometry]
     deps = {**render.geometry_inputs(geometry, label), "points": f"samples-{mesh_node}",
             "irradiance": f"irradiance-{mesh_node}-{label}",
@@ -50,10 +60,10 @@ def node(scene, label: str, lights: tuple, geometry: str, model: str = "bssrdf")
 def _surface_term(mesh, lights, camera, maps, bump, seed, samples, ctx) -> tuple[np.ndarray, dict]:
     """Lafortune's specular lobes (rho_d = 0): the light reflected at the surface, shaded
     with the shared visibility (the same rays as the BRDF models)."""
-    from dermis.stages.brdf_models import LafortuneParams
-    spec = render.render(mesh, lights, "lafortune", LafortuneParams(rho_d=(0.0, 0.0, 0.0)),
-                         camera, maps=maps, bump=bump, seed=seed, samples=samples,
-                         cl_env=ctx.cl, textured=False, memo=ctx.memo)
+    spec = shade.render(mesh, lights, lafortune.MODEL,
+                        lafortune.LafortuneParams(rho_d=(0.0, 0.0, 0.0)), camera,
+                        RenderOptions(maps=maps, bump=bump, seed=seed, samples=samples,
+                                      textured=False), cl_env=ctx.cl, memo=ctx.memo)
     return spec.linear.reshape(-1, 3), spec.timings
 
 
@@ -63,37 +73,34 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     mesh, maps, profile = inputs["mesh"], inputs.get("maps"), inputs["profile"]
     camera = CameraConfig(**params["camera"])
     lights = [LightConfig(**d) for d in params["lights"]]
-    vis = inputs["visibility"]   # shared camera + shadow rays (stages/visibility.py)
-    px = render.pixel_surface(mesh, camera, samples=vis, maps=maps, bump=params["bump"],
-                              cl_env=ctx.cl, memo=ctx.memo)
+    vis = inputs["visibility"]   # shared camera + shadow rays (rendering/cast.py)
+    px = pixel_surface(mesh, camera, vis, RenderOptions(maps=maps, bump=params["bump"]),
+                       cl_env=ctx.cl, memo=ctx.memo)
     t_vis = time.perf_counter() - t_start
     front, surf = px.front_idx, px.surf
     t0 = time.perf_counter()
     # far part of the profile from the points, near part at each shading point, with the
-    # entry transmittance the irradiance stage applied (stages/gather.py "near field")
-    from dermis.lighting.visibility import shared as shared_embree
-    transmit = gather.Transmittance(params["eta"], b["surface_reflection"])
+    # entry transmittance the irradiance stage applied (subsurface/near_field.py)
+    transmit = Transmittance(params["eta"], b["surface_reflection"])
     # the mesh's Embree scene only where the near field traces it (point/directional lights'
     # shadow edges): building it for the 1M-triangle scan took 3.5 s of a 10.5 s image
     # re-rendered alone (bench/results/bssrdf.json), unused by area and environment light
     vis_embree = (shared_embree(mesh, ctx.memo)
-                  if any(l.type in gather.SHARP_LIGHTS for l in lights) else None)
-    M, stats = gather.exitance(inputs["points"], inputs["irradiance"].irradiance, profile,
-                               surf["position"][front],
-                               shading_normals=surf["shading_normal"][front],
-                               geo_normals=surf["geo_normal"][front], lights=lights,
-                               visibility=vis_embree, epsilon=b["epsilon"],
-                               transmittance=transmit, normalisation=b["normalisation"],
-                               leaf_size=b["leaf_size"], brute_force=b["brute_force"],
-                               env=ctx.cl, memo=ctx.memo, progress=ctx.progress,
-                               visible=gather.sharp_visibility(vis, front, surf["position"][front],
-                                                               lights))
+                  if any(l.type in SHARP_LIGHTS for l in lights) else None)
+    shading = ShadingPoints(surf["position"][front], surf["shading_normal"][front],
+                            surf["geo_normal"][front],
+                            visible=sharp_visibility(vis, front, surf["position"][front], lights))
+    options = ExitanceOptions(epsilon=b["epsilon"], normalisation=b["normalisation"],
+                              leaf_size=b["leaf_size"], brute_force=b["brute_force"],
+                              transmittance=transmit, env=ctx.cl, progress=ctx.progress)
+    M, stats = exitance(inputs["points"], inputs["irradiance"].irradiance, profile, shading,
+                        lights=lights, visibility=vis_embree, options=options, memo=ctx.memo)
     t_gather = time.perf_counter() - t0
     cos_o = np.einsum("ij,ij->i", surf["shading_normal"][front], surf["wo"][front])
     albedo = None if b["albedo_mode"] == "none" else surf["albedo"][front]
-    L = gather.exitance_to_radiance(M, cos_o, params["eta"], albedo=albedo,
-                                    albedo_mode="replace" if albedo is None else b["albedo_mode"],
-                                    rd=profile.Rd, transmittance=transmit)
+    L = exitance_to_radiance(M, cos_o, params["eta"], albedo=albedo,
+                             albedo_mode="replace" if albedo is None else b["albedo_mode"],
+                             rd=profile.Rd, transmittance=transmit)
     image = px.pixels(L, front)   # box filter over the pixel's camera samples
     timings = {"visibility": t_vis, "gather": t_gather,
                **{k: float(stats[k]) for k in ("edges_seconds", "near_seconds") if k in stats},
@@ -106,7 +113,7 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
         timings["kernel_seconds"] += spec_t.get("kernel_seconds", 0.0)
     image = np.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0)
     # the image's own work: the surface pass is shared by the geometry's images (its seconds
-    # in "surface_shared", stages/render.py pixel_surface), like the visibility
+    # in "surface_shared", rendering/surface.py pixel_surface), like the visibility
     timings["surface_shared"] = px.surface_seconds
     timings["total"] = time.perf_counter() - t_start - t_vis
     linear = image.reshape(px.height, px.width, 3)

@@ -1,10 +1,10 @@
 """Stage ``irradiance``: irradiance at the BSSRDF sample points from one lighting condition.
 
 Jensen-Buhler pass 1: each point's irradiance with shadows, from
-:func:`dermis.lighting.lights.irradiance` (thesis: 64 shadow samples for area and environment
+:func:`dermis.lighting.irradiance.irradiance` (thesis: 64 shadow samples for area and environment
 lights).  One node per mesh and lighting condition.  The irradiance stored is the part that
 enters the skin: each light sample is weighted by the entry transmittance
-:class:`dermis.stages.brdf_models.Transmittance` at its cosine (Fresnel, and with the BSSRDF's
+:class:`dermis.optics.transmittance.Transmittance` at its cosine (Fresnel, and with the BSSRDF's
 surface term min(Fresnel, 1 - the lobes' albedo); docs/science.md §4), because the
 profile's Rd is per entering photon.  Cost per mesh and light (64 samples, ~241k points):
 ``bench/bench_irradiance.py`` -> ``bench/results/irradiance.json`` (docs/science.md §4).
@@ -16,8 +16,10 @@ import time
 from dermis.pipeline.artifacts import PointIrradiance
 from dermis.pipeline.config import LightConfig
 from dermis.pipeline.graph import Node, StageResult
-from dermis.lighting.lights import light_params
+from dermis.lighting.emitters import SamplingOptions, light_params
+from dermis.lighting.irradiance import irradiance
 from dermis.lighting.visibility import shared as shared_visibility
+from dermis.optics.transmittance import Transmittance
 
 NAME = "irradiance"
 VERSION = 2   # 2: entering irradiance (entry transmittance per light sample)
@@ -35,16 +37,14 @@ def node(scene, mesh_node: str, label: str, lights: tuple) -> Node:
 
 
 def run(params: dict, inputs: dict, ctx) -> StageResult:
-    from dermis.lighting.lights import irradiance
-    from dermis.stages.brdf_models import Transmittance
     pts, mesh = inputs["points"], inputs["mesh"]
     t0 = time.perf_counter()
     vis = shared_visibility(mesh, ctx.memo)
     lights = [LightConfig(**d) for d in params["lights"]]
     entry = params["entry"]
     transmit = Transmittance(entry["eta"], entry["surface_reflection"])
-    E = irradiance(pts.positions, pts.normals, lights, vis.occluded, samples=params["samples"],
-                   seed=params["seed"], transmittance=transmit)
+    E = irradiance(pts.positions, pts.normals, lights, vis.occluded, seed=params["seed"],
+                   options=SamplingOptions(samples=params["samples"]), transmittance=transmit)
     info = {"seconds": time.perf_counter() - t0, "points": int(len(E)),
             "samples": params["samples"], "entry_transmittance": repr(transmit)}
     return StageResult(PointIrradiance(E, info), info=info)

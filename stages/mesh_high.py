@@ -1,8 +1,11 @@
 """Stage ``mesh_high``: the ~1M-triangle mesh (Loop subdivision + displacement for scans) with
-angle-weighted vertex normals (:func:`dermis.stages.mesh_prep.make_high`)."""
+angle-weighted vertex normals (:func:`dermis.geometry.subdivision.make_high`)."""
 from __future__ import annotations
 
+from dermis.geometry.subdivision import make_high
+from dermis.pipeline.artifacts import angle_weighted_normals
 from dermis.pipeline.graph import Node, StageResult
+from dermis.pipeline.imageio import read_image
 from dermis.pipeline.store import file_digest
 
 NAME = "mesh_high"
@@ -22,14 +25,10 @@ def node(scene) -> Node:
 
 
 def run(params: dict, inputs: dict, ctx) -> StageResult:
-    from dermis.pipeline.artifacts import angle_weighted_normals
-    from dermis.pipeline.imageio import read_image
-    from dermis.stages import mesh_prep
     disp = params["displacement"]
     image = read_image(disp, channels=1, what="mesh.displacement")[..., 0] if disp else None
-    high = mesh_prep.make_high(inputs["source"], target_triangles=params["target_triangles"],
-                               displacement=image,
-                               displacement_scale_mm=params["displacement_scale_mm"],
-                               displacement_mid=params["displacement_mid"])
+    high = make_high(inputs["source"], target_triangles=params["target_triangles"],
+                     displacement=image, displacement_scale_mm=params["displacement_scale_mm"],
+                     displacement_mid=params["displacement_mid"])
     high.normals = angle_weighted_normals(high.vertices, high.faces)
     return StageResult(high, info={"triangles": high.n_triangles})

@@ -1,7 +1,10 @@
 """Stage ``mesh_low``: quadric simplification to the thesis's 16,750 triangles and the thesis's
-nearest-vertex UV transfer with seam repair (:mod:`dermis.stages.mesh_prep`)."""
+nearest-vertex UV transfer with seam repair (:func:`dermis.geometry.simplification.simplify`,
+:func:`dermis.geometry.uv_transfer.transfer_uv`)."""
 from __future__ import annotations
 
+from dermis.geometry.simplification import simplify
+from dermis.geometry.uv_transfer import transfer_uv
 from dermis.pipeline.graph import Node, StageResult
 
 NAME = "mesh_low"
@@ -15,8 +18,7 @@ def node(scene) -> Node:
 
 
 def run(params: dict, inputs: dict, ctx) -> StageResult:
-    from dermis.stages import mesh_prep
     high = inputs["high"]
-    low = mesh_prep.simplify(high, target_triangles=params["target_triangles"])
-    low, report = mesh_prep.transfer_uv(high, low)
+    low = simplify(high, target_triangles=params["target_triangles"])
+    low, report = transfer_uv(high, low)
     return StageResult(low, info={"uv_transfer": report, "triangles": low.n_triangles})

@@ -71,7 +71,7 @@ def smooth_colour(dirs: np.ndarray) -> np.ndarray:
 
 
 def srgb8(linear: np.ndarray) -> np.ndarray:
-    """Linear [0, 1] -> sRGB uint8 (IEC 61966-2-1), independent of stages.bake."""
+    """Linear [0, 1] -> sRGB uint8 (IEC 61966-2-1), independent of geometry/bake.py."""
     c = np.clip(linear, 0, 1)
     s = np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
     return np.rint(s * 255).astype(np.uint8)

@@ -1,18 +1,19 @@
 """Float64 NumPy references of the three local reflectance models, used only by the tests.
 
 Written from the formulas (angles, not the kernels' vector algebra) to check the OpenCL
-``<model>_eval`` kernels of ``stages/brdf_models.py``.  Conventions as there: local shading
+``<model>_eval`` kernels of ``models/``.  Conventions as there: local shading
 frame with z along the shading normal, ``wo`` and ``wi`` unit vectors pointing away from the
 surface, f excludes the cosine, RGB linear.  HK93's single-scattering term is the
-pipeline's own float64 function (``brdf_models._hk93_single_np``: HK93Params derives its
+pipeline's own float64 function (``models/hk93.py _hk93_single_np``: HK93Params derives its
 constant multiple-scattering albedo from it), so it is imported rather than copied.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from dermis.stages.brdf_models import (AsperityParams, HK93Params, LafortuneParams, _angles,
-                                       _hk93_single_np)
+from dermis.models.asperity import AsperityParams
+from dermis.models.hk93 import HK93Params, _angles, _hk93_single_np
+from dermis.models.lafortune import LafortuneParams
 
 __all__ = ["lafortune_f_np", "hk93_f_np", "asperity_f_np"]
 

@@ -19,8 +19,12 @@ import pytest
 from dermis.pipeline.artifacts import Mesh
 from dermis.pipeline.config import CameraConfig, LightConfig
 from dermis.lighting.visibility import camera_rays, subpixel_offsets
-from dermis.stages.render import LambertParams, pixel_surface, render
-from dermis.stages.visibility import cast
+from dermis.models import lambert
+from dermis.models.lambert import LambertParams
+from dermis.rendering.cast import cast
+from dermis.rendering.options import RenderOptions
+from dermis.rendering.shade import render
+from dermis.rendering.surface import pixel_surface
 
 sys.path.insert(0, str(Path(__file__).parent))
 
@@ -89,8 +93,8 @@ def test01_edge_coverage_converges_to_the_exact_area(cl_env):
     assert edge.sum() > 40                          # the edge crosses the whole frame
     errors = {}
     for spp in (1, 4, 16, 64):
-        res = render(mesh, light, "lambert", LambertParams((1.0, 1.0, 1.0)), cam, spp=spp,
-                     seed=3, cl_env=cl_env)
+        res = render(mesh, light, lambert.MODEL, LambertParams((1.0, 1.0, 1.0)), cam,
+                     RenderOptions(spp=spp, seed=3), cl_env=cl_env)
         # a covered sample returns E / pi * albedo = 1: the pixel value is its coverage
         value = res.linear[..., 0]
         np.testing.assert_allclose(value, res.coverage, atol=2e-6)
@@ -124,7 +128,7 @@ def test02_subpixel_samples_are_stratified_and_seeded():
 # ------------------------------------------------------------------------ no black outlines
 @pytest.fixture(scope="module")
 def scan():
-    from dermis.stages.scan_io import load_scan
+    from dermis.geometry.scan import load_scan
     lps = REPO / "scenes" / "assets" / "lps_head"
     return load_scan(lps / "LeePerrySmith_cm.obj", units="cm", texture=lps / "Map-COL.jpg")
 
@@ -139,12 +143,12 @@ def test03_no_black_pixel_inside_the_silhouette_of_a_fully_lit_head(scan, cl_env
     """A light at the eye lights every point the camera sees.  Before the fix, hits whose
     interpolated normal faced away from the camera (eyelid and lip creases, nostrils) were
     black: 9 of the 35,051 inner head pixels at this size, 53 at 800 x 800."""
-    from dermis.stages.brdf_models import AsperityParams, HK93Params, LafortuneParams
+    from dermis.models import asperity, hk93, lafortune
 
     cam = _head_camera(300)
     eye = LightConfig(name="eye", type="point", position=cam.position, intensity=(4e5,) * 3)
-    samples = cast(scan, eye, cam, spp=4, seed=1, cl_env=cl_env)
-    px = pixel_surface(scan, cam, samples=samples, cl_env=cl_env)
+    samples = cast(scan, eye, cam, RenderOptions(spp=4, seed=1), cl_env=cl_env)
+    px = pixel_surface(scan, cam, samples, cl_env=cl_env)
     ns, ng, wo = px.surf["shading_normal"], px.surf["geo_normal"], px.surf["wo"]
     # every hit is shaded, facing the camera: ng . wo >= 0 and ns . wo >= NS_MIN_COS (0.1)
     assert np.all(np.einsum("ij,ij->i", ng, wo) >= 0)
@@ -153,11 +157,13 @@ def test03_no_black_pixel_inside_the_silhouette_of_a_fully_lit_head(scan, cl_env
     assert old_black > 0          # the scan does have such creases (else the test is empty)
     inside = px.coverage >= 1.0
     assert inside.sum() > 0.3 * inside.size
-    for model, params in (("lafortune", LafortuneParams()), ("hk93", HK93Params()),
-                          ("asperity", AsperityParams())):
-        res = render(scan, eye, model, params, cam, samples=samples, cl_env=cl_env)
+    for model, params in ((lafortune.MODEL, lafortune.LafortuneParams()),
+                          (hk93.MODEL, hk93.HK93Params()),
+                          (asperity.MODEL, asperity.AsperityParams())):
+        res = render(scan, eye, model, params, cam, RenderOptions(samples=samples),
+                     cl_env=cl_env)
         black = inside & ~(res.linear.max(axis=2) > 0)
-        assert black.sum() == 0, (model, np.argwhere(black)[:5])
+        assert black.sum() == 0, (model.name, np.argwhere(black)[:5])
 
 
 # ------------------------------------------------------------------------ shared visibility

@@ -11,7 +11,10 @@ from brdf_testutil import hemisphere, mc_albedo, sample_pairs, with_cos
 from dermis.pipeline.cl import CL_DIR
 from dermis.pipeline.errors import ConfigError
 from brdf_reference import asperity_f_np
-from dermis.stages.brdf_models import ASPERITY_NPARAMS, AsperityParams, LafortuneParams, evaluate
+from dermis.models import asperity
+from dermis.models.asperity import ASPERITY_NPARAMS, AsperityParams
+from dermis.models.evaluate import evaluate
+from dermis.models.lafortune import LafortuneParams
 
 # f = albedo tau / (4 pi m_i m_o): four float32 roundings and one division
 RTOL_F32 = 8 * 2.0 ** -24
@@ -44,10 +47,10 @@ def test01_pack_and_evaluate_contract(cl_env):
     assert AsperityParams(attenuate_base=False).pack()[5] == 0.0
     assert AsperityParams().pack()[1] == np.finfo(np.float32).max, "no cap: FLT_MAX"
     n = np.array([[0.0, 0.0, 1.0]])
-    with pytest.raises(ConfigError, match=r"albedo is a Lafortune parameter"):
-        evaluate("asperity", n, n, albedo=np.ones(3))
+    with pytest.raises(ConfigError, match=r"albedo: model 'asperity' reads no albedo"):
+        evaluate(asperity.MODEL, n, n, albedo=np.ones(3))
     with pytest.raises(ConfigError, match=r"must be AsperityParams, got LafortuneParams"):
-        evaluate("asperity", n, n, LafortuneParams())
+        evaluate(asperity.MODEL, n, n, LafortuneParams())
 
 
 @pytest.mark.parametrize("kwargs", [{}, dict(delta_mm=0.3, lambda_mm=2.0, f_max=0.5,
@@ -55,7 +58,7 @@ def test01_pack_and_evaluate_contract(cl_env):
 def test02_matches_reference(cl_env, rng, kwargs):
     params = AsperityParams(**kwargs)
     wo, wi = sample_pairs(rng)
-    got = evaluate("asperity", wo, wi, params, env=cl_env)
+    got = evaluate(asperity.MODEL, wo, wi, params, env=cl_env)
     np.testing.assert_allclose(got, asperity_f_np(wo, wi, params), rtol=RTOL_F32)
 
 
@@ -66,19 +69,19 @@ def test02_closed_forms(cl_env):
     tau = 0.05
     wo = with_cos([1.0, 0.0, 1e-3, 1e-3, 0.5], [0, 0, 0, 1, 2]).astype(np.float32)
     wi = with_cos([1.0, 1.0, 1e-3, 1e-6, 0.5], [0, 1, 2, 3, 4]).astype(np.float32)
-    got = evaluate("asperity", wo, wi, p, env=cl_env)
+    got = evaluate(asperity.MODEL, wo, wi, p, env=cl_env)
     scale = np.array([tau / (4 * np.pi), 0.0, 1 / (4 * np.pi * tau), 1 / (4 * np.pi * tau),
                       tau / (4 * np.pi * 0.25)])
     np.testing.assert_allclose(got, scale[:, None] * p.albedo, rtol=RTOL_F32)
-    capped = evaluate("asperity", wo, wi, AsperityParams(f_max=0.1), env=cl_env)
+    capped = evaluate(asperity.MODEL, wo, wi, AsperityParams(f_max=0.1), env=cl_env)
     assert capped.max() == np.float32(0.1)
 
 
 def test03_reciprocity(cl_env, rng):
     wo, wi = sample_pairs(rng)
     p = AsperityParams(albedo=(0.9, 0.5, 0.2))
-    np.testing.assert_allclose(evaluate("asperity", wo, wi, p, env=cl_env),
-                               evaluate("asperity", wi, wo, p, env=cl_env),
+    np.testing.assert_allclose(evaluate(asperity.MODEL, wo, wi, p, env=cl_env),
+                               evaluate(asperity.MODEL, wi, wo, p, env=cl_env),
                                rtol=RTOL_RECIPROCITY, atol=0)
 
 
@@ -87,7 +90,7 @@ def test04_energy_exact(cl_env, rng, delta, lam):
     """Directional albedo = albedo tau (1 - tau/2) / (2 max(cos_o, tau)) < 1/2 (clamp form)."""
     p = AsperityParams(delta_mm=delta, lambda_mm=lam)
     tau = delta / lam
-    mean, err = mc_albedo(lambda wo, wi: evaluate("asperity", wo, wi, p), THETA_GRID, rng, N_MC)
+    mean, err = mc_albedo(lambda wo, wi: evaluate(asperity.MODEL, wo, wi, p), THETA_GRID, rng, N_MC)
     mu = np.cos(np.radians(THETA_GRID))
     exact = tau * (1 - tau / 2) / (2 * np.maximum(mu, tau))
     assert np.all(np.abs(mean - exact[:, None]) <= N_SIGMA * err + 1e-6)
@@ -101,7 +104,7 @@ def test05_grazing_and_backfacing_finite(cl_env, rng):
     below = other * (1.0, 1.0, -1.0)
     for wo, wi in [(graze, other), (other, graze), (graze, graze[::-1]),
                    (below, other), (other, below), (below, below)]:
-        f = evaluate("asperity", wo, wi, env=cl_env)
+        f = evaluate(asperity.MODEL, wo, wi, env=cl_env)
         assert np.all(np.isfinite(f)) and np.all(f >= 0)
         on_or_below = (wo[:, 2] <= 0) | (wi[:, 2] <= 0)
         assert np.all(f[on_or_below] == 0) and np.all(f[~on_or_below] > 0)

@@ -34,10 +34,11 @@ def test01_assets_match_their_recorded_checksums(assets, folder):
 
 
 def test02_packaged_scan_loads(assets):
-    from dermis.stages import mesh_prep, scan_io
+    from dermis.geometry.scan import load_scan
+    from dermis.geometry.validation import validate
     lps = assets / "lps_head"
-    mesh = scan_io.load_scan(lps / "LeePerrySmith_cm.obj", units="cm", texture=lps / "Map-COL.jpg")
-    mesh, report = mesh_prep.validate(mesh, source="packaged scan")
+    mesh = load_scan(lps / "LeePerrySmith_cm.obj", units="cm", texture=lps / "Map-COL.jpg")
+    mesh, report = validate(mesh, source="packaged scan")
     assert len(mesh.faces) == 17684 and report["boundary_edges"] == 0   # a closed bust
     np.testing.assert_allclose(np.ptp(mesh.vertices, axis=0), [431, 400, 261], atol=1.0)  # mm
     assert mesh.texture_srgb.shape == (1024, 1024, 3)
@@ -77,7 +78,7 @@ def test05_assets_load_from_a_built_wheel_in_a_fresh_environment(wheel, tmp_path
         from pathlib import Path
         import dermis
         from dermis.pipeline.config import load_scene
-        from dermis.stages.scan_io import load_scan
+        from dermis.geometry.scan import load_scan
         root = Path(dermis.__file__).parent
         assert str(root).startswith({str(venv)!r}), root
         scene = load_scene()

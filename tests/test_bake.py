@@ -1,4 +1,5 @@
-"""Tests of stages/bake.py: UV rasterisation, albedo/bump bake, blur, dilation, bump normals.
+"""Tests of the bake (geometry/bake.py, uv_raster.py, texture_fill.py) and geometry/bump.py: UV
+rasterisation, albedo/bump bake, blur, dilation, bump normals.
 
 Independent evidence: analytic spheres (tests/bake_fixtures.py) and, for the texel -> surface
 point mapping, matplotlib's trapezoid-map triangle finder instead of the bake's own rasteriser.
@@ -13,9 +14,13 @@ from matplotlib.tri import Triangulation
 
 from bake_fixtures import (bumpy_radius, direction_of_uv, latlong_sphere, latlong_texture,
                            smooth_colour, srgb8)
-from dermis.pipeline.artifacts import Mesh
+from dermis.geometry.bake import bake_maps
+from dermis.geometry.bump import (bump_shading_normals, bump_shading_normals_at_hits,
+                                  triangle_tangent_frames)
+from dermis.geometry.texture_fill import masked_blur, nearest_fill_indices, nearest_within
+from dermis.geometry.uv_raster import rasterise
+from dermis.pipeline.artifacts import BakedMaps, Mesh
 from dermis.pipeline.errors import ConfigError, DermisError
-from dermis.stages import bake
 
 R_MM = 100.0            # sphere radius
 AMPLITUDE_MM = 1.0      # bump amplitude a in r = R + a f, |f| <= 1
@@ -66,13 +71,13 @@ def bumpy_high():
 @pytest.fixture(scope="module")
 def bumpy_maps(low, bumpy_high):
     """Heights from the flat low triangles (the thesis's literal rule)."""
-    return bake.bake_maps(low, bumpy_high, resolution=RES, blur_sigma_px=4.0, reference="flat")
+    return bake_maps(low, bumpy_high, resolution=RES, blur_sigma_px=4.0, reference="flat")
 
 
 @pytest.fixture(scope="module")
 def bumpy_maps_phong(low, bumpy_high):
     """Heights from the low mesh's Phong surface (the default)."""
-    return bake.bake_maps(low, bumpy_high, resolution=RES, blur_sigma_px=4.0)
+    return bake_maps(low, bumpy_high, resolution=RES, blur_sigma_px=4.0)
 
 
 # ---------------------------------------------------------------------------------------
@@ -83,20 +88,20 @@ def test01_bad_args_rejected(low, textured_high):
                          ({"max_distance_mm": 0.0}, "max_distance_mm"),
                          ({"dilate_px": -1}, "dilate_px")]:
         with pytest.raises(ConfigError, match=name):
-            bake.bake_maps(low, textured_high, **{"resolution": 32, **kwargs})
+            bake_maps(low, textured_high, **{"resolution": 32, **kwargs})
     no_uv = dataclasses.replace(low, uv=None, uv_faces=None)
     with pytest.raises(ConfigError, match=r"low\.uv"):
-        bake.bake_maps(no_uv, textured_high, resolution=32)
+        bake_maps(no_uv, textured_high, resolution=32)
     bad_faces = dataclasses.replace(low, faces=low.faces + 10_000)
     with pytest.raises(DermisError, match=r"low\.faces"):
-        bake.bake_maps(bad_faces, textured_high, resolution=32)
+        bake_maps(bad_faces, textured_high, resolution=32)
 
 
 def test02_rasteriser_matches_independent_trifinder(low):
     # Coverage must equal the set of texel centres inside some UV triangle; only centres
     # lying exactly on a chart's outer edge (here u = 0 / u = 1 columns and pole triangle
     # hypotenuses) may differ, as the two inside tests round differently there.
-    flat, tri, _, info = bake._rasterise(low.uv, low.uv_faces, RES)
+    flat, tri, _, info = rasterise(low.uv, low.uv_faces, RES)
     rows, cols, _ = _texel_surface_points(low, RES)
     ours = np.zeros(RES * RES, bool)
     ours[flat] = True
@@ -116,7 +121,7 @@ def test03_albedo_reproduces_source_texture(low, textured_high):
     # Measured 59.2 dB.  Bound 57 dB: shifting the source UVs by half a texel measured
     # 55.7 dB, skipping the sRGB decode 14.7 dB, so both fail it.
     PSNR_MIN_DB = 57.0
-    maps = bake.bake_maps(low, textured_high, resolution=RES)
+    maps = bake_maps(low, textured_high, resolution=RES)
     rows, cols, p = _texel_surface_points(low, RES)
     expected = srgb8(smooth_colour(p / np.linalg.norm(p, axis=1, keepdims=True))).astype(float)
     got = maps.albedo_srgb[rows, cols].astype(float)
@@ -162,7 +167,7 @@ def test04b_phong_reference_keeps_only_the_bumps(low, bumpy_maps_phong):
     assert np.sqrt(np.mean(err ** 2)) <= RMS_ERR_REL
     assert maps.info["height_reference"] == "phong"
     with pytest.raises(ConfigError, match="bake.reference = 'bent': must be 'phong' or 'flat'"):
-        bake.bake_maps(low, low, resolution=16, reference="bent")
+        bake_maps(low, low, resolution=16, reference="bent")
 
 
 def test05_blur_lowers_gradient_energy(bumpy_maps):
@@ -189,26 +194,26 @@ def test06_masked_blur_keeps_chart_borders_unbiased():
     yy, xx = np.mgrid[:96, :96]
     mask = ((yy - 40) ** 2 + (xx - 50) ** 2 < 30 ** 2) & (xx + yy > 50)
     const = np.full(mask.shape, 0.7, np.float32)
-    out = bake._masked_blur(const, mask, SIGMA)
+    out = masked_blur(const, mask, SIGMA)
     assert np.abs(out[mask] - 0.7).max() < FLOAT_TOL
     assert (out[~mask] == 0).all()
     from scipy import ndimage
     plain = ndimage.gaussian_filter(np.where(mask, const, 0).astype(np.float32), SIGMA)
     assert np.abs(plain[mask] - 0.7).max() > 0.2          # what the masking avoids
     noise = rng.random(mask.shape).astype(np.float32)
-    out = bake._masked_blur(noise, mask, SIGMA)
+    out = masked_blur(noise, mask, SIGMA)
     inner = ndimage.binary_erosion(mask, np.ones((3, 3), bool), iterations=int(4 * SIGMA) + 1)
     ref = ndimage.gaussian_filter(noise, SIGMA, mode="constant")
     assert np.abs(out[inner] - ref[inner]).max() < FLOAT_TOL
     assert noise[mask].min() <= out[mask].min() and out[mask].max() <= noise[mask].max()
-    assert np.array_equal(bake._masked_blur(noise, mask, 0.0), noise)
+    assert np.array_equal(masked_blur(noise, mask, 0.0), noise)
 
 
 def test07_dilation_fills_outside_and_keeps_covered(low, textured_high):
     DILATE = 5
     scaled = dataclasses.replace(low, uv=(0.1 + 0.8 * low.uv).astype(np.float32))
-    plain = bake.bake_maps(scaled, textured_high, resolution=128, dilate_px=0, blur_sigma_px=2.0)
-    dil = bake.bake_maps(scaled, textured_high, resolution=128, dilate_px=DILATE, blur_sigma_px=2.0)
+    plain = bake_maps(scaled, textured_high, resolution=128, dilate_px=0, blur_sigma_px=2.0)
+    dil = bake_maps(scaled, textured_high, resolution=128, dilate_px=DILATE, blur_sigma_px=2.0)
     cov = plain.coverage
     assert (cov == dil.coverage).all() and not cov.all()
     for a, b in [(plain.albedo_srgb, dil.albedo_srgb), (plain.bump, dil.bump),
@@ -238,14 +243,14 @@ def test08_far_high_mesh_gives_counted_misses(low, textured_high):
     # The high sphere moved 1000 mm along +x: rays from the low sphere's +x side hit it at
     # ~800 mm, far beyond max_distance, so every texel is a miss.
     far = dataclasses.replace(textured_high, vertices=textured_high.vertices + [1000.0, 0, 0])
-    maps = bake.bake_maps(low, far, resolution=64)
+    maps = bake_maps(low, far, resolution=64)
     assert maps.info["hits"] == 0
     assert maps.info["misses"] == maps.info["covered_texels"] == int(maps.coverage.sum()) > 0
     assert maps.bump_range_mm == 0.0 and maps.bump_min_mm == 0.0
     for arr in (maps.bump, maps.bump_blur):
         assert np.isfinite(arr).all()
     # The same with a reach long enough does find it (so the threshold is what excluded it).
-    reach = bake.bake_maps(low, far, resolution=64, max_distance_mm=2000.0)
+    reach = bake_maps(low, far, resolution=64, max_distance_mm=2000.0)
     assert reach.info["hits"] > 0
 
 
@@ -255,7 +260,7 @@ def test09_misses_inside_charts_are_neutral_and_filled(low, textured_high):
     keep = textured_high.vertices[textured_high.faces].mean(1)[:, 2] < 0.7 * R_MM
     cut = dataclasses.replace(textured_high, faces=textured_high.faces[keep],
                               uv_faces=textured_high.uv_faces[keep])
-    maps = bake.bake_maps(low, cut, resolution=RES)
+    maps = bake_maps(low, cut, resolution=RES)
     assert maps.info["misses"] > 0 and maps.info["hits"] > 0
     rows, cols, p = _texel_surface_points(low, RES)
     cap = p[:, 2] / np.linalg.norm(p, axis=1) > 0.75
@@ -277,11 +282,11 @@ def test09b_windowed_nearest_matches_whole_map_edt():
             continue
         query = ~valid & (rng.random((h, w)) < rng.choice([0.05, 1.0]))
         reach, tile = int(rng.integers(0, 10)), int(rng.integers(1, 40))
-        iy, ix = bake._nearest_fill_indices(valid)
+        iy, ix = nearest_fill_indices(valid)
         rows, cols = np.nonzero(query)
         d2 = (iy[rows, cols] - rows) ** 2 + (ix[rows, cols] - cols) ** 2
         near = d2 <= reach * reach
-        dst, src, far = bake._nearest_within(valid, query, reach, tile)
+        dst, src, far = nearest_within(valid, query, reach, tile)
         order = np.argsort(dst)
         assert np.array_equal(dst[order], (rows * w + cols)[near])
         assert np.array_equal(src[order], (iy[rows, cols] * w + ix[rows, cols])[near])
@@ -302,8 +307,8 @@ def _plane_frame(n_points, a=2.0, seed=0):
 def test10_zero_bump_leaves_normals():
     uv, n, dpdu, dpdv = _plane_frame(100)
     n = n + np.random.default_rng(1).normal(0, 0.2, n.shape)
-    out = bake.bump_shading_normals(n, dpdu, dpdv, uv, np.full((64, 64), 0.3, np.float32),
-                                    bump_range_mm=5.0)
+    out = bump_shading_normals(n, dpdu, dpdv, uv, np.full((64, 64), 0.3, np.float32),
+                               bump_range_mm=5.0)
     assert np.allclose(out, n / np.linalg.norm(n, axis=1, keepdims=True), atol=1e-6)
 
 
@@ -318,7 +323,7 @@ def test11_ramp_in_u_tilts_normal_by_analytic_angle(mirrored):
     uv, n, dpdu, dpdv = _plane_frame(50, a)
     if mirrored:
         dpdv = -dpdv
-    out = bake.bump_shading_normals(n, dpdu, dpdv, uv, bump, bump_range_mm=rng_mm)
+    out = bump_shading_normals(n, dpdu, dpdv, uv, bump, bump_range_mm=rng_mm)
     expected = np.array([-rng_mm / a, 0.0, 1.0]) / np.hypot(rng_mm / a, 1.0)
     assert np.allclose(out, expected, atol=1e-5)
     angle = np.degrees(np.arccos(out[:, 2]))
@@ -329,8 +334,8 @@ def test12_ramp_in_v_and_tangent_frames_on_mesh():
     # The tangent frames of a lat-long sphere point east (dp/du) and north (dp/dv), and a ramp
     # in v tilts the normals of equatorial texels toward -dp/dv (south).
     sphere = latlong_sphere(24, 48, R_MM)
-    dpdu, dpdv = bake.triangle_tangent_frames(sphere.vertices, sphere.faces, sphere.uv,
-                                              sphere.uv_faces)
+    dpdu, dpdv = triangle_tangent_frames(sphere.vertices, sphere.faces, sphere.uv,
+                                         sphere.uv_faces)
     cent = sphere.vertices[sphere.faces].mean(1)
     d = cent / np.linalg.norm(cent, axis=1, keepdims=True)
     east = np.cross([0, 0, 1.0], d)
@@ -346,10 +351,10 @@ def test12_ramp_in_v_and_tangent_frames_on_mesh():
     bump = np.tile(np.linspace(1, 0, res, dtype=np.float32)[:, None], (1, res))  # bump = v
     tri = np.nonzero(eq)[0]
     bary = np.full((len(tri), 2), 1 / 3)
-    maps = bake.BakedMaps(albedo_srgb=np.zeros((res, res, 3), np.uint8), bump=bump,
-                          bump_blur=bump, coverage=np.ones((res, res), bool), bump_min_mm=0.0,
-                          bump_range_mm=10.0, blur_sigma_px=0.0)
-    out = bake.bump_shading_normals_at_hits(sphere, maps, tri, bary)
+    maps = BakedMaps(albedo_srgb=np.zeros((res, res, 3), np.uint8), bump=bump,
+                     bump_blur=bump, coverage=np.ones((res, res), bool), bump_min_mm=0.0,
+                     bump_range_mm=10.0, blur_sigma_px=0.0)
+    out = bump_shading_normals_at_hits(sphere, maps, tri, bary)
     # slope dh/ds = 10 mm / (pi R) along the meridian (|dp/dv| ~ pi R): tilt ~ atan(0.0318)
     tilt = np.einsum("nd,nd->n", out, d[tri])
     assert np.allclose(np.degrees(np.arccos(np.clip(tilt, -1, 1))),

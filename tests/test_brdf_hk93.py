@@ -14,8 +14,10 @@ from dermis.pipeline.errors import ConfigError
 from dermis.optics.layers import PRESETS, Layer
 from dermis.optics.fresnel import dipole_Rd
 from brdf_reference import hk93_f_np
-from dermis.stages.brdf_models import (HK93_NPARAMS, HK93Params, evaluate,
-                                       hk93_params_from_layers, hk93_single_scattering_albedo)
+from dermis.models import hk93
+from dermis.models.evaluate import evaluate
+from dermis.models.hk93 import (HK93_NPARAMS, HK93Params, hk93_params_from_layers,
+                               hk93_single_scattering_albedo)
 
 # float32 kernel vs float64 reference: ~40 float32 operations incl. exp/expm1/sqrt (<= 4 ulp
 # each in OpenCL's full profile); errors add in quadrature-ish, 64 ulp is a safe bound.
@@ -42,7 +44,7 @@ def _layer(**kw):
 
 
 def _f(params):
-    return lambda wo, wi: evaluate("hk93", wo, wi, params)
+    return lambda wo, wi: evaluate(hk93.MODEL, wo, wi, params)
 
 
 @pytest.mark.parametrize("layers, ms, match", [
@@ -105,7 +107,7 @@ def test02_matches_reference(cl_env, rng, layers):
               "single_finite": HK93Params([ODD[0]], zero),
               "thin": HK93Params([dict(ODD[0], thickness_mm=0.002)], zero)}[layers]
     wo, wi = sample_pairs(rng)
-    got = evaluate("hk93", wo, wi, params, env=cl_env)
+    got = evaluate(hk93.MODEL, wo, wi, params, env=cl_env)
     want = hk93_f_np(wo, wi, params)
     np.testing.assert_allclose(got, want, rtol=RTOL_F32, atol=ATOL_F32)
 
@@ -115,7 +117,7 @@ def test02_closed_form_chandrasekhar(cl_env, rng):
     (Chandrasekhar's first-order term; docs/science.md §2 BRDF form)."""
     params = HK93Params([_layer(eta=1.0, g=0.0, sigma_a=(0, 0, 0))], (0, 0, 0))
     wo, wi = sample_pairs(rng, 4000)
-    got = evaluate("hk93", wo, wi, params, env=cl_env)
+    got = evaluate(hk93.MODEL, wo, wi, params, env=cl_env)
     mu_o = np.maximum(wo[:, 2].astype(np.float64), 1e-7)
     mu_i = np.maximum(wi[:, 2].astype(np.float64), 1e-7)
     want = 1.0 / (4 * np.pi * (mu_i + mu_o))
@@ -130,7 +132,7 @@ def test02_closed_form_thin_layer(cl_env, rng):
                         (0, 0, 0))
     wo = with_cos(rng.uniform(0.1, 1, 2000), 2 * np.pi * rng.random(2000)).astype(np.float32)
     wi = with_cos(rng.uniform(0.1, 1, 2000), 2 * np.pi * rng.random(2000)).astype(np.float32)
-    got = evaluate("hk93", wo, wi, params, env=cl_env)
+    got = evaluate(hk93.MODEL, wo, wi, params, env=cl_env)
     ss = ssp / (1 - g)
     st = sa + ss
     mo, mi = wo[:, 2].astype(np.float64), wi[:, 2].astype(np.float64)
@@ -157,7 +159,7 @@ def test02_closed_form_normal_incidence(cl_env):
     sa, ssp, ms = np.array([0.2, 0.3, 0.4]), np.array([2.0, 2.5, 3.0]), np.array([0.1, 0.2, 0.3])
     params = HK93Params([dict(thickness_mm=d, eta=eta, sigma_a=sa, sigma_s_prime=ssp, g=g)], ms)
     n = np.array([[0.0, 0.0, 1.0]], np.float32)
-    got = evaluate("hk93", n, n, params, env=cl_env)[0]
+    got = evaluate(hk93.MODEL, n, n, params, env=cl_env)[0]
     ss = ssp / (1 - g)
     r0 = ((eta - 1) / (eta + 1)) ** 2
     hg_back = (1 - g * g) / (4 * np.pi * (1 + g) ** 3)
@@ -172,8 +174,8 @@ def test02_layer_split_invariance(cl_env, rng):
     whole = HK93Params([_layer()], (0, 0, 0))
     split = HK93Params([_layer(thickness_mm=0.3), _layer()], (0, 0, 0))
     wo, wi = sample_pairs(rng, 4000)
-    np.testing.assert_allclose(evaluate("hk93", wo, wi, split, env=cl_env),
-                               evaluate("hk93", wo, wi, whole, env=cl_env),
+    np.testing.assert_allclose(evaluate(hk93.MODEL, wo, wi, split, env=cl_env),
+                               evaluate(hk93.MODEL, wo, wi, whole, env=cl_env),
                                rtol=RTOL_F32, atol=ATOL_F32)
 
 
@@ -204,8 +206,8 @@ def test02_default_multiple_scattering():
 def test03_reciprocity(cl_env, rng, layers):
     params = HK93Params() if layers == "default" else HK93Params(ODD)
     wo, wi = sample_pairs(rng)
-    a = evaluate("hk93", wo, wi, params, env=cl_env)
-    b = evaluate("hk93", wi, wo, params, env=cl_env)
+    a = evaluate(hk93.MODEL, wo, wi, params, env=cl_env)
+    b = evaluate(hk93.MODEL, wi, wo, params, env=cl_env)
     np.testing.assert_allclose(a, b, rtol=RTOL_RECIPROCITY, atol=0)
 
 
@@ -242,7 +244,7 @@ def test05_grazing_and_backfacing_finite(cl_env, rng):
                    HK93Params([_layer(eta=1.0, g=0.0, sigma_a=(0, 0, 0))], (0, 0, 0))):
         for wo, wi in [(graze, other), (other, graze), (graze, graze[::-1]),
                        (below, other), (other, below), (below, below)]:
-            f = evaluate("hk93", wo, wi, params, env=cl_env)
+            f = evaluate(hk93.MODEL, wo, wi, params, env=cl_env)
             assert np.all(np.isfinite(f)) and np.all(f >= 0)
             on_or_below = (wo[:, 2] <= 0) | (wi[:, 2] <= 0)
             assert np.all(f[on_or_below] == 0)
@@ -257,7 +259,7 @@ def test06_single_scattering_quadrature_converges(g, eta):
     the phase function's integral over the upper hemisphere is 1/2 by mirror symmetry, and
     mu_i / (mu_i + mu_o) -> 1) is reached.  Before: 96 cells uniform in cos theta and a grid
     ending at 1e-3 read 0.325 for g = 0.99, so rho_ms = 0.675 and the albedo 1.18 at grazing."""
-    from dermis.stages.brdf_models import SS_ALBEDO_TOL, _SS_COS_GRID, _max_single_scattering_albedo
+    from dermis.models.hk93 import SS_ALBEDO_TOL, _SS_COS_GRID, _max_single_scattering_albedo
     alpha = 1.0 - 1e-7
     lay = Layer(math.inf, eta, (1e-7,) * 3, (1e-3 * (1 - g),) * 3, g)   # sigma_s = 1e-3
     p = HK93Params([lay], multiple_scattering=(0.0, 0.0, 0.0))

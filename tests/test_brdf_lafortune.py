@@ -11,7 +11,10 @@ from brdf_testutil import hemisphere, mc_albedo, sample_pairs, with_cos
 from dermis.pipeline.cl import CL_DIR
 from dermis.pipeline.errors import ConfigError
 from brdf_reference import lafortune_f_np
-from dermis.stages.brdf_models import LAFORTUNE_NPARAMS, LafortuneParams, evaluate
+from dermis.models import lafortune
+from dermis.models.evaluate import evaluate
+from dermis.models.lafortune import LAFORTUNE_NPARAMS, LafortuneParams
+from dermis.pipeline.registry import model
 
 # float32 kernel vs float64 reference: the lobe base carries a few ulp (2^-24) of relative
 # error, which the exponent n <= 64.2 multiplies: 64 * 8 ulp ~ 3e-5.  Near a zero base the
@@ -53,7 +56,7 @@ MAX_LOBE_EXCESS = 0.27
 
 def _f(params=None, albedo=None):
     def run(wo, wi):
-        return evaluate("lafortune", wo, wi, params, albedo=albedo)
+        return evaluate(lafortune.MODEL, wo, wi, params, albedo=albedo)
     return run
 
 
@@ -73,15 +76,15 @@ def test01_params_rejected(kwargs, match):
 def test01_evaluate_rejects_bad_input(cl_env):
     wo = np.array([[0.0, 0.0, 1.0]])
     with pytest.raises(ConfigError, match=r"model = 'lafortun'.*must be one of"):
-        evaluate("lafortun", wo, wo)
+        evaluate(model("lafortun"), wo, wo)
     with pytest.raises(ConfigError, match=r"wo: must be an \(N, 3\) array.*\(3,\)"):
-        evaluate("lafortune", wo[0], wo)
+        evaluate(lafortune.MODEL, wo[0], wo)
     with pytest.raises(ConfigError, match=r"wi: contains NaN"):
-        evaluate("lafortune", wo, wo * np.nan)
+        evaluate(lafortune.MODEL, wo, wo * np.nan)
     with pytest.raises(ConfigError, match=r"albedo: must have shape \(3,\) or \(1, 3\)"):
-        evaluate("lafortune", wo, wo, albedo=np.ones((2, 3)))
+        evaluate(lafortune.MODEL, wo, wo, albedo=np.ones((2, 3)))
     with pytest.raises(ConfigError, match=r"must be LafortuneParams"):
-        evaluate("lafortune", wo, wo, params=object())
+        evaluate(lafortune.MODEL, wo, wo, params=object())
 
 
 def test01_pack_layout_matches_kernel():
@@ -97,7 +100,7 @@ def test01_pack_layout_matches_kernel():
 def test02_matches_reference(cl_env, rng):
     wo, wi = sample_pairs(rng)
     albedo = rng.random((len(wo), 3)).astype(np.float32)
-    got = evaluate("lafortune", wo, wi, albedo=albedo, env=cl_env)
+    got = evaluate(lafortune.MODEL, wo, wi, albedo=albedo, env=cl_env)
     want = lafortune_f_np(wo, wi, LafortuneParams(), albedo=albedo)
     np.testing.assert_allclose(got, want, rtol=RTOL_F32, atol=ATOL_F32)
     assert np.all(want[len(wo) // 10 * 2 + 10:len(wo) // 10 * 2 + 200] > 0)
@@ -107,7 +110,8 @@ def test02_closed_form_lobes_off(cl_env, rng):
     """Lobes off: f = albedo / pi exactly (docs/science.md §1)."""
     wo, wi = sample_pairs(rng, 2000)
     albedo = rng.random((len(wo), 3)).astype(np.float32)
-    got = evaluate("lafortune", wo, wi, LafortuneParams().lobes_off(), albedo=albedo, env=cl_env)
+    got = evaluate(lafortune.MODEL, wo, wi, LafortuneParams().lobes_off(), albedo=albedo,
+                   env=cl_env)
     np.testing.assert_allclose(got, albedo / np.pi, rtol=RTOL_RECIPROCITY)
 
 
@@ -115,14 +119,14 @@ def test02_closed_form_normal_incidence(cl_env):
     """wo = wi = normal: only the Cz terms remain; lobe 0 (Cz < 0) vanishes (the uncoupled
     fit; coupled, the diffuse part is scaled by (1 - L(1))^2 / (1 - L_mean))."""
     n = np.array([[0.0, 0.0, 1.0]], np.float32)
-    got = evaluate("lafortune", n, n, LafortuneParams(coupled=False), env=cl_env)[0]
+    got = evaluate(lafortune.MODEL, n, n, LafortuneParams(coupled=False), env=cl_env)[0]
     rho = np.array([0.428425, 0.301341, 0.331054])
     lobes = np.array([
         0.380123 ** 3.685044 + 0.857998 ** 64.208486,
         0.410559 ** 4.266495 + 0.703913 ** 63.919687,
         0.437367 ** 4.539742 + 0.573625 ** 43.809866])
     np.testing.assert_allclose(got, rho / math.pi + lobes, rtol=RTOL_F32)
-    coupled = evaluate("lafortune", n, n, env=cl_env)[0]
+    coupled = evaluate(lafortune.MODEL, n, n, env=cl_env)[0]
     packed = LafortuneParams().pack().astype(np.float64)
     factor = (1 - LOBE_ALBEDO[0]) ** 2 * packed[28:31]
     np.testing.assert_allclose(coupled, rho / math.pi * factor + lobes, rtol=1e-4)
@@ -131,8 +135,8 @@ def test02_closed_form_normal_incidence(cl_env):
 def test03_reciprocity(cl_env, rng):
     wo, wi = sample_pairs(rng)
     albedo = rng.random((len(wo), 3)).astype(np.float32)
-    a = evaluate("lafortune", wo, wi, albedo=albedo, env=cl_env)
-    b = evaluate("lafortune", wi, wo, albedo=albedo, env=cl_env)
+    a = evaluate(lafortune.MODEL, wo, wi, albedo=albedo, env=cl_env)
+    b = evaluate(lafortune.MODEL, wi, wo, albedo=albedo, env=cl_env)
     np.testing.assert_allclose(a, b, rtol=RTOL_RECIPROCITY, atol=0)
 
 
@@ -174,7 +178,7 @@ def test05_grazing_and_backfacing_finite(cl_env, rng):
     below = other * (1.0, 1.0, -1.0)
     for wo, wi in [(graze, other), (other, graze), (graze, graze[::-1]),
                    (below, other), (other, below), (below, below)]:
-        f = evaluate("lafortune", wo, wi, albedo=np.ones(3, np.float32), env=cl_env)
+        f = evaluate(lafortune.MODEL, wo, wi, albedo=np.ones(3, np.float32), env=cl_env)
         assert np.all(np.isfinite(f)) and np.all(f >= 0)
         on_or_below = (wo[:, 2] <= 0) | (wi[:, 2] <= 0)
         assert np.all(f[on_or_below] == 0)

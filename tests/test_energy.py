@@ -25,14 +25,20 @@ import pytest
 from dermis.pipeline.config import BssrdfConfig, LightConfig
 from dermis.optics.fresnel import diffuse_fresnel_external
 from dermis.optics.layers import PRESETS
-from dermis.stages import gather as G
-from dermis.stages.brdf_models import AsperityParams, HK93Params, LafortuneParams
+from dermis.models import asperity
+from dermis.models.asperity import AsperityParams
+from dermis.models.hk93 import HK93Params
+from dermis.models.lafortune import LafortuneParams
+from dermis.optics.transmittance import Transmittance
+from dermis.subsurface.exitance import ExitanceOptions, ShadingPoints, exitance
+from dermis.subsurface.profile_table import BLUR_REACH
+from dermis.subsurface.radiance import exitance_to_radiance
 
 THETA_O = [0.0, 30.0, 60.0, 75.0, 80.0, 85.0, 87.0, 89.0, 89.5, 89.9]
 ALBEDOS = [0.0, 0.25, 0.51, 0.75, 1.0]
 QUAD = (96, 192)
 ALBEDO_TOL = 2e-3
-_BASE = {"lambert": 0, "lafortune": 1, "hk93": 2}
+_BASE = {m.name: dict(m.shade)["DERMIS_BASE"] for m in asperity.BASES}   # cl/shade.cl codes
 
 
 def _hemisphere():
@@ -49,7 +55,7 @@ def _hemisphere():
 def shade_albedo(cl_env, base: str, base_params, asp, albedo) -> np.ndarray:
     """Directional albedo (len(THETA_O), 3) of the model cl/shade.cl renders: base
     ``base`` (+ asperity ``asp`` if given) with per-point ``albedo`` (3,) as the renderer
-    passes it (HK93: albedo / texture_reference, render.py)."""
+    passes it (HK93: albedo / texture_reference, models/hk93.py _shade_albedo)."""
     import pyopencl as cl
     from dermis.pipeline.cl import to_device
     wi, weight = _hemisphere()
@@ -105,7 +111,7 @@ def test01_brdf_models_as_rendered_albedo_at_most_one(cl_env, hk93_two_layer, mo
     worst = 0.0
     for a in ALBEDOS:
         alb = np.full(3, a)
-        if base == "hk93":   # the renderer passes albedo / reference (stages/render.py)
+        if base == "hk93":   # the renderer passes albedo / reference (models/hk93.py)
             alb = alb / bp.texture_reference()
         got = shade_albedo(cl_env, base, bp, asp, alb)
         worst = max(worst, float(got.max()))
@@ -125,7 +131,7 @@ def test02_the_bound_can_fail(cl_env, hk93_two_layer):
 
 def test03_lafortune_coupled_albedo_closed_form(cl_env):
     """Coupled Lafortune reflects L(mu_o) + a (1 - L(mu_o)): the lobes' table is their
-    albedo (brdf_models.lafortune_lobe_albedo) and the diffuse term loses what they take."""
+    albedo (models/lafortune.py lafortune_lobe_albedo) and the diffuse term loses what they take."""
     p = LafortuneParams()
     lobes = shade_albedo(cl_env, "lafortune", p, None, np.zeros(3))
     want = p.lobe_albedo(np.cos(np.radians(THETA_O)))
@@ -141,7 +147,7 @@ def test04_bssrdf_surface_plus_subsurface_at_most_one(cl_env):
     'none'), with T the entry transmittance; and T normalises the exit so the radiance
     integrates to the exitance."""
     eta = PRESETS["two_layer"].layers[0].eta
-    t = G.Transmittance(eta, BssrdfConfig().surface_reflection)
+    t = Transmittance(eta, BssrdfConfig().surface_reflection)
     lobes = shade_albedo(cl_env, "lafortune", LafortuneParams(rho_d=(0, 0, 0)), None,
                          np.zeros(3))
     mu = np.cos(np.radians(THETA_O))
@@ -158,22 +164,22 @@ def test04_bssrdf_surface_plus_subsurface_at_most_one(cl_env):
     n = 20000
     c = (np.arange(n) + 0.5) / n
     M = np.array([[0.7, 0.4, 0.2]])
-    L = G.exitance_to_radiance(np.repeat(M, n, 0), c, eta, transmittance=t).astype(float)
+    L = exitance_to_radiance(np.repeat(M, n, 0), c, eta, transmittance=t).astype(float)
     np.testing.assert_allclose((L * 2 * np.pi * c[:, None]).sum(0) / n, M[0], rtol=2e-4)
     # without the surface term T is Fresnel's and the exit is the old one
-    t0 = G.Transmittance(eta, "none")
+    t0 = Transmittance(eta, "none")
     np.testing.assert_allclose(t0.mean, 1 - diffuse_fresnel_external(eta), rtol=1e-4)
 
 
 def test05_flat_slab_exitance_with_entry_fresnel(cl_env):
     """The flat slab under an oblique directional light through the production path
-    (irradiance with entry transmittance, then :func:`gather.exitance`): M = E cos T(cos) Rd
+    (irradiance with entry transmittance, then :func:`exitance.exitance`): M = E cos T(cos) Rd
     within the flat slab's 1 % (tests/test_gather.py); plain E cos Rd (no entry loss) is
     outside that bound."""
-    from dermis.stages.profiles import build_profiles
+    from dermis.optics.layer_profiles import build_profiles
     stack = PRESETS["skin2"]
     prof = build_profiles(stack)
-    t = G.Transmittance(stack.layers[0].eta, BssrdfConfig().surface_reflection)
+    t = Transmittance(stack.layers[0].eta, BssrdfConfig().surface_reflection)
     for theta, got, st in _flat_slab_exitance(cl_env, stack, prof, (0.0, 60.0)):
         assert st["near_field"]
         assert np.abs(got / prof.Rd - 1).max() < 0.01, (theta, np.abs(got / prof.Rd - 1).max(0))
@@ -185,18 +191,18 @@ def test05_flat_slab_exitance_with_entry_fresnel(cl_env):
 def _flat_slab_exitance(cl_env, stack, prof, thetas, n_query=300):
     """(theta, M / (E cos T(cos)), gather stats) on a flat slab under a directional light of
     irradiance E = 2, through the production path (test05's set-up)."""
-    from dermis.lighting.lights import irradiance
+    from dermis.lighting.irradiance import irradiance
     from dermis.lighting.visibility import Visibility
-    from dermis.stages import samples as S
+    from dermis.subsurface import points as S
     cfg = BssrdfConfig()
     spacing = S.spacing_from_mfp(stack, cfg.point_density)
-    reach = float(prof.cutoff_mm.max()) + G.BLUR_REACH * spacing
+    reach = float(prof.cutoff_mm.max()) + BLUR_REACH * spacing
     half = reach + 2 * spacing + S.POU_RADIUS * spacing
     v = np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0.0]])
     f = np.array([[0, 1, 2], [0, 2, 3]])
     sp = S.sample_points(v, f, spacing_mm=spacing, seed=4)
     vis = Visibility(v, f)
-    t = G.Transmittance(stack.layers[0].eta, cfg.surface_reflection)
+    t = Transmittance(stack.layers[0].eta, cfg.surface_reflection)
     out = []
     for theta in thetas:
         d = (math.sin(math.radians(theta)), 0.0, math.cos(math.radians(theta)))
@@ -206,8 +212,8 @@ def _flat_slab_exitance(cl_env, stack, prof, thetas, n_query=300):
         q = np.zeros((n_query, 3))
         q[:, :2] = np.random.default_rng(5).uniform(-inner, inner, (n_query, 2))
         nrm = np.tile([0.0, 0.0, 1.0], (len(q), 1))
-        m, st = G.exitance(sp, E, prof, q, shading_normals=nrm, geo_normals=nrm, lights=[light],
-                           visibility=vis, epsilon=0.2, transmittance=t, env=cl_env)
+        m, st = exitance(sp, E, prof, ShadingPoints(q, nrm, nrm), lights=[light], visibility=vis,
+                         options=ExitanceOptions(epsilon=0.2, transmittance=t, env=cl_env))
         c = d[2]
         out.append((theta, m / (2.0 * c * t(np.array([c]))[0]), st))
     return out
@@ -227,7 +233,7 @@ MC_SLAB_PHOTONS = 40_000
 
 @pytest.mark.parametrize("preset", ["two_layer"])
 def test05b_flat_slab_with_the_monte_carlo_profile(cl_env, preset):
-    from dermis.stages.profiles import build_profiles
+    from dermis.optics.layer_profiles import build_profiles
     stack = PRESETS[preset]
     mc = build_profiles(stack, model="monte_carlo", photons=MC_SLAB_PHOTONS, seed=3, env=cl_env)
     assert mc.info["model"] == "monte_carlo"
@@ -236,7 +242,7 @@ def test05b_flat_slab_with_the_monte_carlo_profile(cl_env, preset):
         err = np.abs(got / mc.Rd - 1).max()
         assert err < MC_SLAB_RTOL, (theta, err, got.mean(0), mc.Rd)
         c = math.cos(math.radians(theta))
-        T = G.Transmittance(stack.layers[0].eta, BssrdfConfig().surface_reflection)
+        T = Transmittance(stack.layers[0].eta, BssrdfConfig().surface_reflection)
         plain = got * T(np.array([c]))[0]       # M / (E cos): no entry loss
         assert np.abs(plain / mc.Rd - 1).max() > 0.015, (theta, plain.mean(0), mc.Rd)
 
@@ -264,6 +270,6 @@ def test06_hk93_matches_the_profile_under_uniform_light(cl_env, preset):
     rd = hk.diffuse_reflectance
     bssrdf_uniform = (1 - diffuse_fresnel_external(eta)) * rd
     np.testing.assert_allclose(rho_hh, bssrdf_uniform, rtol=0.02)
-    as_rendered = G.Transmittance(eta, BssrdfConfig().surface_reflection).mean * rd
+    as_rendered = Transmittance(eta, BssrdfConfig().surface_reflection).mean * rd
     np.testing.assert_allclose(rho_hh, as_rendered, rtol=0.02)
     assert np.all(got <= 1.0 + ALBEDO_TOL)

@@ -1,8 +1,9 @@
-"""Tests of stages/gather.py and cl/bssrdf_gather.cl: octree invariants, the flat-slab energy
-test, hierarchy against brute force, zero irradiance, exitance -> radiance.
+"""Tests of subsurface/ (octree, profile table, gather, near field, shadow edges, radiance) and
+cl/bssrdf_gather.cl: octree invariants, the flat-slab energy test, hierarchy against brute
+force, zero irradiance, exitance -> radiance.
 
 The profiles used here are built in the test from the closed-form Jensen et al. 2001 dipole
-(independent of stages/profiles.py), whose total diffuse reflectance Rd is known exactly.
+(independent of optics/layer_profiles.py), whose total diffuse reflectance Rd is known exactly.
 """
 from __future__ import annotations
 
@@ -14,9 +15,14 @@ import pytest
 from dermis.pipeline.artifacts import LayerProfile
 from dermis.pipeline.config import BssrdfConfig
 from dermis.pipeline.errors import DermisError
-from dermis.stages import gather as G
 from dermis.optics.fresnel import diffuse_fresnel_external
-from dermis.stages import samples as S
+from dermis.subsurface import gather as G
+from dermis.subsurface import points as S
+from dermis.subsurface.near_field import near_tables, split_profile
+from dermis.subsurface.octree import build_octree
+from dermis.subsurface.profile_table import BLUR_REACH
+from dermis.subsurface.radiance import exitance_to_radiance
+from dermis.subsurface.shadow_edges import ShadowEdges, edge_sum, edge_sum_cl, sharp_visibility
 
 # The shipped settings: the scene schema's [bssrdf] defaults (the library has no others).
 SHIPPED = BssrdfConfig()
@@ -69,7 +75,7 @@ def skin1():
 
 
 def plane_points(half, spacing, seed=3):
-    """Blue-noise points on the square [-half, half]^2 at z = 0 (through stages/samples.py)."""
+    """Blue-noise points on the square [-half, half]^2 at z = 0 (through subsurface/points.py)."""
     v = np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0.0]])
     f = np.array([[0, 1, 2], [0, 2, 3]])
     return S.sample_points(v, f, spacing_mm=spacing, seed=seed)
@@ -99,7 +105,7 @@ def test02_octree_invariants(rng, leaf_size):
     a = rng.uniform(0.5, 2.0, n)
     e = rng.uniform(0.0, 1.0, (n, 3))
     e[100:300] = 0.0
-    t = G.build_octree(p, a, e, leaf_size=leaf_size)
+    t = build_octree(p, a, e, leaf_size=leaf_size)
     k = t.n_nodes
     start, skip = t.start.astype(int), t.skip.astype(int)
     end = start[skip[:k]]
@@ -146,11 +152,11 @@ def test02_octree_invariants(rng, leaf_size):
 def test03_octree_rejects_bad_input():
     p = np.zeros((4, 3))
     with pytest.raises(DermisError, match="irradiance contains NaN"):
-        G.build_octree(p, np.ones(4), np.full((4, 3), np.nan))
+        build_octree(p, np.ones(4), np.full((4, 3), np.nan))
     with pytest.raises(DermisError, match="must be .4,. and .4, 3."):
-        G.build_octree(p, np.ones(3), np.ones((4, 3)))
+        build_octree(p, np.ones(3), np.ones((4, 3)))
     with pytest.raises(DermisError, match="leaf_size = 0"):
-        G.build_octree(p, np.ones(4), np.ones((4, 3)), leaf_size=0)
+        build_octree(p, np.ones(4), np.ones((4, 3)), leaf_size=0)
 
 
 # ------------------------------------------------------------------ flat slab (energy)
@@ -158,7 +164,7 @@ def test03_octree_rejects_bad_input():
 # gathered exitance on a flat slab is M / (Rd E) - 1 = int R (PoU - 1) / Rd, the profile-
 # weighted mean of the partition-of-unity deviation (<= its max, 1.05 % measured over random
 # probes, tests/test_samples.py::test07), plus the clustering error (small at SLAB_EPS,
-# below) and float32 sums (~1e-5).  Measured on samples.run points at the default density,
+# below) and float32 sums (~1e-5).  Measured on sample_points() points at the default density,
 # 2000 queries x 2 seeds: max 0.53 % (skin1 blue), 0.27 % (skin2), 0.10 % (two_layer);
 # RMS <= 0.09 %.  The raw profile on the same points: max 25-48 %.
 SLAB_RTOL = 0.01
@@ -194,7 +200,7 @@ def test04_flat_slab_energy(cl_env, skin1, rng):
     half = float(skin1.cutoff_mm.max()) + 12.0
     p, a = hex_plane(half, 0.5)
     E = 2.5
-    t = G.build_octree(p, a, np.full((len(a), 3), E))
+    t = build_octree(p, a, np.full((len(a), 3), E))
     inner = half - float(skin1.cutoff_mm.max()) - 1.0
     q = np.zeros((300, 3))
     q[:, :2] = rng.uniform(-inner, inner, (300, 2))
@@ -212,25 +218,25 @@ def test04_flat_slab_energy(cl_env, skin1, rng):
 
 @pytest.fixture(scope="module")
 def preset_profiles():
-    from dermis.stages import profiles
+    from dermis.optics.layer_profiles import build_profiles
     from dermis.optics.layers import PRESETS
-    return {k: (PRESETS[k], profiles.build_profiles(PRESETS[k])) for k in ("skin1", "skin2", "two_layer")}
+    return {k: (PRESETS[k], build_profiles(PRESETS[k])) for k in ("skin1", "skin2", "two_layer")}
 
 
 @pytest.mark.parametrize("preset", ["skin1", "skin2", "two_layer"])
 def test04b_flat_slab_sample_points(cl_env, preset_profiles, preset):
-    """The real flat slab: samples.run's random blue-noise points at the default density on
+    """The real flat slab: sample_points()'s random blue-noise points at the default density on
     a large plane, uniform normal irradiance, the presets' layer files: M / E = Rd within
     1 % at every query farther than the kernel's reach from the edges."""
     stack, prof = preset_profiles[preset]
     spacing = S.spacing_from_mfp(stack, SHIPPED.point_density)
     sigma = S.KERNEL_SIGMA_FACTOR * spacing
-    reach = float(prof.cutoff_mm.max()) + G.BLUR_REACH * sigma
+    reach = float(prof.cutoff_mm.max()) + BLUR_REACH * sigma
     half = reach + 2 * spacing + S.POU_RADIUS * sigma  # interior + the frozen rim band
     v = np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0.0]])
     sp = S.sample_points(v, np.array([[0, 1, 2], [0, 2, 3]]), spacing_mm=spacing, seed=8)
     E = 1.7
-    t = G.build_octree(sp.positions, sp.areas, np.full((len(sp.areas), 3), E),
+    t = build_octree(sp.positions, sp.areas, np.full((len(sp.areas), 3), E),
                        kernel_sigma_mm=sp.info["kernel_sigma_mm"])
     inner = half - reach - 1.0
     q = np.zeros((600, 3))
@@ -258,10 +264,10 @@ def test04c_sphere_uniform_irradiance(cl_env, preset_profiles):
     stack, prof = preset_profiles["skin1"]
     radius = 20.0
     spacing = S.spacing_from_mfp(stack, SHIPPED.point_density)
-    assert float(prof.cutoff_mm.max()) + G.BLUR_REACH * S.KERNEL_SIGMA_FACTOR * spacing < 2 * radius
+    assert float(prof.cutoff_mm.max()) + BLUR_REACH * S.KERNEL_SIGMA_FACTOR * spacing < 2 * radius
     mesh = o3d.geometry.TriangleMesh.create_sphere(radius=radius, resolution=100)
     sp = S.sample_points(np.asarray(mesh.vertices), np.asarray(mesh.triangles), spacing_mm=spacing, seed=3)
-    t = G.build_octree(sp.positions, sp.areas, np.ones((len(sp.areas), 3)),
+    t = build_octree(sp.positions, sp.areas, np.ones((len(sp.areas), 3)),
                        kernel_sigma_mm=sp.info["kernel_sigma_mm"])
     q = np.random.default_rng(4).normal(size=(600, 3))
     q *= radius / np.linalg.norm(q, axis=1, keepdims=True)
@@ -274,7 +280,7 @@ def test05_flat_slab_thesis_normalisation(cl_env, skin1, slab):
     """The thesis normalisation gives Rd E everywhere on a uniformly lit plane, edges included."""
     sp, half = slab
     E = 1.0
-    t = G.build_octree(sp.positions, sp.areas, np.full((len(sp.areas), 3), E))
+    t = build_octree(sp.positions, sp.areas, np.full((len(sp.areas), 3), E))
     q = np.array([[0.0, 0.0, 0.0], [half - 0.5, 0.0, 0.0], [half - 0.5, half - 0.5, 0.0]])
     m, _ = G.gather(t, skin1, q, epsilon=EPS, normalisation="thesis", env=cl_env)
     # float32 ratio of two sums of the same terms: exact to ~1e-5
@@ -305,7 +311,7 @@ def lit_bump(skin1):
     e[p[:, 1] > 10.0] *= 0.05  # a shadow boundary
     rng = np.random.default_rng(11)
     q = p[rng.choice(len(p), 600, replace=False)] + rng.normal(scale=0.2, size=(600, 3))
-    return G.build_octree(p, sp.areas, e), q
+    return build_octree(p, sp.areas, e), q
 
 
 @pytest.fixture(scope="module")
@@ -427,14 +433,14 @@ def test07c_subtile_expansion_on_dense_queries(cl_env, skin1, lit_bump, pixel_qu
 # ------------------------------------------------------------------ zero irradiance, errors
 def test08_zero_irradiance_is_black_not_nan(cl_env, skin1):
     sp = plane_points(20.0, 1.0)
-    t = G.build_octree(sp.positions, sp.areas, np.zeros((len(sp.areas), 3)))
+    t = build_octree(sp.positions, sp.areas, np.zeros((len(sp.areas), 3)))
     q = np.array([[0.0, 0, 0], [500.0, 0, 0]])  # the second has nothing in range
     for norm in ("energy", "thesis"):
         for brute in (False, True):
             m, _ = G.gather(t, skin1, q, epsilon=EPS, normalisation=norm, brute_force=brute,
                             env=cl_env)
             assert np.isfinite(m).all() and (m == 0).all()
-    L = G.exitance_to_radiance(m, np.array([1.0, -0.2]), 1.3, albedo=np.ones((2, 3)),
+    L = exitance_to_radiance(m, np.array([1.0, -0.2]), 1.3, albedo=np.ones((2, 3)),
                                rd=skin1.Rd)
     assert np.isfinite(L).all() and (L == 0).all()
 
@@ -462,7 +468,7 @@ def test10_radiance_integrates_back_to_exitance():
     mu = (np.arange(n) + 0.5) / n
     M = np.array([[0.7, 0.4, 0.2]])
     for eta in (1.0, 1.3, 1.4):
-        L = G.exitance_to_radiance(np.repeat(M, n, 0), mu, eta).astype(float)
+        L = exitance_to_radiance(np.repeat(M, n, 0), mu, eta).astype(float)
         back = (L * 2 * np.pi * mu[:, None]).sum(0) / n
         np.testing.assert_allclose(back, M[0], rtol=1e-4)
     # external diffuse Fresnel reflectance and the internal fit are tied by
@@ -476,21 +482,21 @@ def test11_albedo_replace_mode(skin1):
     """'replace': a slab reflecting Rd E with texture albedo a gives radiosity a E."""
     E, a = 2.0, np.array([[0.5, 0.3, 0.2]])
     M = (skin1.Rd * E)[None]
-    L = G.exitance_to_radiance(M, np.array([1.0]), 1.0, albedo=a, rd=skin1.Rd, mode="lambert")
+    L = exitance_to_radiance(M, np.array([1.0]), 1.0, albedo=a, rd=skin1.Rd, mode="lambert")
     np.testing.assert_allclose(L[0] * np.pi, a[0] * E, rtol=1e-6)
     with pytest.raises(DermisError, match="needs the profile's Rd"):
-        G.exitance_to_radiance(M, np.array([1.0]), 1.0, albedo=a)
+        exitance_to_radiance(M, np.array([1.0]), 1.0, albedo=a)
 
 
 # ------------------------------------------------------------------ the real layer file
 def test12_flat_slab_with_profiles_stage(cl_env, rng):
-    """The flat-slab test with stages/profiles.py's own skin1 layer file."""
-    from dermis.stages import profiles
+    """The flat-slab test with the skin1 layer file of optics/layer_profiles.py."""
+    from dermis.optics.layer_profiles import build_profiles
     from dermis.optics.layers import PRESETS
-    prof = profiles.build_profiles(PRESETS["skin1"])
+    prof = build_profiles(PRESETS["skin1"])
     half = float(prof.cutoff_mm.max()) + 12.0
     p, a = hex_plane(half, 0.5)
-    t = G.build_octree(p, a, np.ones((len(a), 3)))
+    t = build_octree(p, a, np.ones((len(a), 3)))
     inner = half - float(prof.cutoff_mm.max()) - 1.0
     q = np.zeros((200, 3))
     q[:, :2] = rng.uniform(-inner, inner, (200, 2))
@@ -510,23 +516,23 @@ def _edges_on_a_plane(rng, n=400):
     gap = np.diff(xs)
     lo = -np.r_[gap[0], gap] / 2 * np.linalg.norm(t[:, :2] / t[:, :1], axis=1)
     hi = np.r_[gap, gap[-1]] / 2 * np.linalg.norm(t[:, :2] / t[:, :1], axis=1)
-    return G.ShadowEdges(o, t, out, nz, lo, hi, np.zeros((1, 3)), {"precision_mm": 1e-4})
+    return ShadowEdges(o, t, out, nz, lo, hi, np.zeros((1, 3)), {"precision_mm": 1e-4})
 
 
 def test13_edge_sums_device_matches_numpy(cl_env, rng):
     """The device edge sums (grid, midpoint rule for short far segments) agree with the
     numpy reference (kd-tree, exact table) to 2e-3 of the near part's energy (measured 2e-4)."""
     from dermis.optics.layers import PRESETS
-    from dermis.stages import profiles
-    prof = profiles.build_profiles(PRESETS["skin2"])
-    table = G.near_tables(G.split_profile(prof, 1.25))
+    from dermis.optics.layer_profiles import build_profiles
+    prof = build_profiles(PRESETS["skin2"])
+    table = near_tables(split_profile(prof, 1.25))
     edges = _edges_on_a_plane(rng)
     q = np.zeros((20000, 3))
     q[:, :2] = rng.uniform(-25, 25, (20000, 2))
     q[:50, 1] = 3 * np.sin(q[:50, 0] / 4) + rng.normal(scale=1e-4, size=50)   # on the edge
     nrm = np.tile([0.0, 0.0, 1.0], (len(q), 1))
-    a, sa = G.edge_sum(q, nrm, edges, table, on_edge_mm=1e-3)
-    b, sb = G.edge_sum_cl(q, nrm, edges, table, cl_env, on_edge_mm=1e-3)
+    a, sa = edge_sum(q, nrm, edges, table, on_edge_mm=1e-3)
+    b, sb = edge_sum_cl(q, nrm, edges, table, cl_env, on_edge_mm=1e-3)
     # compare what the near field uses: Rd_near V - S, V from the side where on the edge
     # (there float32 rounding may put a point on either side; the result is continuous)
     lit = q[:, 1] < 3 * np.sin(q[:, 0] / 4)          # outward = z x tangent points to +y
@@ -550,10 +556,10 @@ def test14_shared_visibility_of_point_and_directional_lights():
     # hit 0 sees both, hit 1 only the lamp (plus a disc sample), hit 2 nothing
     dirs = np.array([[0, 0, 1.0], to_lamp(x[0]), to_lamp(x[1]), [0.3, 0.3, 0.9]])
     samples = SimpleNamespace(counts=np.array([2, 2, 0]), directions=dirs.astype(np.float32))
-    v = G.sharp_visibility(samples, np.array([0, 1, 2]), x, [sun, disc, lamp])
+    v = sharp_visibility(samples, np.array([0, 1, 2]), x, [sun, disc, lamp])
     np.testing.assert_array_equal(v, [[True, True], [False, True], [False, False]])
-    v = G.sharp_visibility(samples, np.array([1]), x[1:2], [lamp])
+    v = sharp_visibility(samples, np.array([1]), x[1:2], [lamp])
     np.testing.assert_array_equal(v, [[True]])
     # no point or directional light (a disc or the environment alone): no columns, no work
-    v = G.sharp_visibility(samples, np.array([0, 1, 2]), x, [disc])
+    v = sharp_visibility(samples, np.array([0, 1, 2]), x, [disc])
     assert v.shape == (3, 0) and v.dtype == bool

@@ -116,7 +116,7 @@ def _data_checksums(cache: Path) -> dict:
     """(node id, key) -> {file: sha256} of every finished entry (meta.json records them).
 
     The contact sheets (images/sheet-*.png) are left out: they print each image's render
-    seconds, a measurement that differs run to run (reports/images.py), so they are the one
+    seconds, a measurement that differs run to run (reports/comparison_images.py), so they are the one
     output that is not byte-identical between two undisturbed runs either."""
     out = {}
     for meta in sorted(cache.glob("*/*/meta.json")):
@@ -719,7 +719,7 @@ def _two_layer(g: float) -> dict:
 
 def test23_hk93_with_g_minus_0_99_under_the_sunset_has_no_fireflies(warm, tmp_path, capsys):
     """Item 10: a valid extreme with visible trouble (max 20 vs 0.44 normally, measured).
-    Fixed by the retro lobe (lighting/lights.py RetroLobe, stages/visibility.py retro_lobe):
+    Fixed by the retro lobe (lighting/lobes.py RetroLobe, rendering/cast.py retro_lobe):
     at 128 x 128 max 20.0 -> 0.27, pixels above 5x their 3x3 median 2.2 % -> 0.09 % (0.07 %
     at g = 0.8)."""
     _, cache = warm
@@ -740,7 +740,7 @@ def test23b_the_retro_lobe_is_drawn_only_for_backward_scattering_hk93(tmp_path):
     """The fix of test23 changes no other scene: the default scene, HK93 at g = 0.8, and a
     g = -0.99 stack rendered without HK93 keep the plain product strategy (and their keys)."""
     from dermis.pipeline.config import load_scene
-    from dermis.stages.visibility import retro_lobe
+    from dermis.rendering.cast import retro_lobe
     assert retro_lobe(load_scene(REPO / "scenes" / "default.toml")) is None
     cases = {"hk93": (["hk93"], -0.99), "hk93_forward": (["hk93"], 0.8),
              "lafortune": (["lafortune", "bssrdf"], -0.99)}

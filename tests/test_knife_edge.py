@@ -1,8 +1,8 @@
-"""Knife edge: the BSSRDF's blur is the skin profile's (stages/gather.py "near field",
+"""Knife edge: the BSSRDF's blur is the skin profile's (subsurface/near_field.py,
 docs/science.md §4; issue 10).
 
 A large flat slab lies half in the shadow of a straight occluder edge (a plate above it)
-under a directional light.  Across the shadow edge the exitance :func:`gather.exitance`
+under a directional light.  Across the shadow edge the exitance :func:`exitance.exitance`
 renders from the pipeline's own points, irradiance (with entry transmittance) and layer
 profiles at the shipped settings must follow the profile's analytic edge-spread function,
 E cos T(cos) int over the lit half-plane of R(|x - y|) dA, within 2 % of E cos T(cos) Rd at
@@ -29,10 +29,12 @@ import pytest
 
 from dermis.pipeline.config import BssrdfConfig, LightConfig
 from dermis.optics.layers import PRESETS
-from dermis.lighting.lights import irradiance
+from dermis.lighting.irradiance import irradiance
 from dermis.lighting.visibility import Visibility
-from dermis.stages import gather as G
-from dermis.stages import samples as S
+from dermis.optics.transmittance import Transmittance
+from dermis.subsurface import points as S
+from dermis.subsurface.exitance import ExitanceOptions, ShadingPoints, exitance
+from dermis.subsurface.profile_table import BLUR_REACH
 
 TOL = 0.02
 # the light comes from 20 deg off the normal: the entry transmittance and the cosine enter
@@ -41,7 +43,7 @@ LIGHT_DIR = (math.sin(math.radians(20.0)), 0.0, math.cos(math.radians(20.0)))
 
 @pytest.fixture(scope="module")
 def layer_files():
-    from dermis.stages.profiles import build_profiles
+    from dermis.optics.layer_profiles import build_profiles
     return {k: build_profiles(PRESETS[k]) for k in ("two_layer", "skin1", "skin2")}
 
 
@@ -83,14 +85,14 @@ def knife_edge(prof, stack, cl_env, *, density=None, near_field=True, seed=1):
 
 
 def sc_exitance(sc, prof, cl_env, *, near_field=True, shading_normals=None, memo=None):
-    """gather.exitance on a knife_scene at the shipped settings."""
+    """exitance() on a knife_scene at the shipped settings."""
     cfg = BssrdfConfig()
     nrm = np.tile([0.0, 0.0, 1.0], (len(sc["q"]), 1))
-    return G.exitance(sc["pts"], sc["E"], prof, sc["q"],
-                      shading_normals=nrm if shading_normals is None else shading_normals,
-                      geo_normals=nrm, lights=[sc["light"]], visibility=sc["vis"],
-                      epsilon=cfg.epsilon, transmittance=sc["transmit"],
-                      leaf_size=cfg.leaf_size, near_field=near_field, env=cl_env, memo=memo)
+    shading = ShadingPoints(sc["q"], nrm if shading_normals is None else shading_normals, nrm)
+    options = ExitanceOptions(epsilon=cfg.epsilon, transmittance=sc["transmit"],
+                              leaf_size=cfg.leaf_size, near_field=near_field, env=cl_env)
+    return exitance(sc["pts"], sc["E"], prof, shading, lights=[sc["light"]],
+                    visibility=sc["vis"], options=options, memo=memo)
 
 
 def knife_scene(prof, stack, *, density=None, seed=1) -> dict:
@@ -98,7 +100,7 @@ def knife_scene(prof, stack, *, density=None, seed=1) -> dict:
     cfg = BssrdfConfig()
     spacing = S.spacing_from_mfp(stack, cfg.point_density if density is None else density)
     sigma = S.KERNEL_SIGMA_FACTOR * spacing
-    reach = float(prof.cutoff_mm.max()) + G.BLUR_REACH * sigma
+    reach = float(prof.cutoff_mm.max()) + BLUR_REACH * sigma
     half = reach + 2 * spacing + S.POU_RADIUS * sigma + 5.0
     slab = np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0.0]])
     tri = np.array([[0, 1, 2], [0, 2, 3]])
@@ -111,7 +113,7 @@ def knife_scene(prof, stack, *, density=None, seed=1) -> dict:
     light = LightConfig(name="sun", type="directional", direction=LIGHT_DIR,
                         intensity=(1.5, 1.5, 1.5))
     eta = stack.layers[0].eta / stack.eta_above
-    transmit = G.Transmittance(eta, cfg.surface_reflection)
+    transmit = Transmittance(eta, cfg.surface_reflection)
     E = irradiance(pts.positions, pts.normals, [light], vis.occluded, transmittance=transmit)
     edge = -z * LIGHT_DIR[0] / LIGHT_DIR[2]          # the plate's edge projected on the slab
     radius = half_energy_radius(prof).max()
@@ -157,8 +159,8 @@ def test02_the_tolerance_pins_the_edge(layer_files):
 
 def test03_hk93_uses_the_same_layer_file(layer_files):
     """HK93's multiple-scattering constant is derived from the Rd of this very layer file
-    (brdf_models builds it on a coarse radial grid, RD_GRID, which changes no total)."""
-    from dermis.stages.brdf_models import HK93Params
+    (models/hk93.py builds it on a coarse radial grid, RD_GRID, which changes no total)."""
+    from dermis.models.hk93 import HK93Params
     for preset, prof in layer_files.items():
         np.testing.assert_allclose(HK93Params(PRESETS[preset]).diffuse_reflectance, prof.Rd,
                                    rtol=1e-9)
@@ -167,7 +169,7 @@ def test03_hk93_uses_the_same_layer_file(layer_files):
 def test04_bump_variants_share_the_gathers(cl_env, layer_files):
     # The low mesh's two bump variants shade the same positions with other normals: in one
     # run (``memo``) the second reuses the first's octree, shadow edges and far gather
-    # (stages/gather.py exitance), and both exitances equal the ones computed alone, bit for
+    # (subsurface/exitance.py), and both exitances equal the ones computed alone, bit for
     # bit; only the sharp near field sees the normals.
     prof = layer_files["two_layer"]
     sc = knife_scene(prof, PRESETS["two_layer"])

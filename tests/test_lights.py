@@ -1,4 +1,5 @@
-"""pipeline/lights.py and pipeline/visibility.py: light sampling against closed forms.
+"""lighting/ (emitters, environment, warps, lobes, irradiance) and lighting/visibility.py:
+light sampling against closed forms.
 
 Monte Carlo tolerances are 5 standard errors estimated from the samples themselves (a
 false failure rate below 1e-6 per check); float32 tolerances are a few ulps x the number of
@@ -15,10 +16,14 @@ import pytest
 
 from dermis.pipeline.config import LightConfig
 from dermis.pipeline.errors import ConfigError
-from dermis.lighting.lights import (ENV_STRATEGIES, LUMINANCE, EnvironmentMap, concentric_disc,
-                             cosine_hemisphere, environment_map, irradiance, procedural_sunset,
-                             sample_lights, SUNSET_SUN_AZIMUTH_DEG, SUNSET_SUN_ELEVATION_DEG,
-                             SUNSET_SUN_IRRADIANCE)
+from dermis.lighting.emitters import ENV_STRATEGIES, SamplingOptions, sample_lights
+from dermis.lighting.environment import (EnvironmentMap, environment_map, procedural_sunset,
+                                         SUNSET_SUN_AZIMUTH_DEG, SUNSET_SUN_ELEVATION_DEG,
+                                         SUNSET_SUN_IRRADIANCE)
+from dermis.lighting.irradiance import irradiance
+from dermis.lighting.lobes import RetroLobe
+from dermis.lighting.warps import concentric_disc, cosine_hemisphere
+from dermis.rendering.color import LUMINANCE
 from dermis.lighting.visibility import Visibility
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -129,8 +134,9 @@ def test06_constant_environment_gives_pi_L_on_unoccluded_plane(strategy):
     n = np.tile([0.0, 0.0, 1.0], (3000, 1))
     light = LightConfig(name="e", type="environment", samples=16)
     # the plane's own surface must not shadow it (ray offset): same result with occlusion
-    e_vis = irradiance(pts, n, light, vis.occluded, env=env, seed=6, env_strategy=strategy)
-    e_free = irradiance(pts, n, light, None, env=env, seed=6, env_strategy=strategy)
+    opts = SamplingOptions(env=env, env_strategy=strategy)
+    e_vis = irradiance(pts, n, light, vis.occluded, seed=6, options=opts)
+    e_free = irradiance(pts, n, light, None, seed=6, options=opts)
     np.testing.assert_array_equal(e_vis, e_free)
     mean, tol = _mean_and_tol(e_vis)
     assert np.all(np.abs(mean - math.pi * radiance) < tol), (mean, math.pi * radiance, tol)
@@ -185,7 +191,7 @@ def test08_environment_importance_sampling_matches_quadrature(strategy):
         # < 1e-3 relative, far inside the Monte Carlo tolerance
         exact = (env.radiance * (cos * omega[:, None])[..., None]).sum((0, 1))
         e = irradiance(np.zeros((4000, 3)), np.tile(normal, (4000, 1)), light, None,
-                       env=env, seed=8, env_strategy=strategy)
+                       seed=8, options=SamplingOptions(env=env, env_strategy=strategy))
         mean, tol = _mean_and_tol(e)
         assert np.all(np.abs(mean - exact) < tol + 1e-3 * exact), (normal, mean, exact, tol)
 
@@ -201,7 +207,8 @@ def test09_latlong_convention_and_sunset_sun():
     # the sun's irradiance on a surface facing it is the documented value (+ the sky's share)
     sun = EnvironmentMap(sky)._dirs(np.array([(c + 0.5) / 1024]), np.array([(r + 0.5) / 512]))[0][0]
     e = irradiance(np.zeros((1, 3)), sun[None], LightConfig(name="e", type="environment"),
-                   None, env=EnvironmentMap(sky), samples=20000)[0] @ LUMINANCE
+                   None, options=SamplingOptions(samples=20000, env=EnvironmentMap(sky)))[0] \
+        @ LUMINANCE
     assert SUNSET_SUN_IRRADIANCE < e < 1.5 * SUNSET_SUN_IRRADIANCE
 
 
@@ -315,8 +322,9 @@ def test15_mis_reduces_variance_facing_away_from_the_sun():
     env = EnvironmentMap(procedural_sunset(256))
     light = LightConfig(name="e", type="environment", samples=16)
     n = np.tile(_away_from_sun_normal(), (8000, 1))
-    est = {s: irradiance(np.zeros((8000, 3)), n, light, None, env=env, seed=15,
-                         env_strategy=s) @ LUMINANCE for s in ENV_STRATEGIES}
+    est = {s: irradiance(np.zeros((8000, 3)), n, light, None, seed=15,
+                         options=SamplingOptions(env=env, env_strategy=s)) @ LUMINANCE
+           for s in ENV_STRATEGIES}
     # both unbiased: the means agree within 5 combined standard errors
     diff = est["mis"].mean() - est["luminance"].mean()
     se = math.sqrt(est["mis"].var() / 8000 + est["luminance"].var() / 8000)
@@ -336,8 +344,9 @@ def test15b_product_sampling_is_unbiased_and_beats_mis_facing_away_from_the_sun(
     env = EnvironmentMap(procedural_sunset(256))
     light = LightConfig(name="e", type="environment", samples=16)
     n = np.tile(_away_from_sun_normal(), (8000, 1))
-    est = {s: irradiance(np.zeros((8000, 3)), n, light, None, env=env, seed=15,
-                         env_strategy=s) @ LUMINANCE for s in ("mis", "product")}
+    est = {s: irradiance(np.zeros((8000, 3)), n, light, None, seed=15,
+                         options=SamplingOptions(env=env, env_strategy=s)) @ LUMINANCE
+           for s in ("mis", "product")}
     diff = est["mis"].mean() - est["product"].mean()
     se = math.sqrt(est["mis"].var() / 8000 + est["product"].var() / 8000)
     assert abs(diff) < N_SIGMA * se, (diff, se)
@@ -355,7 +364,6 @@ RETRO_MIN_VARIANCE_RATIO = 1000.0
 
 
 def test15c_retro_lobe_is_unbiased_and_tames_a_backscatter_peak():
-    from dermis.lighting.lights import RetroLobe
     env = EnvironmentMap(procedural_sunset(256))
     light = LightConfig(name="e", type="environment", samples=16)
     m = 8000
@@ -368,7 +376,8 @@ def test15c_retro_lobe_is_unbiased_and_tames_a_backscatter_peak():
     est = {}
     for name, lobe in (("product", None),
                        ("retro", RetroLobe(view, 0.25, RetroLobe.k_for_layer(-0.99, 1.4)))):
-        ls = sample_lights(light, np.zeros((m, 3)), n, env=env, seed=15, lobe=lobe)
+        ls = sample_lights(light, np.zeros((m, 3)), n, seed=15, options=SamplingOptions(env=env),
+                           lobe=lobe)
         c = np.einsum("nsk,nk->ns", ls.directions, view)
         f = (1 - g * g) / (4 * math.pi * (1 + g * g - 2 * g * c) ** 1.5)
         est[name] = ((ls.weights @ LUMINANCE) * f * np.maximum(ls.directions[..., 1], 0)).sum(1)
@@ -389,17 +398,20 @@ def test16_env_strategy_is_validated_and_needs_normals():
     light = LightConfig(name="e", type="environment", samples=16)
     env = EnvironmentMap(procedural_sunset(64))
     with pytest.raises(ConfigError, match="env_strategy"):
-        sample_lights(light, np.zeros((1, 3)), env=env, env_strategy="cosine")
+        sample_lights(light, np.zeros((1, 3)),
+                      options=SamplingOptions(env=env, env_strategy="cosine"))
     # without normals (no hemisphere) "mis" falls back to luminance sampling, identically
-    a = sample_lights(light, np.zeros((5, 3)), env=env, seed=1)
-    b = sample_lights(light, np.zeros((5, 3)), env=env, seed=1, env_strategy="luminance")
+    a = sample_lights(light, np.zeros((5, 3)), seed=1, options=SamplingOptions(env=env))
+    b = sample_lights(light, np.zeros((5, 3)), seed=1,
+                      options=SamplingOptions(env=env, env_strategy="luminance"))
     np.testing.assert_array_equal(a.weights, b.weights)
     # with normals, 6 of 16 "mis" samples (4 of the default "product" ones) are cosine
     # samples: all above the horizon
     up = np.tile([0.0, 1.0, 0.0], (5, 1))
-    c = sample_lights(light, np.zeros((5, 3)), up, env=env, seed=1, env_strategy="mis")
+    c = sample_lights(light, np.zeros((5, 3)), up, seed=1,
+                      options=SamplingOptions(env=env, env_strategy="mis"))
     assert c.count == 16 and np.all(c.directions[:, 10:, 1] > 0)
-    c = sample_lights(light, np.zeros((5, 3)), up, env=env, seed=1)
+    c = sample_lights(light, np.zeros((5, 3)), up, seed=1, options=SamplingOptions(env=env))
     assert c.count == 16 and np.all(c.directions[:, 12:, 1] > 0)
 
 

@@ -1,12 +1,12 @@
-"""OpenCL Monte Carlo reference (stages/mc_slab.py, cl/mc_slab.cl, cl/rng.h)."""
+"""OpenCL Monte Carlo reference (optics/monte_carlo_slab.py, cl/mc_slab.cl, cl/rng.h)."""
 import math
 
 import numpy as np
 import pytest
 
 from dermis.optics.layers import PRESETS, Layer, LayerStack
-from dermis.stages import mc_slab as M
-from dermis.stages import profiles as P
+from dermis.optics import monte_carlo_slab as M
+from dermis.optics.layer_profiles import MultipoleOptions, build_profiles
 
 
 @pytest.fixture(scope="module")
@@ -57,7 +57,7 @@ def test03_multipole_agrees_beyond_two_mfp(env):
     # (the model error plus ~5 % MC noise per ring at 2e5 photons).  A wrong sign, pole or
     # normalisation moves these by far more.
     st = PRESETS["skin2"]
-    prof = P.build_profiles(st, grid=(0.1, 20.0))
+    prof = build_profiles(st, options=MultipoleOptions(grid=(0.1, 20.0)))
     mc = M.simulate(st, photons=200000, r_max_mm=20.0, bins=200, env=env)
     assert np.all(np.abs(prof.Rd / mc.Rd - 1) < 0.05)
     for c, lay_mfp in enumerate(1 / (np.array(st.layers[0].sigma_a) +

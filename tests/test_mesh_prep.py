@@ -1,5 +1,6 @@
-"""Tests for stages/mesh_prep.py: loading, validation, subdivision/displacement, normals,
-simplification and the thesis's UV transfer (docs/science.md §6).
+"""Tests for geometry/scan.py, validation.py, subdivision.py, simplification.py and uv_transfer.py:
+loading, validation, subdivision/displacement, normals, simplification and the thesis's UV
+transfer (docs/science.md §6).
 
 Meshes are built here from closed forms (spheres, lat-long UVs) so each check has independent
 evidence; the LPS scan test skips when /work/shared/data is absent.
@@ -15,7 +16,11 @@ import pytest
 
 from dermis.pipeline.artifacts import Mesh, angle_weighted_normals
 from dermis.pipeline.errors import DermisError
-from dermis.stages import mesh_prep as mp, scan_io
+from dermis.geometry import scan
+from dermis.geometry.simplification import simplify
+from dermis.geometry.subdivision import make_high, vertex_uv_pairs
+from dermis.geometry.uv_transfer import transfer_uv
+from dermis.geometry.validation import validate
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 TEX = np.full((8, 8, 3), 128, np.uint8)
@@ -77,7 +82,7 @@ def test01_vertex_normals_match_sphere():
 def test02_make_high_count_and_uv_continuity():
     m = latlong_sphere(6, 12)
     f0 = len(m.faces)
-    h = mp.make_high(m, target_triangles=f0 * 16)
+    h = make_high(m, target_triangles=f0 * 16)
     assert len(h.faces) == f0 * 16 and h.info["make_high"]["splits"] == 2
 
     def seam_edges(mesh):
@@ -106,16 +111,16 @@ def test02_make_high_count_and_uv_continuity():
 
 def test03_make_high_returns_dense_mesh_unchanged():
     m = latlong_sphere(6, 12)
-    h = mp.make_high(m, target_triangles=int(len(m.faces) / 0.8))
+    h = make_high(m, target_triangles=int(len(m.faces) / 0.8))
     assert h.faces is m.faces and h.info["make_high"]["splits"] == 0
 
 
 def test04_constant_displacement_shifts_along_normals():
     m = latlong_sphere(10, 20)
-    base = mp.make_high(m, target_triangles=len(m.faces) * 4, scheme="midpoint")
+    base = make_high(m, target_triangles=len(m.faces) * 4, scheme="midpoint")
     disp = np.full((16, 16), 0.8, np.float32)
-    d = mp.make_high(m, target_triangles=len(m.faces) * 4, scheme="midpoint", displacement=disp,
-                     displacement_scale_mm=2.0, displacement_mid=0.3)
+    d = make_high(m, target_triangles=len(m.faces) * 4, scheme="midpoint", displacement=disp,
+                  displacement_scale_mm=2.0, displacement_mid=0.3)
     shift = d.vertices - base.vertices
     expected = (0.8 - 0.3) * 2.0  # mm
     # float32 normals: unit length to ~1e-7, so 1 mm shifts are exact to ~1e-6 mm.
@@ -126,11 +131,11 @@ def test04_constant_displacement_shifts_along_normals():
 def test05_displacement_watertight_at_seam():
     m = latlong_sphere(8, 16)
     ramp = np.tile(np.linspace(0, 1, 64, dtype=np.float32), (64, 1))  # d = u: differs across the seam
-    d = mp.make_high(m, target_triangles=len(m.faces) * 4, displacement=ramp, displacement_scale_mm=5.0)
+    d = make_high(m, target_triangles=len(m.faces) * 4, displacement=ramp, displacement_scale_mm=5.0)
     # Welded topology means the surface is watertight by construction; check the seam vertices got
     # the mean of their two samples (u = 0 and u = 1 -> d = 0.5 -> zero offset with mid 0.5).
-    base = mp.make_high(m, target_triangles=len(m.faces) * 4)
-    pv, pt = mp._vertex_uv_pairs(base.faces.astype(np.int64), base.uv_faces.astype(np.int64), len(base.uv))
+    base = make_high(m, target_triangles=len(m.faces) * 4)
+    pv, pt = vertex_uv_pairs(base.faces.astype(np.int64), base.uv_faces.astype(np.int64), len(base.uv))
     u = base.uv[pt, 0]
     seam = np.intersect1d(pv[u == 0.0], pv[u == 1.0])
     seam = seam[np.abs(base.vertices[seam, 2]) < 99.0]   # the poles carry every u
@@ -153,7 +158,7 @@ def test06_simplify_hits_target_within_hausdorff():
 
     v, f = bumpy_sphere()
     target = 3000
-    low = mp.simplify(Mesh(vertices=v, faces=f), target_triangles=target)
+    low = simplify(Mesh(vertices=v, faces=f), target_triangles=target)
     # fast-simplification stops within a few collapses of the target (each removes 2 faces).
     COUNT_TOL = 0.01
     assert abs(len(low.faces) - target) <= COUNT_TOL * target
@@ -169,8 +174,8 @@ def test06_simplify_hits_target_within_hausdorff():
 
 def test07_transfer_uv_repairs_seam():
     high = latlong_sphere(60, 120)
-    low = mp.simplify(high, target_triangles=1500)
-    out, rep = mp.transfer_uv(high, low)
+    low = simplify(high, target_triangles=1500)
+    out, rep = transfer_uv(high, low)
     assert rep["triangles"] == len(low.faces)
     assert rep["seam_choices"] > 0 and rep["straddling"] > 0 and rep["repaired"] > 0
     # The lat-long map is singular at the poles (u spans [0, 1] at one point), so a low triangle at a
@@ -207,7 +212,7 @@ def test08_transfer_uv_without_seam_needs_no_repair():
                         np.stack([q[:-1, :-1].ravel(), q[1:, 1:].ravel(), q[1:, :-1].ravel()], 1)])
     uv = np.stack([x.ravel() / 100, y.ravel() / 100], 1).astype(np.float32)
     high = Mesh(vertices=v, faces=f.astype(np.int32), uv=uv, uv_faces=f.astype(np.int32), texture_srgb=TEX)
-    out, rep = mp.transfer_uv(high, mp.simplify(high, target_triangles=300))
+    out, rep = transfer_uv(high, simplify(high, target_triangles=300))
     assert rep["seam_choices"] == 0 and rep["repaired"] == 0 and rep["straddling"] == 0
 
 
@@ -221,7 +226,7 @@ def tetra(**kw) -> Mesh:
 
 
 def test09_validate_clean_mesh_reports_nothing():
-    out, rep = mp.validate(tetra(), source="tetra")
+    out, rep = validate(tetra(), source="tetra")
     assert rep["degenerate_faces_removed"] == 0 and rep["duplicate_faces_removed"] == 0
     assert rep["boundary_edges"] == 0 and out.normals.shape == (4, 3)
 
@@ -230,7 +235,7 @@ def test10_validate_refuses_nan():
     m = tetra()
     m.vertices[2, 1] = np.nan
     with pytest.raises(DermisError, match=r"tetra: 1 vertices have NaN/Inf coordinates \(first: vertex 2"):
-        mp.validate(m, source="tetra")
+        validate(m, source="tetra")
 
 
 def test11_validate_removes_degenerate_and_duplicate_faces():
@@ -238,7 +243,7 @@ def test11_validate_removes_degenerate_and_duplicate_faces():
     f = np.concatenate([m.faces, [[0, 0, 1]], [[0, 1, 1]], [[3, 1, 0]]]).astype(np.int32)  # 2 degenerate, 1 duplicate
     v = np.concatenate([m.vertices, [[5, 0, 0]]])                     # collinear point -> zero area
     f = np.concatenate([f, [[0, 4, 1]]]).astype(np.int32)
-    out, rep = mp.validate(tetra(vertices=v, faces=f, uv_faces=np.zeros_like(f)), source="t")
+    out, rep = validate(tetra(vertices=v, faces=f, uv_faces=np.zeros_like(f)), source="t")
     assert rep["degenerate_faces_removed"] == 3 and rep["duplicate_faces_removed"] == 1
     assert rep["unreferenced_vertices_removed"] == 1 and len(out.faces) == 4 and len(out.vertices) == 4
 
@@ -248,14 +253,14 @@ def test12_validate_refuses_non_manifold_edge():
     v = np.concatenate([m.vertices, [[5, 5, -10]]])
     f = np.concatenate([m.faces, [[0, 1, 4]]]).astype(np.int32)       # third face on edge (0, 1)
     with pytest.raises(DermisError, match=r"t: 1 non-manifold edges .* e\.g\. edge \(0, 1\)"):
-        mp.validate(tetra(vertices=v, faces=f, uv_faces=np.zeros_like(f)), source="t")
+        validate(tetra(vertices=v, faces=f, uv_faces=np.zeros_like(f)), source="t")
 
 
 def test13_validate_refuses_missing_uv_and_texture():
     with pytest.raises(DermisError, match=r"s: the mesh has no texture coordinates \(UVs\)"):
-        mp.validate(tetra(uv=None, uv_faces=None), source="s")
+        validate(tetra(uv=None, uv_faces=None), source="s")
     with pytest.raises(DermisError, match=r"s: no albedo texture.*mesh\.texture"):
-        mp.validate(tetra(texture_srgb=None), source="s")
+        validate(tetra(texture_srgb=None), source="s")
 
 
 # --- loading -----------------------------------------------------------------------------------
@@ -269,13 +274,13 @@ def write_png(path: Path, rgb: np.ndarray):
 
 def test14_load_missing_and_unreadable(tmp_path):
     with pytest.raises(DermisError, match=r"mesh file not found: .*nope\.obj"):
-        scan_io.load_scan(tmp_path / "nope.obj")
+        scan.load_scan(tmp_path / "nope.obj")
     bad = tmp_path / "bad.ply"
     bad.write_text("this is not a ply\n")
     with pytest.raises(DermisError, match=r"bad\.ply"):
-        scan_io.load_scan(bad)
+        scan.load_scan(bad)
     with pytest.raises(DermisError, match=r"units = 'inch'"):
-        scan_io.load_scan(bad, units="inch")
+        scan.load_scan(bad, units="inch")
 
 
 def test15_load_obj_welds_seams_and_converts_units(tmp_path):
@@ -289,13 +294,13 @@ def test15_load_obj_welds_seams_and_converts_units(tmp_path):
         "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 1 1 0\n"
         "vt 0 0\nvt 0.5 0\nvt 0.5 0.5\nvt 0 0.5\nvt 0.9 0.9\n"
         "f 1/1 2/2 3/3\nf 1/1 5/5 4/4\n")
-    m = scan_io.load_scan(tmp_path / "m.obj", units="cm")
+    m = scan.load_scan(tmp_path / "m.obj", units="cm")
     assert len(m.vertices) == 4 and m.info["vertices_welded"] == 1
     np.testing.assert_allclose(m.vertices.max(axis=0), [10, 10, 0])
     assert m.faces[0, 2] == m.faces[1, 1]                          # shared topology
     np.testing.assert_allclose(m.uv[m.uv_faces[1, 1]], [0.9, 0.9])  # seam UV kept per corner
     assert m.texture_srgb.shape == (4, 6, 3) and m.texture_srgb[0, 0, 0] == 200
-    mp.validate(m, source="m.obj")
+    validate(m, source="m.obj")
 
 
 def test16_load_ply_and_glb_uv_conventions(tmp_path):
@@ -307,7 +312,7 @@ def test16_load_ply_and_glb_uv_conventions(tmp_path):
     lines += [" ".join(map(str, [*p, *t])) for p, t in zip(v, uv)] + ["3 0 1 2"]
     (tmp_path / "m.ply").write_text("\n".join(lines) + "\n")
     write_png(tmp_path / "alb.png", np.zeros((2, 2, 3), np.uint8))
-    m = scan_io.load_scan(tmp_path / "m.ply", units="m")
+    m = scan.load_scan(tmp_path / "m.ply", units="m")
     np.testing.assert_allclose(m.vertices[1], [1000, 0, 0])
     np.testing.assert_allclose(np.sort(m.uv[m.uv_faces[0]][:, 1]), [0.25, 0.25, 1.0])  # PLY: not flipped
     assert m.texture_srgb.shape == (2, 2, 3)
@@ -326,26 +331,26 @@ def test16_load_ply_and_glb_uv_conventions(tmp_path):
     glb = struct.pack("<4sII", b"glTF", 2, 12 + 8 + len(js) + 8 + len(binv)) + struct.pack("<I4s", len(js), b"JSON") + js \
         + struct.pack("<I4s", len(binv), b"BIN\x00") + binv
     (tmp_path / "m.glb").write_bytes(glb)
-    g = scan_io.load_scan(tmp_path / "m.glb", texture=tmp_path / "alb.png")
+    g = scan.load_scan(tmp_path / "m.glb", texture=tmp_path / "alb.png")
     np.testing.assert_allclose(np.sort(g.uv[g.uv_faces[0]][:, 1]), [0.0, 0.75, 0.75])
-    g2 = scan_io.load_scan(tmp_path / "m.glb", texture=tmp_path / "alb.png", flip_v=False)
+    g2 = scan.load_scan(tmp_path / "m.glb", texture=tmp_path / "alb.png", flip_v=False)
     np.testing.assert_allclose(np.sort(g2.uv[g2.uv_faces[0]][:, 1]), [0.25, 0.25, 1.0])
     with pytest.raises(DermisError, match=r"texture file not found: .*nope\.png"):
-        scan_io.load_scan(tmp_path / "m.glb", texture=tmp_path / "nope.png")
+        scan.load_scan(tmp_path / "m.glb", texture=tmp_path / "nope.png")
 
 
 def test17_load_lps_scan():
     lps = DATA / "lps_head"
     if not lps.is_dir():
         pytest.skip(f"LPS scan not available at {lps}")
-    m = scan_io.load_scan(lps / "LeePerrySmith_cm.obj", units="cm")
-    m, rep = mp.validate(m, source="LeePerrySmith_cm.obj")
+    m = scan.load_scan(lps / "LeePerrySmith_cm.obj", units="cm")
+    m, rep = validate(m, source="LeePerrySmith_cm.obj")
     assert len(m.faces) == 17684 and len(m.vertices) == 8844 and rep["boundary_edges"] == 0
     # README: 43.1 x 40.0 x 26.1 cm
     np.testing.assert_allclose(np.ptp(m.vertices, axis=0), [431, 400, 261], atol=1.0)
     assert m.texture_srgb.shape == (1024, 1024, 3)
     # the glb (centred, scaled 1/5.035, OBJ-convention UVs) gives the same UVs on the same faces
-    g = scan_io.load_scan(lps / "LeePerrySmith.glb", texture=lps / "Map-COL.jpg")
+    g = scan.load_scan(lps / "LeePerrySmith.glb", texture=lps / "Map-COL.jpg")
     assert "not flipped" in g.info["uv_convention"] and len(g.vertices) == 8844
     from scipy.spatial import cKDTree
 

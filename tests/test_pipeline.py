@@ -204,7 +204,7 @@ def test10_concurrent_askers_of_one_result_share_one_computation():
 def test10b_run_memo_entries_are_made_once_by_concurrent_nodes():
     """reuse.once: the run's memo entry asked for by four threads at once is made once, and
     a later ask gets it without making (two BSSRDF nodes started together each located the
-    same shadow edges before, stages/gather.py exitance)."""
+    same shadow edges before, subsurface/exitance.py)."""
     from dermis.pipeline.reuse import once
     memo: dict = {}
     made, got = _ask_at_once(lambda make: once(memo, ("edges", 1), make))

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from dermis.pipeline.errors import ConfigError
-from dermis.stages import procedural_head as ph
+from dermis.geometry import head_shape, procedural_head as ph
 
 N_TRI = 20_000
 TEX = 256
@@ -137,7 +137,7 @@ def test06_skin_is_embedded_star_shaped(head, smooth, detail):
     """Every skin triangle turns counter-clockwise seen from the ray centre: the radial surface
     folds nowhere, so it cannot self-intersect (also after the relief is applied)."""
     v, f = _skin(head if detail else smooth)
-    c = ph.CENTRE + ph.FRAME_OFFSET
+    c = head_shape.CENTRE + ph.FRAME_OFFSET
     a, b, d = v[f[:, 0]] - c, v[f[:, 1]] - c, v[f[:, 2]] - c
     det = np.einsum("ij,ij->i", a, np.cross(b, d))
     assert det.min() > 0.0
@@ -154,11 +154,11 @@ def test07_eyeballs_are_closed_spheres_in_the_sockets(head):
         assert (euler, edges_twice, directed_once) == (2, True, True)
         centre = v.mean(axis=0)
         radius = np.linalg.norm(v - centre, axis=1)
-        np.testing.assert_allclose(radius, ph.EYE_RADIUS, rtol=1e-9)
+        np.testing.assert_allclose(radius, head_shape.EYE_RADIUS, rtol=1e-9)
         assert _signed_volume(v, f) > 0.0
         # centre and the part under the upper lid are inside the skin, the cornea is outside
-        probes = np.array([centre, centre + ph.EYE_RADIUS * np.array([0.0, 0.8, 0.6]),
-                           centre + (ph.EYE_RADIUS + 0.05) * np.array([0.0, 0.0, 1.0])])
+        probes = np.array([centre, centre + head_shape.EYE_RADIUS * np.array([0.0, 0.8, 0.6]),
+                           centre + (head_shape.EYE_RADIUS + 0.05) * np.array([0.0, 0.0, 1.0])])
         w = igl.winding_number(v_skin, f_skin.astype(np.int64), probes)
         np.testing.assert_allclose(w, [1.0, 1.0, 0.0], atol=0.05)
 
@@ -192,14 +192,14 @@ def test09_uv_in_range_with_a_seam_at_the_back(head):
     on_seam = split[n_uv[split] == 2]
     assert len(split) - len(on_seam) == 2
     np.testing.assert_allclose(v[on_seam, 0], 0.0, atol=1e-9)
-    assert np.all(v[on_seam, 2] < (ph.CENTRE + ph.FRAME_OFFSET)[2])
+    assert np.all(v[on_seam, 2] < (head_shape.CENTRE + ph.FRAME_OFFSET)[2])
     # every skin triangle keeps its orientation in UV space (no flipped charts)
     t = head.uv[uvf]
     e1, e2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
     area = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
     assert area.min() > 0.0
     # the skin stays below the eye strip
-    assert head.uv[uvf][..., 1].max() <= ph.V_SKIN + 1e-6
+    assert head.uv[uvf][..., 1].max() <= head_shape.V_SKIN + 1e-6
 
 
 # ------------------------------------------------------------------------------- texture
@@ -219,7 +219,7 @@ def _texel_at(mesh, point, offset=True):
 def test10_texture_varies_with_plausible_regions(head):
     tex = head.texture_srgb
     assert tex.dtype == np.uint8 and tex.shape == (TEX, TEX, 3)
-    skin = tex[int(TEX * (1 - ph.V_SKIN)) + 1:]
+    skin = tex[int(TEX * (1 - head_shape.V_SKIN)) + 1:]
     # not flat: the region masks and noise give several sRGB levels of spread (measured ~10)
     assert skin.reshape(-1, 3).std(axis=0).min() > 3.0
     forehead = _texel_at(head, (0.0, 50.0, 88.0))
@@ -237,7 +237,7 @@ def test10_texture_varies_with_plausible_regions(head):
 
 def test11_eye_strip_shows_iris_and_sclera(head):
     tex = head.texture_srgb.astype(float)
-    strip = int(round(TEX * (1 - ph.V_SKIN)))
+    strip = int(round(TEX * (1 - head_shape.V_SKIN)))
     centre = tex[strip // 2, strip // 2]           # pupil
     sclera = tex[strip // 2, int(strip * 0.15)]    # ~8.5 mm from the axis
     assert centre.sum() < 60 and sclera.sum() > 450

@@ -1,4 +1,5 @@
-"""Layer-optics stage: diffusion profiles, exact totals, FFT adding (stages/profiles.py,
+"""Layer optics: diffusion profiles, exact totals, FFT adding (optics/multipole.py,
+optics/adding_doubling.py, optics/layer_convolution.py, optics/layer_profiles.py,
 docs/profiles.md).  The comparisons with the Monte Carlo are in tests/test_profile_mc.py."""
 import math
 
@@ -7,7 +8,10 @@ import pytest
 
 from dermis.pipeline.errors import ConfigError, DermisError
 from dermis.optics.layers import PRESETS, Layer, LayerStack, parse_layer_stack
-from dermis.stages import profiles as P
+from dermis.optics.adding_doubling import exact_totals
+from dermis.optics.layer_file import CUTOFF_FRACTION
+from dermis.optics.layer_profiles import MultipoleOptions, build_profiles
+from dermis.optics.multipole import NQ_BEAM, multipole_profiles, multipole_totals
 from dermis.optics.fresnel import dipole_Rd, diffusion_boundary, fresnel_moments
 
 SKIN1 = PRESETS["skin1"].layers[0]
@@ -50,11 +54,11 @@ def test01_only_last_layer_infinite_and_eta_above():
 
 def test01_model_arguments_rejected():
     with pytest.raises(DermisError, match=r"model = 'mc': must be one of 'multipole', 'monte_carlo'"):
-        P.build_profiles(PRESETS["skin1"], model="mc")
+        build_profiles(PRESETS["skin1"], model="mc")
     with pytest.raises(DermisError, match=r"diffusion = 'pdb': must be one of 'pbd', 'dj2005'"):
-        P.build_profiles(PRESETS["skin1"], diffusion="pdb")
+        build_profiles(PRESETS["skin1"], options=MultipoleOptions(diffusion="pdb"))
     with pytest.raises(DermisError, match=r"totals = 'exact': must be 'transport' or 'diffusion'"):
-        P.build_profiles(PRESETS["skin1"], totals="exact")
+        build_profiles(PRESETS["skin1"], options=MultipoleOptions(totals="exact"))
 
 
 # ---- 02 closed forms -----------------------------------------------------------------
@@ -67,7 +71,7 @@ def test01_model_arguments_rejected():
 def test02_jensen_skin_Rd(name, published):
     lay = PRESETS[name].layers[0]
     assert dipole_Rd(lay.sigma_a, lay.sigma_s_prime, 1.3) == pytest.approx(published, abs=0.01)
-    prof = P.build_profiles(PRESETS[name], diffusion="dj2005")
+    prof = build_profiles(PRESETS[name], options=MultipoleOptions(diffusion="dj2005"))
     np.testing.assert_allclose(prof.Rd, dipole_Rd(lay.sigma_a, lay.sigma_s_prime, 1.3),
                                rtol=1e-12)
 
@@ -88,22 +92,22 @@ def test02_fresnel_moments():
 @pytest.mark.parametrize("diffusion", ["pbd", "dj2005"])
 def test02_thick_slab_is_semi_infinite(diffusion):
     r = np.linspace(0, 10, 101)
-    Rinf, _ = P.multipole_profiles(SKIN1, r, eta_above=1.0, eta_below=1.0, diffusion=diffusion)
+    Rinf, _ = multipole_profiles(SKIN1, r, eta_above=1.0, eta_below=1.0, diffusion=diffusion)
     thick = Layer(400.0, SKIN1.eta, SKIN1.sigma_a, SKIN1.sigma_s_prime)
-    Rd, T = P.multipole_profiles(thick, r, eta_above=1.0, eta_below=1.0, diffusion=diffusion)
+    Rd, T = multipole_profiles(thick, r, eta_above=1.0, eta_below=1.0, diffusion=diffusion)
     # 400 mm of sigma_tr >= 0.27/mm: images are e^{-100} away -> float64 agreement
     np.testing.assert_allclose(Rd, Rinf, rtol=1e-9)
     assert np.all(T < 1e-30)
 
 
 def test02_ring_table_integrates_to_Rd():
-    prof = P.build_profiles(PRESETS["skin2"])
+    prof = build_profiles(PRESETS["skin2"])
     h = prof.r_mm[1]
     edges = np.concatenate([[0.0], (np.arange(len(prof.r_mm)) + 0.5) * h])
     inside = (prof.R * (np.pi * np.diff(edges**2))[:, None]).sum(0)
     np.testing.assert_allclose(inside / prof.Rd, 1 - np.array(prof.info["energy_beyond_table"]),
                                rtol=1e-9)
-    assert np.all(prof.energy_beyond_cutoff <= 1 - P.CUTOFF_FRACTION + 1e-9)
+    assert np.all(prof.energy_beyond_cutoff <= 1 - CUTOFF_FRACTION + 1e-9)
 
 
 # Exact plane-parallel totals (adding-doubling): published transport solutions.
@@ -112,11 +116,11 @@ def test02_adding_doubling_published():
     # Rd = 0.09739, Tt = 0.66096; Chandrasekhar's semi-infinite isotropic a = 0.9 plane
     # albedo at normal incidence 0.41495.  5 digits.
     vdh = Layer(0.2, 1.0, (1.0,) * 3, (9.0 * 0.25,) * 3, 0.75)
-    ex = P._ad_totals([vdh], 0, 1.0, 1.0)
+    ex = exact_totals([vdh], 0, 1.0, 1.0)
     assert ex.Rc == pytest.approx(0.09739, abs=1e-5)
     assert ex.Tc + ex.Tu == pytest.approx(0.66096, abs=1e-5)
     semi = Layer(math.inf, 1.0, (1.0,) * 3, (9.0,) * 3, 0.0)
-    assert P._ad_totals([semi], 0, 1.0, 1.0).Rc == pytest.approx(0.41495, abs=1e-5)
+    assert exact_totals([semi], 0, 1.0, 1.0).Rc == pytest.approx(0.41495, abs=1e-5)
 
 
 def test02_adding_doubling_conserves_energy():
@@ -128,7 +132,7 @@ def test02_adding_doubling_conserves_energy():
 
 def _conserves(lay):
     for c in range(3):
-        ex = P._ad_totals([lay], c, 1.4, 1.4 / 1.33)
+        ex = exact_totals([lay], c, 1.4, 1.4 / 1.33)
         assert ex.Rc + ex.Tc + ex.Tu == pytest.approx(1.0, abs=1e-6)
         assert ex.Rd + ex.Td == pytest.approx(1.0, abs=1e-6)
         assert ex.Rud + ex.Tud == pytest.approx(1.0, abs=1e-6)
@@ -140,7 +144,7 @@ def test03_pole_convergence():
     prev = None
     diffs = []
     for n in (1, 2, 5, 10, 20):
-        R, T = P.multipole_profiles(EPI, r, eta_above=1.0, eta_below=1.4, poles=n)
+        R, T = multipole_profiles(EPI, r, eta_above=1.0, eta_below=1.4, poles=n)
         if prev is not None:
             diffs.append(np.abs(np.concatenate([R, T]) - prev).max())
         prev = np.concatenate([R, T])
@@ -151,12 +155,12 @@ def test03_beam_convergence():
     # the beam integral: 16 nodes (the default) against 64, R(r) at r >= 0.05 mm: the
     # epidermis lit from above (measured < 1e-6) and the semi-infinite dermis (5e-4)
     r = np.linspace(0.05, 3.0, 60)
-    a, _ = P.multipole_profiles(EPI, r, eta_above=1.0, eta_below=1.4, nq=P.NQ_BEAM)
-    b, _ = P.multipole_profiles(EPI, r, eta_above=1.0, eta_below=1.4, nq=64)
+    a, _ = multipole_profiles(EPI, r, eta_above=1.0, eta_below=1.4, nq=NQ_BEAM)
+    b, _ = multipole_profiles(EPI, r, eta_above=1.0, eta_below=1.4, nq=64)
     assert np.abs(a / b - 1).max() < 1e-4
     der = PRESETS["two_layer"].layers[1]
-    a, _ = P.multipole_profiles(der, r, eta_above=1.4, eta_below=1.0, nq=P.NQ_BEAM)
-    b, _ = P.multipole_profiles(der, r, eta_above=1.4, eta_below=1.0, nq=64)
+    a, _ = multipole_profiles(der, r, eta_above=1.4, eta_below=1.0, nq=NQ_BEAM)
+    b, _ = multipole_profiles(der, r, eta_above=1.4, eta_below=1.0, nq=64)
     assert np.abs(a / b - 1).max() < 2e-3
 
 
@@ -165,8 +169,8 @@ def test03_grid_convergence():
     st = PRESETS["skin2"]
     errs = []
     for h in (0.2, 0.1):
-        a = P.build_profiles(st, grid=(h, 20.0))
-        b = P.build_profiles(st, grid=(h, 20.0), force_fft=True)
+        a = build_profiles(st, options=MultipoleOptions(grid=(h, 20.0)))
+        b = build_profiles(st, options=MultipoleOptions(grid=(h, 20.0), force_fft=True))
         k = slice(int(round(0.4 / h)), int(round(5.0 / h)))
         errs.append(np.abs(b.R[k] / a.R[k] - 1).max())
     assert errs[1] < 0.5 * errs[0]
@@ -182,9 +186,9 @@ def _adding_on_totals(st, totals):
     for k, lay in enumerate(st.layers):
         up, dn = etas[k], etas[k + 2]
         kw = dict(totals=totals)
-        Rc, Tc, tau = P.multipole_totals(lay, eta_above=up, eta_below=dn, **kw)
-        Rd, Td, Tdd = P.multipole_totals(lay, eta_above=up, eta_below=dn, light="diffuse", **kw)
-        Ru, Tu, Tud = P.multipole_totals(lay, eta_above=dn, eta_below=up, light="diffuse", **kw)
+        Rc, Tc, tau = multipole_totals(lay, eta_above=up, eta_below=dn, **kw)
+        Rd, Td, Tdd = multipole_totals(lay, eta_above=up, eta_below=dn, light="diffuse", **kw)
+        Ru, Tu, Tud = multipole_totals(lay, eta_above=dn, eta_below=up, light="diffuse", **kw)
         B = dict(Rc=Rc, Tc=Tc, tau=tau, Rd=Rd, Td=Td + Tdd, Rud=Ru, Tud=Tu + Tud)
         if A is None:
             A = B
@@ -207,7 +211,7 @@ def test04_dc_equals_adding_on_totals(totals):
     mid = Layer(0.5, 1.3, (0.05, 0.2, 0.4), (2.0, 3.0, 4.0))
     bot = Layer(2.0, 1.45, (0.02, 0.1, 0.3), (1.0, 1.5, 2.0))
     st = stack_of(top, mid, bot, above=1.0, below=1.0)
-    prof = P.build_profiles(st, grid=(0.05, 10.0), totals=totals)
+    prof = build_profiles(st, options=MultipoleOptions(grid=(0.05, 10.0), totals=totals))
     R, T = _adding_on_totals(st, totals)
     np.testing.assert_allclose(prof.Rd, R, rtol=1e-10)
     np.testing.assert_allclose(prof.Tt, T, rtol=1e-10)
@@ -215,16 +219,16 @@ def test04_dc_equals_adding_on_totals(totals):
 
 def test04_equal_eta_stack_takes_the_whole_stack_solution():
     st = PRESETS["two_layer"]
-    prof = P.build_profiles(st, grid=(0.05, 8.0))
+    prof = build_profiles(st, options=MultipoleOptions(grid=(0.05, 8.0)))
     eta = st.layers[0].eta
-    exact = [P._ad_totals(st.layers, c, eta / st.eta_above, eta / st.eta_below) for c in range(3)]
+    exact = [exact_totals(st.layers, c, eta / st.eta_above, eta / st.eta_below) for c in range(3)]
     np.testing.assert_allclose(prof.Rd, [e.Rc for e in exact], rtol=1e-10)
     assert prof.info["stack_totals"].startswith("adding-doubling")
 
 
 @pytest.mark.parametrize("name", ["two_layer"])
 def test04_nonnegative_after_combination(name):
-    prof = P.build_profiles(PRESETS[name])
+    prof = build_profiles(PRESETS[name])
     assert np.all(prof.R >= 0) and np.all(prof.T >= 0)
     # with the partial-current exitance nothing but round-off goes negative here
     assert prof.info["min_clipped_rel"] > -1e-12 and prof.info["negative_lobes"] == []
@@ -235,22 +239,23 @@ def test04_negative_lobes_reported_and_energy_kept():
     # exceeds half the slab): the lobe is reported (where, how much) and the profile keeps
     # the closed-form energy instead of losing it to clipping
     st = stack_of(EPI, above=1.0, below=1.4)
-    prof = P.build_profiles(st, diffusion="dj2005")
+    prof = build_profiles(st, options=MultipoleOptions(diffusion="dj2005"))
     lobes = [l for l in prof.info["negative_lobes"] if l["field"] == "R"]
     assert lobes and all(l["energy_fraction"] > 0 and l["r_mm"][0] > 0.2 for l in lobes)
     assert np.all(prof.R >= 0)
     h = prof.r_mm[1]
     edges = np.concatenate([[0.0], (np.arange(len(prof.r_mm)) + 0.5) * h])
     inside = (prof.R * (np.pi * np.diff(edges**2))[:, None]).sum(0)
-    Rd, _, _ = P.multipole_totals(EPI, eta_above=1.0, eta_below=1.4, diffusion="dj2005")
+    Rd, _, _ = multipole_totals(EPI, eta_above=1.0, eta_below=1.4, diffusion="dj2005")
     np.testing.assert_allclose(inside + prof.Rd * np.array(prof.info["energy_beyond_table"]),
                                Rd, rtol=1e-9)
 
 
 def test04_zero_thickness_top_is_identity():
-    a = P.build_profiles(PRESETS["two_layer"], grid=(0.05, 8.0))
+    a = build_profiles(PRESETS["two_layer"], options=MultipoleOptions(grid=(0.05, 8.0)))
     zero = Layer(0.0, 1.7, (5.0, 5.0, 5.0), (1.0, 1.0, 1.0))
-    b = P.build_profiles(LayerStack((zero,) + PRESETS["two_layer"].layers), grid=(0.05, 8.0))
+    b = build_profiles(LayerStack((zero,) + PRESETS["two_layer"].layers),
+                       options=MultipoleOptions(grid=(0.05, 8.0)))
     np.testing.assert_array_equal(a.R, b.R)
     np.testing.assert_array_equal(a.Rd, b.Rd)
 
@@ -259,7 +264,7 @@ def test04_zero_thickness_top_is_identity():
 def test04_thin_slab_tends_to_identity(totals):
     for d in (1e-3, 1e-6):
         lay = Layer(d, 1.4, (0.3, 0.4, 0.9), (4.0, 6.0, 9.0))
-        Rd, Td, tau = P.multipole_totals(lay, eta_above=1.4, eta_below=1.4, totals=totals)
+        Rd, Td, tau = multipole_totals(lay, eta_above=1.4, eta_below=1.4, totals=totals)
         assert np.all(Rd < 20 * d) and np.all(np.abs(Td + tau - 1) < 20 * d)
 
 
@@ -267,7 +272,7 @@ def test04_ballistic_is_the_real_extinction():
     # the unscattered transmission of a layer is e^{-sigma_t d} with sigma_t = sigma_a +
     # sigma_s (not sigma_t'), times the normal-incidence Fresnel transmission at the bottom
     lay = Layer(0.25, 1.4, (0.27,) * 3, (2.03,) * 3, 0.8)
-    prof = P.build_profiles(stack_of(lay, above=1.0, below=1.0))
+    prof = build_profiles(stack_of(lay, above=1.0, below=1.0))
     st = 0.27 + 2.03 / 0.2
     r0 = ((1.4 - 1) / 2.4) ** 2
     want = math.exp(-st * 0.25) * (1 - r0) / (1 - r0 * r0 * math.exp(-2 * st * 0.25))
@@ -283,22 +288,22 @@ def test04_ballistic_is_the_real_extinction():
     Layer(5.0, 1.4, (2e-4, 1.0, 3.0), (2.0, 1.0, 0.0), -0.99),  # albedo 0.9999, g ~ -1
 ])
 def test05_extremes_are_finite_and_nonnegative(lay):
-    prof = P.build_profiles(LayerStack((lay,)))
+    prof = build_profiles(LayerStack((lay,)))
     for a in (prof.R, prof.T, prof.Rd, prof.Tt, prof.cutoff_mm):
         assert np.all(np.isfinite(a)) and np.all(a >= 0)
     assert np.all(prof.Rd + prof.Tt <= 1 + 1e-9)
     assert all(l["energy_fraction"] >= 0 for l in prof.info["negative_lobes"])
     # coarse grid keeps the test fast; positivity must hold on any grid
-    two = P.build_profiles(LayerStack((Layer(0.2, 1.4, (0.3,) * 3, (4.0,) * 3), lay)), grid=(0.05, 8.0))
+    two = build_profiles(LayerStack((Layer(0.2, 1.4, (0.3,) * 3, (4.0,) * 3), lay)),
+                         options=MultipoleOptions(grid=(0.05, 8.0)))
     assert np.all(np.isfinite(two.R)) and np.all(two.R >= 0) and np.all(two.T >= 0)
 
 
 def test_optically_thick_forward_scattering_layer_stays_finite():
     # a 11 mm, g = 0.99 layer (sigma_t d = 147 in blue, so 1 - e^{-sigma_t d} is 1.0 in
     # float64) under a pure absorber: the collision depth of the beam's last quadrature node
-    # was infinite and the forward sum e^{+inf} (the thorough stability profile, issue 16).
+    # was infinite and the forward sum e^{+inf} (the thorough stability profile).
     # The pure absorbers' transmission is e^{-sum sigma_a d} exactly (eta = 1: no Fresnel).
-    from dermis.stages.profiles import build_profiles
     st = LayerStack((Layer(1.0, 1.0, (1.0, 1.0, 1.0), (0.0, 0.0, 0.0), -0.99),
                      Layer(11.0, 1.0, (1.0, 1.0, 0.875), (0.0, 0.0, 0.125), 0.99)), 1.0, 1.0)
     p = build_profiles(st)

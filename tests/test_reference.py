@@ -24,7 +24,7 @@ SKIP_REASON = ("Mitsuba 3 is not installed (pip install 'dermis[reference]'): th
 @pytest.fixture(scope="module")
 def mi():
     pytest.importorskip("mitsuba", reason=SKIP_REASON)
-    from dermis.stages.mitsuba_scene import MitsubaUnavailable, load_mitsuba
+    from dermis.groundtruth.mitsuba import MitsubaUnavailable, load_mitsuba
     try:
         return load_mitsuba()
     except MitsubaUnavailable as exc:   # installed, but no variant runs here (it says why)
@@ -52,8 +52,8 @@ def _camera(width, height, position=(0.0, -15.0, 1000.0)):
 def test01_without_mitsuba_the_stage_is_skipped_with_one_message(monkeypatch, capsys):
     from dermis.pipeline import plan
     from dermis.pipeline.plan import build_graph
-    from dermis.stages import mitsuba_scene
-    monkeypatch.setattr(mitsuba_scene, "mitsuba_missing_reason",
+    from dermis.groundtruth import mitsuba
+    monkeypatch.setattr(mitsuba, "mitsuba_missing_reason",
                         lambda: "Mitsuba 3 is not installed: pip install 'dermis[reference]'")
     monkeypatch.setattr(plan, "_SKIP_NOTICES", set())
     scene = load_scene(QUICK, overrides={"reference": {"enabled": True}})
@@ -107,14 +107,15 @@ def test03_region_masks_disjoint_nonempty_and_the_same_for_two_cameras(quick_mes
 def test04_camera_rays_round_trip(mi, quick_mesh):
     """Mitsuba's pixel-centre rays hit the same faces as dermis's camera rays."""
     from dermis.reports.ground_truth import region_labels_for
-    from dermis.stages import mitsuba_scene as ms
+    from dermis.groundtruth.passes import pixel_hits
+    from dermis.groundtruth.scene_export import HeadSceneOptions, head_scene, release
     cam = _camera(64, 48)  # not square: fov across the shorter side
-    head = ms.head_scene(mi, quick_mesh, None, cam, [], width=64, height=48, roughness=0.3,
-                         material="lambert")
+    head = head_scene(mi, quick_mesh, None, cam, [], width=64, height=48,
+                      options=HeadSceneOptions(roughness=0.3, material="lambert"))
     try:
-        hit, prim = ms.pixel_hits(mi, head.scene, width=64, height=48)
+        hit, prim = pixel_hits(mi, head.scene, width=64, height=48)
     finally:
-        ms.release(head)
+        release(head)
     _, tri = region_labels_for(quick_mesh, cam, width=64, height=48, with_faces=True)
     assert np.array_equal(hit, tri >= 0) or np.mean(hit != (tri >= 0)) < 0.005
     both = hit & (tri >= 0)
@@ -124,8 +125,8 @@ def test04_camera_rays_round_trip(mi, quick_mesh):
 def test05_environment_orientation_and_rotation(mi):
     """Mitsuba's envmap radiance along a direction equals dermis's lookup (0 and 40 deg)."""
     import drjit as dr
-    from dermis.lighting.lights import EnvironmentMap
-    from dermis.stages import mitsuba_scene as ms
+    from dermis.lighting.environment import EnvironmentMap
+    from dermis.groundtruth.scene_export import light_dicts
     rng = np.random.default_rng(3)
     # 4x4-pixel blocks of constant radiance: bilinear (Mitsuba) and nearest (dermis) lookups
     # differ only at block borders
@@ -134,7 +135,7 @@ def test05_environment_orientation_and_rotation(mi):
         env = EnvironmentMap(rad, rotation_deg=rot)
         light = LightConfig(name="sky", type="environment", map="procedural_sunset",
                             rotation_deg=rot)
-        ms_map = ms.light_dicts(mi, [light], target=(0, 0, 0))
+        ms_map = light_dicts(mi, [light], target=(0, 0, 0))
         d = ms_map["light_sky"]
         d["bitmap"] = mi.Bitmap(rad)
         em = mi.load_dict(d)
@@ -157,8 +158,9 @@ def test06_lambert_export_agrees_with_dermis_within_noise(mi, quick_mesh, cl_env
     4x4 pixel centres) and Mitsuba (box filter, direct light only) agree on the mean over
     the face within 3 standard errors of the pair, and per 4x4 block within the noise."""
     from dermis.geometry.regions import block_mean
-    from dermis.stages import mitsuba_scene as ms
-    from dermis.stages.render import LambertParams, render
+    from dermis.groundtruth.scene_export import HeadSceneOptions, head_scene, release
+    from dermis.models import lambert
+    from dermis.rendering.shade import render
     lights = [
         LightConfig(name="point", type="point", position=(350.0, 450.0, 600.0),
                     intensity=(4e5, 4e5, 4e5)),
@@ -171,16 +173,16 @@ def test06_lambert_export_agrees_with_dermis_within_noise(mi, quick_mesh, cl_env
     ]
     w = 24
     for light in lights:
-        head = ms.head_scene(mi, quick_mesh, None, _camera(w, w), [light], width=w, height=w,
-                             roughness=0.3, material="lambert")
+        head = head_scene(mi, quick_mesh, None, _camera(w, w), [light], width=w, height=w,
+                          options=HeadSceneOptions(roughness=0.3, material="lambert"))
         try:  # direct light only: dermis's renderer has no interreflection
             integ = mi.load_dict({"type": "path", "max_depth": 2, "hide_emitters": True})
             a = np.asarray(mi.render(head.scene, integrator=integ, spp=64, seed=1))[..., :3]
             b = np.asarray(mi.render(head.scene, integrator=integ, spp=64, seed=2))[..., :3]
         finally:
-            ms.release(head)
-        res = render(quick_mesh, light, "lambert", LambertParams(), _camera(4 * w, 4 * w),
-                     cl_env=cl_env)
+            release(head)
+        res = render(quick_mesh, light, lambert.MODEL, lambert.LambertParams(),
+                     _camera(4 * w, 4 * w), cl_env=cl_env)
         D, full = block_mean(res.linear, res.mask, 4)
         M = (a + b) / 2.0
         hd = (a - b) / 2.0
@@ -201,13 +203,14 @@ def test07_flat_slab_matches_monte_carlo_and_catches_the_units_trap(mi):
     multipole within the rough boundary's measured energy loss (GGX alpha 0.3 loses ~10 %
     of red in skin; docs/ground-truth.md) plus 4 standard errors."""
     from dermis.optics.layers import Layer, LayerStack
-    from dermis.stages import mc_slab, mitsuba_scene as ms
-    from dermis.stages.profiles import build_profiles
+    from dermis.groundtruth.slab import slab_reflectance
+    from dermis.optics import monte_carlo_slab as mc_slab
+    from dermis.optics.layer_profiles import build_profiles
 
     def stack(d):
         return LayerStack((Layer(d, 1.3, (0.032, 0.17, 0.48), (0.74, 0.88, 1.01)),))
 
-    got = ms.slab_reflectance(mi, stack(1.0), roughness=0.3, samples=1 << 15, batches=8)
+    got = slab_reflectance(mi, stack(1.0), roughness=0.3, samples=1 << 15, batches=8)
     mc = mc_slab.simulate(stack(1.0), photons=60000, r_max_mm=50.0, bins=4).Rd
     multipole = build_profiles(stack(1.0)).Rd
     assert np.allclose(mc, multipole, rtol=0.05)
@@ -269,7 +272,7 @@ def test09_report_gains_the_ground_truth_section(mi, tmp_path, monkeypatch):
     import subprocess
     from dermis.pipeline import plan
     from dermis.pipeline.api import run
-    from dermis.stages import mitsuba_scene
+    from dermis.groundtruth import mitsuba
     over = {"camera": {"width": 80, "height": 80}, "mesh": {"high_triangles": 20_000},
             "render": {"models": ["lafortune", "bssrdf", "bssrdf_mc"], "lights": ["point"],
                        "geometries": ["high"]},
@@ -292,7 +295,7 @@ def test09_report_gains_the_ground_truth_section(mi, tmp_path, monkeypatch):
                           text=True, check=True).stdout
     assert "Distance to ground truth" in text and "Mitsuba" in text
 
-    monkeypatch.setattr(mitsuba_scene, "mitsuba_missing_reason",
+    monkeypatch.setattr(mitsuba, "mitsuba_missing_reason",
                         lambda: "Mitsuba 3 is not installed: pip install 'dermis[reference]'")
     monkeypatch.setattr(plan, "_SKIP_NOTICES", set())
     out = report_of(run(load_scene(QUICK, overrides=over), cache=cache, export=False))

@@ -1,4 +1,5 @@
-"""stages/render.py with cl/surface.cl and cl/shade.cl: images against closed forms.
+"""rendering/ (shade.py, surface.py, cast.py) with cl/surface.cl and cl/shade.cl: images against
+closed forms.
 
 Scenes are built in tests/render_fixtures.py (icosphere, planes) so that nothing here
 depends on the mesh stages.  Images are small (<= 160 x 160) to keep the file fast.
@@ -16,9 +17,13 @@ from dermis.pipeline.artifacts import BakedMaps
 from dermis.pipeline.config import CameraConfig, LightConfig
 from dermis.pipeline.errors import ConfigError, DermisError
 from dermis.rendering.color import srgb_to_linear
-from dermis.lighting.visibility import Visibility
+from dermis.lighting.visibility import Visibility, camera_rays
+from dermis.models import asperity, hk93, lafortune, lambert
+from dermis.models.lambert import LambertParams
+from dermis.pipeline import registry
+from dermis.rendering.options import LightSampling, RenderOptions
+from dermis.rendering.shade import render
 from dermis.reports.tonemap import shared_exposure, tonemap
-from dermis.stages.render import LambertParams, LightSampling, camera_rays, render
 
 sys.path.insert(0, str(Path(__file__).parent))
 from render_fixtures import icosphere, merge, plane  # noqa: E402
@@ -68,7 +73,8 @@ def test01_lambert_sphere_directional_matches_analytic(sphere, cl_env):
     l = np.array([1.0, 1.0, 1.0]) / math.sqrt(3)
     light = LightConfig(name="d", type="directional", direction=tuple(l), intensity=(1.0, 2.0, 0.5))
     albedo = np.array([0.5, 0.25, 0.8])
-    res = render(mesh, light, "lambert", LambertParams(albedo), cam, visibility=vis, cl_env=cl_env)
+    res = render(mesh, light, lambert.MODEL, LambertParams(albedo), cam,
+                 RenderOptions(visibility=vis), cl_env=cl_env)
     n, hit = _analytic_sphere_normals(cam)
     img = res.linear.reshape(-1, 3)
     expected = (albedo / math.pi * np.array([1.0, 2.0, 0.5]))[None] * np.maximum(n @ l, 0)[:, None]
@@ -95,7 +101,8 @@ def test02_point_light_inverse_square_on_plane(cl_env):
     images = []
     for h in (100.0, 200.0):
         light = LightConfig(name="p", type="point", position=(0.0, 0.0, h), intensity=(1e4,) * 3)
-        res = render(mesh, light, "lambert", LambertParams((1.0, 1.0, 1.0)), cam, cl_env=cl_env)
+        res = render(mesh, light, lambert.MODEL, LambertParams((1.0, 1.0, 1.0)), cam,
+                     cl_env=cl_env)
         dist2 = (p[:, 0] ** 2 + p[:, 1] ** 2 + h * h)
         exact = 1e4 / math.pi * h / dist2 ** 1.5        # I cos / d^2 * albedo / pi
         np.testing.assert_allclose(res.linear[..., 0].ravel(), exact, rtol=F32_RTOL * 10)
@@ -108,7 +115,7 @@ def test02_point_light_inverse_square_on_plane(cl_env):
 def test03_no_nan_grazing_backfacing_and_misses(cl_env):
     # A closed sphere next to an open plane seen from behind, lit at grazing angles by each
     # light type and shaded by each model.
-    from dermis.stages.brdf_models import AsperityParams
+    from dermis.models.asperity import AsperityParams
 
     back = plane(size=150.0, n=3, z=0.0, centre=(140.0, 0.0))
     back.faces = back.faces[:, ::-1].copy()                 # faces away from the camera
@@ -123,10 +130,11 @@ def test03_no_nan_grazing_backfacing_and_misses(cl_env):
                           intensity=(1e4,) * 3, samples=4),
               LightConfig(name="e", type="environment", samples=4)]
     for light in lights:
-        for model, params in (("lambert", None), ("lafortune", None), ("hk93", None),
-                              ("asperity", AsperityParams(base="lafortune"))):
-            res = render(mesh, light, model, params, cam, visibility=vis, cl_env=cl_env)
-            assert np.all(np.isfinite(res.linear)), (light.name, model)
+        for model, params in ((lambert.MODEL, None), (lafortune.MODEL, None), (hk93.MODEL, None),
+                              (asperity.MODEL, AsperityParams(base="lafortune"))):
+            res = render(mesh, light, model, params, cam, RenderOptions(visibility=vis),
+                         cl_env=cl_env)
+            assert np.all(np.isfinite(res.linear)), (light.name, model.name)
             assert res.info["nonfinite_pixels"] == 0
             assert np.all(res.linear >= 0)
             assert np.all(res.linear[~res.mask] == 0)
@@ -136,7 +144,7 @@ def test03_no_nan_grazing_backfacing_and_misses(cl_env):
             backside = res.mask[:, 40:]
             assert backside.any()
             if light.name == "e":
-                assert np.mean(res.linear[:, 40:][backside].max(axis=1) > 0) > 0.95, model
+                assert np.mean(res.linear[:, 40:][backside].max(axis=1) > 0) > 0.95, model.name
             assert res.mask.any() and not res.mask.all()
 
 
@@ -147,7 +155,7 @@ def test04_texture_is_bilinear_and_linearised(cl_env):
     cam = CameraConfig(position=(0.0, 0.0, 400.0), look_at=(0.0, 0.0, 0.0), fov_deg=20.0,
                        width=40, height=40)
     light = LightConfig(name="d", type="directional", direction=(0.0, 0.0, 1.0), intensity=(math.pi,) * 3)
-    res = render(mesh, light, "lambert", None, cam, cl_env=cl_env)
+    res = render(mesh, light, lambert.MODEL, None, cam, cl_env=cl_env)
     o, d = camera_rays(cam)
     p = o + d * (-o[:, 2] / d[:, 2])[:, None]
     u, v = p[:, 0] / 200.0 + 0.5, p[:, 1] / 200.0 + 0.5
@@ -173,7 +181,7 @@ def _ramp_maps(res, k_mm_per_u, *, sigma=0.0):
 
 def test05_bump_ramp_tilts_normal_exactly(cl_env):
     # Plane p = (a u, a v, 0) (a = 200 mm), height h = k u: the bumped normal is the normal of
-    # z = k x / a, i.e. proportional to (-k/a, 0, 1) (stages/bake.py bump_shading_normals).
+    # z = k x / a, i.e. proportional to (-k/a, 0, 1) (geometry/bump.py bump_shading_normals).
     a, k = 200.0, 100.0
     mesh = plane(size=a, n=2)
     maps = _ramp_maps(64, k)
@@ -181,8 +189,10 @@ def test05_bump_ramp_tilts_normal_exactly(cl_env):
                        width=24, height=24)
     light = LightConfig(name="d", type="directional", direction=(-1.0, 0.0, 1.0),
                         intensity=(math.pi,) * 3)
-    sharp = render(mesh, light, "lambert", None, cam, maps=maps, bump="sharp", cl_env=cl_env)
-    flat = render(mesh, light, "lambert", None, cam, maps=maps, bump="blur", cl_env=cl_env)
+    sharp = render(mesh, light, lambert.MODEL, None, cam, RenderOptions(maps=maps, bump="sharp"),
+                   cl_env=cl_env)
+    flat = render(mesh, light, lambert.MODEL, None, cam, RenderOptions(maps=maps, bump="blur"),
+                  cl_env=cl_env)
     albedo = srgb_to_linear(np.array([188 / 255.0]))[0]
     n = np.array([-k / a, 0.0, 1.0]) / math.hypot(k / a, 1.0)
     l = np.array([-1.0, 0.0, 1.0]) / math.sqrt(2)
@@ -193,9 +203,9 @@ def test05_bump_ramp_tilts_normal_exactly(cl_env):
 
 
 def test06_bump_matches_bake_definition(cl_env):
-    from dermis.stages import bake
+    from dermis.geometry.bump import bump_shading_normals_at_hits
     # A UV-mapped plane with a random smooth bump, seen obliquely, compared with
-    # stages/bake.py's numpy Blinn bump at the same hits (the two implementations agree).
+    # geometry/bump.py's numpy Blinn bump at the same hits (the two implementations agree).
     rng = np.random.default_rng(12)
     from scipy.ndimage import gaussian_filter
     bump = gaussian_filter(rng.random((96, 96)), 3).astype(np.float32)
@@ -208,37 +218,43 @@ def test06_bump_matches_bake_definition(cl_env):
                        width=48, height=48)
     l = np.array([0.3, -0.5, 1.0]) / np.linalg.norm([0.3, -0.5, 1.0])
     light = LightConfig(name="d", type="directional", direction=tuple(l), intensity=(math.pi,) * 3)
-    res = render(mesh, light, "lambert", None, cam, maps=maps, bump="sharp", cl_env=cl_env)
+    res = render(mesh, light, lambert.MODEL, None, cam, RenderOptions(maps=maps, bump="sharp"),
+                 cl_env=cl_env)
     o, d = camera_rays(cam)
     hits = Visibility(mesh.vertices, mesh.faces).intersect(o, d)
     ok = hits.hit
-    nb = bake.bump_shading_normals_at_hits(mesh, maps, hits.tri[ok], hits.bary[ok])
+    nb = bump_shading_normals_at_hits(mesh, maps, hits.tri[ok], hits.bary[ok])
     expected = np.maximum(nb @ l, 0.0)
     # float32 vs float64 central differences of a 96-texel map: ~1e-4 absolute
     np.testing.assert_allclose(res.linear.reshape(-1, 3)[ok, 0], expected, atol=5e-4)
 
 
 def test07_lafortune_lobes_off_is_lambert_and_asperity_adds(sphere, cl_env):
-    from dermis.stages.brdf_models import AsperityParams, LafortuneParams
+    from dermis.models.asperity import AsperityParams
+    from dermis.models.lafortune import LafortuneParams
 
     mesh, vis = sphere
     cam = _sphere_camera(64)
     light = LightConfig(name="p", type="point", position=(200.0, 300.0, 400.0), intensity=(1e5,) * 3)
     laf = LafortuneParams().lobes_off()
-    a = render(mesh, light, "lafortune", laf, cam, visibility=vis, cl_env=cl_env)
-    b = render(mesh, light, "lambert", LambertParams(laf.rho_d), cam, visibility=vis, cl_env=cl_env)
+    a = render(mesh, light, lafortune.MODEL, laf, cam, RenderOptions(visibility=vis),
+               cl_env=cl_env)
+    b = render(mesh, light, lambert.MODEL, LambertParams(laf.rho_d), cam,
+               RenderOptions(visibility=vis), cl_env=cl_env)
     np.testing.assert_allclose(a.linear, b.linear, rtol=F32_RTOL, atol=1e-9)
     # asperity without the base's attenuation through the layer = base + term alone
     # (linearity); with it (the default, docs/science.md §5) the base loses light
     asp = AsperityParams(attenuate_base=False)
-    full = render(mesh, light, "asperity", asp, cam, visibility=vis, asperity_base="lambert",
-                  base_params=LambertParams(laf.rho_d), cl_env=cl_env)
-    term = render(mesh, light, "asperity", asp, cam, visibility=vis, asperity_base="none",
-                  cl_env=cl_env)
+    full = render(mesh, light, asperity.MODEL, asp, cam,
+                  RenderOptions(visibility=vis, base="lambert",
+                                base_params=LambertParams(laf.rho_d)), cl_env=cl_env)
+    term = render(mesh, light, asperity.MODEL, asp, cam,
+                  RenderOptions(visibility=vis, base="none"), cl_env=cl_env)
     np.testing.assert_allclose(full.linear, b.linear + term.linear, rtol=1e-5, atol=1e-8)
     assert term.linear.max() > 0
-    att = render(mesh, light, "asperity", AsperityParams(), cam, visibility=vis,
-                 asperity_base="lambert", base_params=LambertParams(laf.rho_d), cl_env=cl_env)
+    att = render(mesh, light, asperity.MODEL, AsperityParams(), cam,
+                 RenderOptions(visibility=vis, base="lambert",
+                               base_params=LambertParams(laf.rho_d)), cl_env=cl_env)
     assert np.all(att.linear <= full.linear * (1 + 1e-5) + 1e-8)
     assert att.linear.sum() < full.linear.sum() - term.linear.sum() * 0.5
 
@@ -249,7 +265,8 @@ def test08_disc_image_converges_to_cosine_point_light(sphere, cl_env):
     pos, axis = (200.0, 300.0, 400.0), (0.0, 0.0, 1.0)
     disc = LightConfig(name="a", type="disc", position=pos, direction=axis, radius=0.5,
                        intensity=(1e5,) * 3, samples=4)
-    a = render(mesh, disc, "lambert", None, cam, visibility=vis, cl_env=cl_env).linear
+    a = render(mesh, disc, lambert.MODEL, None, cam, RenderOptions(visibility=vis),
+               cl_env=cl_env).linear
     # point light of intensity I |cos theta_l| -> compare via the analytic hit points
     n, hit = _analytic_sphere_normals(cam, min_cos_view=MIN_COS_VIEW)
     p = n * SPHERE_R
@@ -297,27 +314,29 @@ def test10_camera_and_argument_errors(sphere, cl_env):
     light = LightConfig(name="d", type="directional")
     bad = CameraConfig(position=(0.0, 0.0, 0.0), look_at=(0.0, 0.0, 0.0))
     with pytest.raises(ConfigError, match="camera.look_at"):
-        render(mesh, light, "lambert", None, bad, visibility=vis)
+        render(mesh, light, lambert.MODEL, None, bad, RenderOptions(visibility=vis))
     with pytest.raises(ConfigError, match="camera.up"):
-        render(mesh, light, "lambert", None,
-               CameraConfig(position=(0.0, 100.0, 0.0), look_at=(0.0, 0.0, 0.0)), visibility=vis)
+        render(mesh, light, lambert.MODEL, None,
+               CameraConfig(position=(0.0, 100.0, 0.0), look_at=(0.0, 0.0, 0.0)),
+               RenderOptions(visibility=vis))
     with pytest.raises(ConfigError, match="model"):
-        render(mesh, light, "phong", None, cam, visibility=vis)
+        render(mesh, light, registry.model("phong"), None, cam, RenderOptions(visibility=vis))
     with pytest.raises(ConfigError, match="bssrdf"):
-        render(mesh, light, "bssrdf", None, cam, visibility=vis)
+        render(mesh, light, registry.model("bssrdf"), None, cam, RenderOptions(visibility=vis))
     with pytest.raises(DermisError, match="bump"):
-        render(mesh, light, "lambert", None, cam, bump="sharp", visibility=vis)
+        render(mesh, light, lambert.MODEL, None, cam, RenderOptions(bump="sharp", visibility=vis))
     with pytest.raises(ConfigError, match="params"):
-        render(mesh, light, "lafortune", LambertParams(), cam, visibility=vis)
+        render(mesh, light, lafortune.MODEL, LambertParams(), cam, RenderOptions(visibility=vis))
     with pytest.raises(ConfigError, match="shadow_samples"):
-        render(mesh, light, "lambert", None, cam, visibility=vis,
-               sampling=LightSampling(shadow_samples=0))
+        render(mesh, light, lambert.MODEL, None, cam,
+               RenderOptions(visibility=vis, sampling=LightSampling(shadow_samples=0)))
     from dataclasses import replace
     with pytest.raises(DermisError, match=r"render: mesh\.faces"):
-        render(replace(mesh, faces=mesh.faces + len(mesh.vertices)), light, "lambert", None, cam)
+        render(replace(mesh, faces=mesh.faces + len(mesh.vertices)), light, lambert.MODEL,
+               None, cam)
     with pytest.raises(DermisError, match=r"render: mesh\.uv and \.uv_faces must both"):
-        render(replace(mesh, uv=np.zeros((len(mesh.vertices), 2), np.float32)), light, "lambert",
-               None, cam, visibility=vis)
+        render(replace(mesh, uv=np.zeros((len(mesh.vertices), 2), np.float32)), light,
+               lambert.MODEL, None, cam, RenderOptions(visibility=vis))
 
 
 @pytest.mark.parametrize("strategy", ("mis", "luminance"))
@@ -326,7 +345,7 @@ def test11_lambert_sphere_constant_environment_is_albedo_L(sphere, cl_env, strat
     every point (nothing occludes its hemisphere), so every pixel's expected radiance is
     albedo x L; both environment strategies must be unbiased through the renderer (which
     samples about the geometric normal and shades with the shading normal)."""
-    from dermis.lighting.lights import EnvironmentMap
+    from dermis.lighting.environment import EnvironmentMap
 
     mesh, vis = sphere
     cam = _sphere_camera(64)
@@ -334,8 +353,10 @@ def test11_lambert_sphere_constant_environment_is_albedo_L(sphere, cl_env, strat
     env = EnvironmentMap(np.tile(radiance, (16, 32, 1)))
     light = LightConfig(name="e", type="environment", samples=16)
     albedo = np.array([0.5, 0.25, 0.8])
-    res = render(mesh, light, "lambert", LambertParams(albedo), cam, visibility=vis,
-                 cl_env=cl_env, seed=11, sampling=LightSampling(env=env, env_strategy=strategy))
+    res = render(mesh, light, lambert.MODEL, LambertParams(albedo), cam,
+                 RenderOptions(visibility=vis, seed=11,
+                               sampling=LightSampling(env=env, env_strategy=strategy)),
+                 cl_env=cl_env)
     n, inner = _analytic_sphere_normals(cam, min_cos_view=MIN_COS_VIEW)
     px = res.linear.reshape(-1, 3)[inner & res.mask.ravel()]
     # pixels are independent estimates: mean within 5 standard errors of albedo x L
@@ -353,7 +374,7 @@ MIS_MIN_RENDER_NOISE_RATIO = 2.0
 
 
 def test12_mis_lowers_environment_render_noise(sphere, cl_env):
-    from dermis.lighting.lights import EnvironmentMap, procedural_sunset
+    from dermis.lighting.environment import EnvironmentMap, procedural_sunset
 
     mesh, vis = sphere
     cam = _sphere_camera(64)
@@ -363,19 +384,20 @@ def test12_mis_lowers_environment_render_noise(sphere, cl_env):
     noise = {}
     for strategy in ("luminance", "mis"):
         sampling = LightSampling(env=env, env_strategy=strategy)
-        a, b = (render(mesh, light, "lambert", None, cam, visibility=vis, cl_env=cl_env, seed=s,
-                       sampling=sampling).linear.reshape(-1, 3)[inner] for s in (1, 2))
+        a, b = (render(mesh, light, lambert.MODEL, None, cam,
+                       RenderOptions(visibility=vis, seed=s, sampling=sampling),
+                       cl_env=cl_env).linear.reshape(-1, 3)[inner] for s in (1, 2))
         noise[strategy] = math.sqrt(np.mean((a - b) ** 2) / np.mean(((a + b) / 2) ** 2))
     assert noise["luminance"] / noise["mis"] > MIS_MIN_RENDER_NOISE_RATIO, noise
 
 
 def test13_surface_attributes_shared_within_a_run(cl_env):
-    # A run's images of one geometry share one surface pass (stages/render.py pixel_surface,
+    # A run's images of one geometry share one surface pass (rendering/surface.py pixel_surface,
     # ``memo``): textured and untextured images, models with other constant albedos and other
     # lights must come out bit for bit as when each computes its own, and only the first
     # image of the geometry may run cl/surface.cl.
-    from dermis.stages.brdf_models import LafortuneParams
-    from dermis.stages.visibility import cast
+    from dermis.models.lafortune import LafortuneParams
+    from dermis.rendering.cast import cast
     rng = np.random.default_rng(13)
     tex = rng.integers(0, 256, (16, 16, 3), dtype=np.uint8)
     mesh = plane(size=200.0, n=2, texture_srgb=tex)
@@ -390,19 +412,22 @@ def test13_surface_attributes_shared_within_a_run(cl_env):
               LightConfig(name="p", type="point", position=(50.0, 80.0, 300.0),
                           intensity=(4e4,) * 3)]
     # each light's visibility carries its own copy of the same camera hits
-    visibility = [cast(mesh, lt, cam, spp=4, seed=3, cl_env=cl_env) for lt in lights]
-    jobs = [("lambert", None, True), ("lafortune", LafortuneParams(), True),
-            ("lafortune", LafortuneParams(rho_d=(0.0, 0.0, 0.0)), False),
-            ("hk93", None, True)]
+    visibility = [cast(mesh, lt, cam, RenderOptions(spp=4, seed=3), cl_env=cl_env)
+                  for lt in lights]
+    jobs = [(lambert.MODEL, None, True), (lafortune.MODEL, LafortuneParams(), True),
+            (lafortune.MODEL, LafortuneParams(rho_d=(0.0, 0.0, 0.0)), False),
+            (hk93.MODEL, None, True)]
     memo: dict = {}
     pass_seconds: dict = {}
     for k, (samples, (model, params, textured)) in enumerate(
             (s, j) for s in visibility for j in jobs):
         for bump in ("sharp", "blur"):
-            alone = render(mesh, [], model, params, cam, maps=maps, bump=bump, samples=samples,
-                           cl_env=cl_env, textured=textured)
-            shared = render(mesh, [], model, params, cam, maps=maps, bump=bump, samples=samples,
-                            cl_env=cl_env, textured=textured, memo=memo)
+            alone = render(mesh, [], model, params, cam,
+                           RenderOptions(maps=maps, bump=bump, samples=samples, textured=textured),
+                           cl_env=cl_env)
+            shared = render(mesh, [], model, params, cam,
+                            RenderOptions(maps=maps, bump=bump, samples=samples,
+                                          textured=textured), cl_env=cl_env, memo=memo)
             np.testing.assert_array_equal(shared.linear, alone.linear)
             assert alone.info["textured"] == shared.info["textured"] == textured
             # every image of a geometry reports the one pass it shares, outside its own total

@@ -269,7 +269,7 @@ def _mc_like(prof, noise=0.01, seed=0):
     """A Monte Carlo-shaped LayerProfile from a multipole one: its ring energy on geometric
     rings, each ring scaled by 1 + noise x N(0, 1), with that noise as the stated error."""
     import dataclasses
-    from dermis.stages.profile_cli import ring_energy
+    from dermis.optics.profile_command import ring_energy
     edges = np.concatenate([[0.0], np.geomspace(0.02, 8.0, 60)])
     area = np.pi * np.diff(edges**2)[:, None]
     R = ring_energy(prof, edges) / area
@@ -288,11 +288,11 @@ def test_bssrdf_mc_in_sheets_differences_and_report(tmp_path):
     closest/farthest ranking (it is the same model) and given a line of its own; the report
     node's profile page adds one page."""
     from dermis.optics.layers import PRESETS
-    from dermis.reports.images import contact_sheet_image
+    from dermis.reports.comparison_images import contact_sheet_image
     from dermis.reports.sheets import caption
     from dermis.reports.pdf_report import report_page_count, summary_text, write_report
     from dermis.reports.profile_pages import PAGES, profile_pages
-    from dermis.stages.profiles import build_profiles
+    from dermis.optics.layer_profiles import build_profiles
 
     images = _scene_images(models=("bssrdf", "lafortune", "hk93", "bssrdf_mc"))
     _, metrics = write_differences(images, tmp_path / "diff")

@@ -1,4 +1,4 @@
-"""Tests of stages/samples.py: count, areas, points on the surface, normals, uniformity,
+"""Tests of subsurface/points.py: count, areas, points on the surface, normals, uniformity,
 the density rule, the Lloyd relaxation, the stratified candidates and determinism."""
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from dermis.pipeline.errors import DermisError
-from dermis.stages import samples as S
+from dermis.subsurface import points as S
 
 # Uniformity bound on the coefficient of variation (std / mean) of nearest-neighbour
 # distances.  Uniform random points on a plane have CV ~ 0.52 (Rayleigh distribution:

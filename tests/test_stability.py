@@ -156,38 +156,42 @@ COEFF = st.sampled_from([0.0, -1.0, 1.0]) | st.floats(2.0**-20, 1.0, width=32).f
        n_exp=st.sampled_from([0.1, 1.0, 64.0, 1e3]) | st.floats(0.125, 1e3, width=32), c=COEFF)
 def test_lafortune_finite_nonnegative_reciprocal_and_close_to_float64(cl_env, seed, rho, lobes,
                                                                     n_exp, c):
-    from dermis.stages.brdf_models import LafortuneParams, evaluate
+    from dermis.models import lafortune
+    from dermis.models.evaluate import evaluate
+    from dermis.models.lafortune import LafortuneParams
     if lobes:   # the pbrt-v1 skin lobes
         p = LafortuneParams(rho_d=rho)
     else:       # arbitrary lobes: one coefficient and exponent everywhere
         k = np.full((3, 3), c)
         p = LafortuneParams(cxy=-np.abs(k), cz=k, n=np.full((3, 3), n_exp), rho_d=rho)
     wo, wi = _pairs(seed)
-    f = evaluate("lafortune", wo, wi, p, env=cl_env)
+    f = evaluate(lafortune.MODEL, wo, wi, p, env=cl_env)
     _check_brdf(f, lafortune_f_np(wo, wi, p), wo, wi, rtol=RTOL_F32, atol_rel=ATOL_F32,
                 what="lafortune")
-    _check_reciprocal(f, evaluate("lafortune", wi, wo, p, env=cl_env), rtol=RTOL_RECIPROCAL,
+    _check_reciprocal(f, evaluate(lafortune.MODEL, wi, wo, p, env=cl_env), rtol=RTOL_RECIPROCAL,
                       what="lafortune")
 
 
 @given(rho=st.tuples(ALBEDO, ALBEDO, ALBEDO))
 def test_lafortune_skin_directional_albedo_at_most_one(cl_env, rho):
-    from dermis.stages.brdf_models import LafortuneParams, evaluate
+    from dermis.models import lafortune
+    from dermis.models.evaluate import evaluate
+    from dermis.models.lafortune import LafortuneParams
     p = LafortuneParams(rho_d=rho)
-    a = _albedo_quadrature(lambda wo, wi: evaluate("lafortune", wo, wi, p, env=cl_env), COS_O)
+    a = _albedo_quadrature(lambda wo, wi: evaluate(lafortune.MODEL, wo, wi, p, env=cl_env), COS_O)
     assert np.isfinite(a).all() and (a >= 0).all()
     assert (a <= 1.0 + 1e-3).all(), f"directional albedo {a.max():.4f} > 1 (rho_d {rho})"
 
 
 def _hk93_params(stack: LayerStack, rho_ms=None):
-    from dermis.stages.brdf_models import HK93Params
+    from dermis.models.hk93 import HK93Params
     return HK93Params(stack.layers, multiple_scattering=rho_ms)
 
 
 def _hk93_fast(stack: LayerStack, rho_ms) -> object:
     """HK93Params with a given rho_ms, skipping the float64 albedo quadrature of its
     constructor (seconds per stack): the layers are validated the same way."""
-    from dermis.stages.brdf_models import HK93Params, _as_hk93_layer
+    from dermis.models.hk93 import HK93Params, _as_hk93_layer
     checked = tuple(l for l in (_as_hk93_layer(l, i, i == len(stack.layers) - 1)
                                 for i, l in enumerate(stack.layers)) if l.thickness_mm > 0)
     p = object.__new__(HK93Params)
@@ -198,13 +202,14 @@ def _hk93_fast(stack: LayerStack, rho_ms) -> object:
 
 @given(seed=st.integers(0, 2**31 - 1), stack=stacks(), rho_ms=st.tuples(ALBEDO, ALBEDO, ALBEDO))
 def test_hk93_finite_nonnegative_reciprocal_and_close_to_float64(cl_env, seed, stack, rho_ms):
-    from dermis.stages.brdf_models import evaluate
+    from dermis.models import hk93
+    from dermis.models.evaluate import evaluate
     p = _hk93_fast(stack, np.minimum(rho_ms, 0.999))
     wo, wi = _pairs(seed)
-    f = evaluate("hk93", wo, wi, p, env=cl_env)
+    f = evaluate(hk93.MODEL, wo, wi, p, env=cl_env)
     _check_brdf(f, hk93_f_np(wo, wi, p), wo, wi, rtol=rtol_hk93(stack), atol_rel=ATOL_F32,
                 what="hk93")
-    _check_reciprocal(f, evaluate("hk93", wi, wo, p, env=cl_env), rtol=RTOL_RECIPROCAL,
+    _check_reciprocal(f, evaluate(hk93.MODEL, wi, wo, p, env=cl_env), rtol=RTOL_RECIPROCAL,
                       what="hk93")
 
 
@@ -213,7 +218,8 @@ def test_hk93_finite_nonnegative_reciprocal_and_close_to_float64(cl_env, seed, s
 def test_hk93_directional_albedo_at_most_one(cl_env, stack):
     """HK93Params derives rho_ms = Rd - max rho_ss, so rho_ss(theta) + rho_ms <= 1 at every
     angle; checked by quadrature of the float32 kernel."""
-    from dermis.stages.brdf_models import evaluate
+    from dermis.models import hk93
+    from dermis.models.evaluate import evaluate
     p = _hk93_params(stack)
     assert np.isfinite(p.multiple_scattering).all() and (p.multiple_scattering >= 0).all()
     # the Henyey-Greenstein peak is ~(1 - |g|) wide: the midpoint rule needs cells narrower
@@ -222,7 +228,7 @@ def test_hk93_directional_albedo_at_most_one(cl_env, stack):
     # on a different grid (phi over 2 pi, view azimuth 0.3), so the two do not share errors.
     g = max(abs(l.g) for l in stack.layers)
     n = int(min(640, max(48, math.ceil(6.0 / max(1.0 - g, 1e-3)))))
-    a = _albedo_quadrature(lambda wo, wi: evaluate("hk93", wo, wi, p, env=cl_env), COS_O, n=n)
+    a = _albedo_quadrature(lambda wo, wi: evaluate(hk93.MODEL, wo, wi, p, env=cl_env), COS_O, n=n)
     assert np.isfinite(a).all() and (a >= 0).all()
     assert (a <= 1.0 + 1e-2).all(), f"directional albedo {a.max():.4f} > 1 (n = {n})"
 
@@ -233,13 +239,15 @@ def test_hk93_directional_albedo_at_most_one(cl_env, stack):
        f_max=st.sampled_from([math.inf, 1e-3, 1.0]))
 def test_asperity_finite_nonnegative_reciprocal_and_close_to_float64(cl_env, seed, tau, albedo,
                                                                    f_max):
-    from dermis.stages.brdf_models import AsperityParams, evaluate
+    from dermis.models import asperity
+    from dermis.models.asperity import AsperityParams
+    from dermis.models.evaluate import evaluate
     p = AsperityParams(delta_mm=tau * 20.0, lambda_mm=20.0, albedo=albedo, f_max=f_max)
     wo, wi = _pairs(seed)
-    f = evaluate("asperity", wo, wi, p, env=cl_env)
+    f = evaluate(asperity.MODEL, wo, wi, p, env=cl_env)
     _check_brdf(f, asperity_f_np(wo, wi, p), wo, wi, rtol=RTOL_F32, atol_rel=ATOL_F32,
                 what="asperity")
-    _check_reciprocal(f, evaluate("asperity", wi, wo, p, env=cl_env), rtol=RTOL_RECIPROCAL,
+    _check_reciprocal(f, evaluate(asperity.MODEL, wi, wo, p, env=cl_env), rtol=RTOL_RECIPROCAL,
                       what="asperity")
 
 
@@ -251,7 +259,7 @@ def _finite_layer(lay: Layer) -> bool:
 @given(lay=layers(last=True), eta_above=ETA, eta_below=ETA)
 def test_multipole_layer_totals_are_finite_nonnegative_and_conserve_energy(lay, eta_above,
                                                                            eta_below):
-    from dermis.stages.profiles import multipole_totals
+    from dermis.optics.multipole import multipole_totals
     assume(not any(a == 0 for a in lay.sigma_a) or not _finite_layer(lay))  # test09 has these
     assume(lay.g >= 0 or not _finite_layer(lay))                             # test12 has these
     Rd, Td, col = multipole_totals(lay, eta_above=eta_above, eta_below=eta_below)
@@ -290,7 +298,7 @@ def _check_profile(stack: LayerStack) -> float:
     """Whole profile builds (multipole + FFT adding): finite tables, R, T >= 0, Rd + Tt <= 1;
     where diffusion went negative the lobes removed are reported with their energy.  Returns
     the build seconds."""
-    from dermis.stages.profiles import build_profiles
+    from dermis.optics.layer_profiles import build_profiles
     t0 = time.perf_counter()
     prof = build_profiles(stack)
     took = time.perf_counter() - t0
@@ -324,7 +332,7 @@ def test11_layer_profile_over_the_whole_domain_builds_in_seconds(stack):
 @given(stack=stacks(sigma_t=st.floats(0.3, 30.0), thick=st.floats(1e-3, 30.0)),
        seed=st.integers(0, 2**32 - 1))
 def test_monte_carlo_slab_is_finite_nonnegative_and_conserves_energy(cl_env, stack, seed):
-    from dermis.stages.mc_slab import simulate
+    from dermis.optics.monte_carlo_slab import simulate
     r = simulate(stack, photons=1024, r_max_mm=5.0, bins=8, seed=seed, batches=4, env=cl_env)
     for name in ("R", "T", "Rd", "Tt", "absorbed", "lost"):
         v = np.asarray(getattr(r, name))
@@ -342,11 +350,11 @@ def _sigma_a_zero(stack: LayerStack) -> LayerStack:
 
 
 def test09_sigma_a_zero_thin_layer_conserves_energy_with_few_images():
-    from dermis.stages import profiles as P
+    from dermis.optics import multipole as P
     top = _sigma_a_zero(PRESETS["two_layer"]).layers[0]
     Rd, Td, col = P.multipole_totals(top, eta_above=1.0, eta_below=1.4)
     assert (Rd + Td + col <= 1.0 + 1e-3).all(), f"R + T = {Rd + Td + col}"
-    ch = P._chan(top, 0, top.eta, top.eta / 1.4, "pbd", None)
+    ch = P.diffusion_constants(top, 0, top.eta, top.eta / 1.4, "pbd", None)
     assert ch.poles < P.MAX_POLES, "sigma_a = 0 runs into the pole cap (an analytic tail is due)"
 
 
@@ -356,26 +364,27 @@ def test09_sigma_a_zero_thin_layer_conserves_energy_with_few_images():
     Layer(1.0, 1.0, (1e-4,) * 3, (1 - 1e-4,) * 3, 0.5)])      # 1 mfp, albedo 0.9999
 def test09b_weakly_absorbing_layer_image_tail_matches_4000_pairs(lay):
     """Weakly absorbing finite layers take 48 pairs and the rest as an integral
-    (stages/profiles.py POLE_REACH): the cumulative energy within NEGATIVE_ROUNDOFF (the level
+    (optics/multipole.py POLE_REACH): the cumulative energy within NEGATIVE_ROUNDOFF (the level
     at which a negative value counts as a lobe) of the sources' energy of the same sum with
     4000 pairs, at r = 0 .. 10 L (measured 3e-10); the plain 48-pair sum misses by 2e-4 ..
     6e-3."""
     import dataclasses
-    from dermis.stages import profiles as P
-    ch = P._chan(lay, 0, lay.eta, lay.eta / 1.4, "pbd", None)
+    from dermis.optics import multipole as P
+    from dermis.optics.layer_file import NEGATIVE_ROUNDOFF
+    ch = P.diffusion_constants(lay, 0, lay.eta, lay.eta / 1.4, "pbd", None)
     assert ch.tail and ch.poles < 50
-    src = P._sources(ch)
+    src = P.beam_sources(ch)
     L = ch.d + ch.zb_t + ch.zb_b
     r = np.array([0.0, 0.1, 0.3, 1.0, 3.0, 10.0]) * L
     ref = dataclasses.replace(ch, poles=4000, reach=math.inf)
     plain = dataclasses.replace(ch, tail=False, reach=math.inf)
     for side in ("top", "bot"):
-        e_ref = P._image_sum(ref, src, side, "energy", r)
-        err = np.abs(P._image_sum(ch, src, side, "energy", r) - e_ref).max() / src.w.sum()
-        err_plain = np.abs(P._image_sum(plain, src, side, "energy", r) - e_ref).max() / src.w.sum()
+        e_ref = P.image_sum(ref, src, side, "energy", r)
+        err = np.abs(P.image_sum(ch, src, side, "energy", r) - e_ref).max() / src.w.sum()
+        err_plain = np.abs(P.image_sum(plain, src, side, "energy", r) - e_ref).max() / src.w.sum()
         print(f"{side}: {err:.2g} (plain {ch.poles} pairs {err_plain:.2g})")
-        assert err <= P.NEGATIVE_ROUNDOFF, f"{side}: image sum off by {err:.3g}"
-        assert err_plain > 100 * P.NEGATIVE_ROUNDOFF   # the tail is what converges it
+        assert err <= NEGATIVE_ROUNDOFF, f"{side}: image sum off by {err:.3g}"
+        assert err_plain > 100 * NEGATIVE_ROUNDOFF   # the tail is what converges it
 
 
 @pytest.mark.parametrize("d_mfp", [100.0, 1000.0, 5094.0])
@@ -385,10 +394,10 @@ def test12b_thick_conservative_slab_transport_totals_sum_to_one(d_mfp, eta):
     Rd = 1.048): without absorption the adding-doubling totals R + T must be 1; they drifted
     by up to 1.1 % (round-off of the doublings); now renormalised, measured |R + T - 1| < 1e-6
     (the bound: the printed digits of the measurement)."""
-    from dermis.stages import profiles as P
+    from dermis.optics import adding_doubling as P
     for g in (0.0, 0.9, 0.99):
         lay = Layer(d_mfp, eta, (0.0,) * 3, (1.0,) * 3, g)
-        ex = P._ad_totals([lay], 0, eta / 1.0001, eta / 1.4)
+        ex = P.exact_totals([lay], 0, eta / 1.0001, eta / 1.4)
         assert abs(ex.Rc + ex.Tc + ex.Tu - 1.0) < 1e-6, f"g {g}: R + T = {ex.Rc + ex.Tc + ex.Tu}"
         assert abs(ex.Rd + ex.Td - 1.0) < 1e-6, f"g {g}: diffuse R + T = {ex.Rd + ex.Td}"
 
@@ -399,7 +408,7 @@ def test12c_non_scattering_layers_of_different_eta_conserve_energy():
     coefficients per channel): a layer without a diffusion shape added its reflection delta
     into a shared zero spectrum in place, leaking it into every later layer and channel.
     Exact here: Rd = the Fresnel r0 at 1.0001 / 1.4, Rd + Tt = 1 - absorption (2e-6)."""
-    from dermis.stages.profiles import build_profiles
+    from dermis.optics.layer_profiles import build_profiles
     from dermis.optics.fresnel import fresnel_normal
     lay = [Layer(1e-6, e, (1.0,) * 3, (0.0,) * 3, 0.0) for e in (1.0, 1.0001)]
     prof = build_profiles(LayerStack(tuple(lay), 1.0, 1.4))
@@ -411,7 +420,7 @@ def test12c_non_scattering_layers_of_different_eta_conserve_energy():
 def test12_backward_scattering_thin_layer_conserves_energy(g):
     """Found by the thorough profile (test_multipole_layer_totals_...): thickness 1e-6 .. 1 mfp,
     eta 1: g >= 0 gives R + T <= 1.000, g < 0 up to 1.294."""
-    from dermis.stages.profiles import multipole_totals
+    from dermis.optics.multipole import multipole_totals
     worst = 0.0
     for t_mfp in (1e-6, 1e-2, 0.1, 1.0):
         for a in (0.5, 0.9999):
@@ -424,7 +433,7 @@ def test12_backward_scattering_thin_layer_conserves_energy(g):
 @pytest.mark.skipif(not THOROUGH, reason="builds two whole profiles (~15 s); thorough profile")
 def test10_sigma_a_zero_stack_builds_in_bounded_time_and_memory():
     import resource
-    from dermis.stages.profiles import build_profiles
+    from dermis.optics.layer_profiles import build_profiles
     t0 = time.perf_counter()
     build_profiles(PRESETS["two_layer"])
     normal = time.perf_counter() - t0
@@ -460,7 +469,7 @@ ENV_MAPS = st.sampled_from(["sunset", "black", "one_pixel", "one_bright_pixel"])
 
 
 def _env_map(kind: str):
-    from dermis.lighting.lights import EnvironmentMap, procedural_sunset
+    from dermis.lighting.environment import EnvironmentMap, procedural_sunset
     if kind == "sunset":
         return EnvironmentMap(procedural_sunset(64))
     if kind == "black":
@@ -477,7 +486,8 @@ def test_irradiance_is_finite_nonnegative_and_bounded(light_scale, env_kind, see
     """E at points near and far from the light (down to 1e-9 mm), facing it, grazing and
     facing away: finite, >= 0 and below the unshadowed bound (point: I / d^2, disc: I pi r^2
     ... / d^2 bounded by I / d_min^2 per unit area, directional: |E_dir|, map: 2 pi^2 L_max)."""
-    from dermis.lighting.lights import irradiance
+    from dermis.lighting.emitters import SamplingOptions
+    from dermis.lighting.irradiance import irradiance
     light, scale = light_scale
     rng = np.random.default_rng(seed)
     n = 64
@@ -487,7 +497,8 @@ def test_irradiance_is_finite_nonnegative_and_bounded(light_scale, env_kind, see
     nrm = rng.normal(size=(n, 3))
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
     env = _env_map(env_kind) if light.type == "environment" else None
-    E = irradiance(pts, nrm, light, None, samples=light.samples, seed=seed, env=env)
+    E = irradiance(pts, nrm, light, None, seed=seed,
+                   options=SamplingOptions(samples=light.samples, env=env))
     assert E.shape == (n, 3) and np.isfinite(E).all(), "non-finite irradiance"
     assert (E >= 0).all(), f"negative irradiance {E.min()}"
     i = np.asarray(light.intensity, np.float64)
@@ -506,7 +517,7 @@ def test_irradiance_is_finite_nonnegative_and_bounded(light_scale, env_kind, see
 @pytest.fixture(scope="module")
 def skin_profile():
     """The two-layer skin's semi-infinite dermis (closed-form single-layer table: fast)."""
-    from dermis.stages.profiles import build_profiles
+    from dermis.optics.layer_profiles import build_profiles
     dermis = PRESETS["two_layer"].layers[-1]
     return build_profiles(LayerStack((dermis,), 1.0, 1.0))
 
@@ -519,7 +530,8 @@ def test_gather_is_finite_nonnegative_and_a_flat_slab_reflects_at_most_its_irrad
     """Uniform irradiance e on a flat square of points spaced ``scale`` x 0.2 mm (from far
     finer to far coarser than the profile): the exitance is finite, >= 0 and <= e (Rd <= 1),
     with coincident points and zero-area points mixed in."""
-    from dermis.stages import gather as G
+    from dermis.subsurface import gather as G
+    from dermis.subsurface.octree import build_octree
     rng = np.random.default_rng(seed)
     h = 0.2 * scale
     k = 48
@@ -533,7 +545,7 @@ def test_gather_is_finite_nonnegative_and_a_flat_slab_reflects_at_most_its_irrad
         areas[::7][: len(areas[1::7])] *= 0.5
         areas[3::11] = 0.0
     E = np.full((len(pos), 3), e)
-    tree = G.build_octree(pos.astype(np.float32), areas.astype(np.float32), E.astype(np.float32))
+    tree = build_octree(pos.astype(np.float32), areas.astype(np.float32), E.astype(np.float32))
     centre = pos[(k // 2) * k + k // 2]
     q = centre + rng.uniform(-1, 1, (64, 3)) * np.array([1, 1, 0]) * h * 4
     M, _ = G.gather(tree, skin_profile, q.astype(np.float32), epsilon=0.5, env=cl_env)
@@ -546,7 +558,7 @@ def test_gather_is_finite_nonnegative_and_a_flat_slab_reflects_at_most_its_irrad
        m=st.sampled_from([0.0, 1e-30, 1.0, 1e30]),
        rd=st.tuples(ALBEDO, ALBEDO, ALBEDO), albedo=st.tuples(ALBEDO, ALBEDO, ALBEDO))
 def test_exitance_to_radiance_is_finite_nonnegative_at_every_angle(cos, eta, m, rd, albedo):
-    from dermis.stages.gather import exitance_to_radiance
+    from dermis.subsurface.radiance import exitance_to_radiance
     M = np.full((4, 3), m)
     c = np.array([cos, abs(cos), 1e-7, -abs(cos)])
     for mode, alb in (("replace", albedo), ("modulate", albedo), (None, None)):
@@ -560,8 +572,8 @@ def test_exitance_to_radiance_is_finite_nonnegative_at_every_angle(cos, eta, m, 
 @given(eta=st.sampled_from([1.0, 1.0001, 1.4, 2.5]) | st.floats(1.0, 3.0))
 def test_exit_weighting_returns_exactly_the_exitance(eta):
     """int L cos dw = M: the Fresnel exit weight Ft(cos) / (pi (1 - Fdr_ext)) integrates to 1
-    over the hemisphere (stages/gather.py exitance_to_radiance, Jensen 2001 normalised)."""
-    from dermis.stages.gather import exitance_to_radiance
+    over the hemisphere (subsurface/radiance.py exitance_to_radiance, Jensen 2001 normalised)."""
+    from dermis.subsurface.radiance import exitance_to_radiance
     n = 20000
     mu = (np.arange(n) + 0.5) / n
     L = exitance_to_radiance(np.ones((n, 3)), mu, eta).astype(np.float64)
@@ -576,7 +588,7 @@ def test_sample_points_on_a_mesh_with_degenerate_triangles_are_finite_with_posit
         scale, degenerate, seed):
     """A flat 1x1 square (scale mm) with zero-area triangles added (repeated indices and
     collinear corners): finite positions and normals, areas >= 0 summing to the square's area."""
-    from dermis.stages.samples import sample_points
+    from dermis.subsurface.points import sample_points
     k = 9
     x, y = np.meshgrid(np.linspace(0, 1, k), np.linspace(0, 1, k))
     v = np.stack([x.ravel(), y.ravel(), np.zeros(k * k)], 1) * scale

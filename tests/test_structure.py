@@ -81,7 +81,7 @@ def test05_the_wheel_installs_one_top_level_name(wheel):
     tops = {n.split("/")[0] for n in names}
     assert tops == {"dermis", next(t for t in tops if t.endswith(".dist-info"))}, tops
     for must in ("dermis/__init__.py", "dermis/pipeline/api.py", "dermis/optics/fresnel.py",
-                 "dermis/stages/bssrdf.py", "dermis/reports/report.py", "dermis/cl/common.h",
+                 "dermis/stages/bssrdf.py", "dermis/reports/pdf_report.py", "dermis/cl/common.h",
                  "dermis/scenes/default.toml", "dermis/scenes/layers/two_layer.toml"):
         assert must in names, must
     assert not [n for n in names if n.startswith(("dermis/tests/", "dermis/bench/"))]
@@ -122,24 +122,33 @@ def _stage_of(nid: str) -> str:
 # file -> the stages whose nodes execute it (from what each stage runs, written out by hand)
 PROBE = {
     "cl/surface.cl": {"render", "bssrdf", "visibility"},  # hit attributes: rays + images
-    "cl/optics.h": {"render", "bssrdf", "irradiance"},  # Fresnel in the BRDFs; irradiance
-                                                       # imports brdf_models (entry transmittance)
+    "cl/optics.h": {"render", "bssrdf"},               # Fresnel in HK93 (cl/shade.cl includes it)
     "cl/bssrdf_gather.cl": {"bssrdf"},
-    "stages/render.py": {"render", "bssrdf"},          # pixel_surface + surface term
-    "stages/brdf_models.py": {"render", "bssrdf", "irradiance"},  # the BSSRDF's surface lobes
+    "stages/render.py": {"render", "bssrdf"},          # GEOMETRY, geometry_inputs
+    "models/lafortune.py": {"render", "bssrdf", "irradiance"},  # the BSSRDF's surface lobes
                                                        # and the entry transmittance they cap
+    "models/hk93.py": {"render", "bssrdf"},            # the render stage's models
     # the previews cast their rays on the renders' shared Embree scenes (lighting/visibility.py,
-    # which imports lighting/lights.py)
+    # which imports lighting/strata.py for the sub-pixel offsets)
     "lighting/visibility.py": {"render", "bssrdf", "irradiance", "visibility", "mesh_previews"},
-    "lighting/lights.py": {"render", "bssrdf", "irradiance", "visibility", "mesh_previews"},
-    "stages/visibility.py": {"visibility", "render", "bssrdf"},   # shared rays, hit attributes
+    "lighting/strata.py": {"render", "bssrdf", "irradiance", "visibility", "mesh_previews"},
+    "lighting/warps.py": {"render", "bssrdf", "irradiance", "visibility"},
+    "lighting/emitters.py": {"render", "bssrdf", "irradiance", "visibility"},
+    "lighting/environment.py": {"render", "bssrdf", "irradiance", "visibility"},
+    "lighting/lobes.py": {"render", "bssrdf", "visibility"},   # the irradiance pass draws none
+    "lighting/irradiance.py": {"irradiance", "bssrdf"},   # the gather's shadow edges use it
+    "rendering/cast.py": {"visibility", "render", "bssrdf"},   # shared rays, hit attributes
     "pipeline/plan.py": set(),                         # decides which nodes exist, runs in none
     "reports/diff.py": {"report", "differences"},
     "reports/sheets.py": {"images", "report", "differences",   # grids drawn with Pillow
                           "mesh_previews"},                  # and its PNG writer
     "reports/tonemap.py": {"images", "report"},        # tone mapping is not part of rendering
-    "stages/gather.py": {"bssrdf"},
-    "stages/mesh_prep.py": {"mesh_source", "mesh_high", "mesh_low"},
+    "subsurface/exitance.py": {"bssrdf"},
+    "subsurface/points.py": {"samples", "bssrdf"},     # the gather reads the kernel width
+    "geometry/validation.py": {"mesh_source"},
+    "geometry/subdivision.py": {"mesh_high", "mesh_low"},   # uv_transfer reads its corner pairs
+    "geometry/simplification.py": {"mesh_low"},
+    "geometry/uv_transfer.py": {"mesh_low"},
 }
 
 
@@ -175,8 +184,8 @@ def test06_a_harmless_edit_changes_exactly_the_keys_of_nodes_that_run_it(relpath
 
 def test07_closure_follows_function_local_imports():
     closure = codehash.module_closure("dermis.stages.mesh_source")
-    # procedural_head and scan_io are imported inside run(), not at module level
-    assert "dermis.stages.procedural_head" in closure and "dermis.stages.scan_io" in closure
+    # the procedural head and the scan reader, and the modules they import in turn
+    assert "dermis.geometry.procedural_head" in closure and "dermis.geometry.mesh_formats" in closure
     assert "dermis.pipeline.graph" not in closure   # engine bookkeeping is not hashed
 
 

@@ -2,15 +2,20 @@
 and the multi-page PDF (:mod:`dermis.reports.diff`, :mod:`dermis.reports.pdf_report`).
 
 The differences themselves are the ``differences`` nodes' (one per lighting condition,
-:mod:`dermis.reports.differences`); this node merges their metrics, draws the grids from
-their thumbnails and writes the PDF, so a changed light recomputes one light's
+:mod:`dermis.reports.light_differences`); this node merges their metrics, draws the grids
+from their thumbnails and writes the PDF, so a changed light recomputes one light's
 comparisons, not all of them."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
+from dermis.pipeline.config import CameraConfig
 from dermis.pipeline.graph import Node, StageResult
+from dermis.reports import diff, pdf_report
+from dermis.reports.comparison_images import load_thumbnails
+from dermis.reports.ground_truth import ground_truth_section
+from dermis.reports.light_differences import merge_light_differences
+from dermis.reports.profile_pages import profile_pages
 
 NAME = "report"
 VERSION = 3
@@ -44,19 +49,11 @@ def node(scene, render_ids: list[str], irradiance_ids: list[str],
 
 
 def run(params: dict, inputs: dict, ctx) -> StageResult:
-    from dermis.reports import diff, pdf_report
     images = {nid: inputs[nid] for nid in params["renders"]}
     tiles: dict = {}   # difference images, computed once for the PNGs and the PDF
     if params.get("differences"):
-        from dermis.reports import differences
-        parts = [differences.load(inputs[nid]) for nid in params["differences"]]
-        metrics = diff.merge_metrics([m for m, _ in parts])
-        for _, got in parts:
-            for kind, d in got.items():
-                tiles.setdefault(kind, {}).update(d)
-        files = diff.write_grids(metrics, tiles, ctx.out_dir)
-        (ctx.out_dir / "metrics.json").write_text(json.dumps(metrics, indent=1, sort_keys=True))
-        files.append(ctx.out_dir / "metrics.json")
+        files, metrics = merge_light_differences([inputs[nid] for nid in params["differences"]],
+                                                 ctx.out_dir, tiles)
     else:   # no differences nodes: compute them here
         files, metrics = diff.write_differences(images, ctx.out_dir,
                                                 reference_model=REFERENCE_MODEL, tiles_out=tiles)
@@ -66,10 +63,12 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
         extra[(label, mesh_node)] = float(inputs[nid].info.get("seconds", 0.0))
     thumbs = None
     if params.get("images"):   # the images stage's tone-mapped thumbnails for the image pages
-        from dermis.reports.images import load_thumbnails
         thumbs, _ = load_thumbnails(inputs[params["images"]])
-    gt_pages, gt_info = _ground_truth(params, inputs, images, extra, ctx.out_dir, files)
-    from dermis.reports.profile_pages import profile_pages
+    refs = {inputs[nid].info["light"]: inputs[nid] for nid in params.get("references", ())}
+    gt_pages, gt_info = ground_truth_section(
+        images, refs, ctx.out_dir, files, mesh=inputs[GROUND_TRUTH_MESH] if refs else None,
+        camera=CameraConfig(**params["camera"]) if refs else None, extra_seconds=extra,
+        skip_reason=params.get("reference_skipped"))
     profiles = {nid: inputs[nid] for nid in params.get("profiles", ())}
     added = {"profiles": 0}
 
@@ -84,26 +83,3 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     pages = (pdf_report.report_page_count(images, metrics) + added["profiles"]
              + gt_info["pages"])
     return StageResult(files=names, info={"pages": pages, "ground_truth": gt_info})
-
-
-def _ground_truth(params: dict, inputs: dict, images: dict, extra: dict, out_dir, files: list):
-    """The distance-to-ground-truth section (:mod:`dermis.reports.ground_truth`).
-
-    Its files are appended to ``files``.  Returns a function that adds its pages to the open
-    PDF and an info dict whose ``pages`` is filled in when that function has run."""
-    from dermis.reports import ground_truth as gt_mod
-    refs = {inputs[nid].info["light"]: inputs[nid] for nid in params.get("references", ())}
-    info = {"references": sorted(refs), "pages": 0}
-    gt = None
-    if refs:
-        from dermis.pipeline.config import CameraConfig
-        gt = gt_mod.ground_truth_metrics(images, refs, mesh=inputs[GROUND_TRUTH_MESH],
-                                         camera=CameraConfig(**params["camera"]),
-                                         extra_seconds=extra)
-        files.extend(gt_mod.write_ground_truth(gt, images, refs, out_dir))
-        info["ranking"] = gt["ranking"]
-
-    def add_pages(pdf):
-        info["pages"] = gt_mod.ground_truth_pages(pdf, gt, images, refs,
-                                                  skip_reason=params.get("reference_skipped"))
-    return add_pages, info

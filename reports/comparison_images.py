@@ -9,15 +9,16 @@ each light gets its own exposure; all exposures are saved in ``exposure.json``.
 from __future__ import annotations
 
 import json
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from dermis.pipeline.graph import Node, StageResult
+import numpy as np
+from PIL import Image
 
-__all__ = ["write_pngs", "contact_sheet", "contact_sheet_image", "NAME", "node", "run"]
+from dermis.reports.sheets import caption, grid, ordered_models, save_png, thumbnail
+from dermis.reports.tonemap import encode_srgb8, shared_exposure
 
-NAME = "images"
-VERSION = 2
-KERNELS = ()
+__all__ = ["write_pngs", "contact_sheet", "contact_sheet_image", "load_thumbnails"]
 
 
 def _label(image) -> tuple[str, str, str]:
@@ -43,11 +44,6 @@ def write_pngs(images: dict, out_dir: Path, *, thumbnails: bool = False) -> list
     paste thumbnails of those PNGs (:mod:`dermis.reports.sheets`), and the PNGs are encoded
     on two threads (zlib releases the GIL).
     """
-    from concurrent.futures import ThreadPoolExecutor
-
-    from dermis.reports.sheets import save_png, thumbnail
-    from dermis.reports.tonemap import encode_srgb8, shared_exposure
-
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     ids = sorted(images)
@@ -79,8 +75,6 @@ def contact_sheet_image(images: dict, mapped: dict, *, title: str = ""):
     Carlo profile)"), columns are lights, seconds per image
     under each label (the render node's own time; the shared visibility node is timed on
     its own)."""
-    from dermis.reports.sheets import caption, grid, ordered_models
-
     labels = {i: _label(images[i]) for i in images}
     models = ordered_models(m for m, _, _ in labels.values())
     lights = sorted({l for _, l, _ in labels.values()})
@@ -94,29 +88,12 @@ def contact_sheet_image(images: dict, mapped: dict, *, title: str = ""):
 
 def contact_sheet(images: dict, mapped: dict, path: Path, *, title: str = "") -> Path:
     """:func:`contact_sheet_image` written to ``path`` (PNG)."""
-    from dermis.reports.sheets import save_png
     return save_png(path, contact_sheet_image(images, mapped, title=title))
-
-
-# --------------------------------------------------------------------------- stage
-def node(scene, render_ids: list[str]) -> Node:
-    """Tone-map every rendered image (one exposure per lighting condition), PNGs + sheets."""
-    return Node(NAME, NAME, __name__, {"renders": sorted(render_ids)}, tuple(render_ids),
-                label="tone-mapped PNGs")
-
-
-def run(params: dict, inputs: dict, ctx) -> StageResult:
-    files = write_pngs({nid: inputs[nid] for nid in params["renders"]}, ctx.out_dir,
-                       thumbnails=True)
-    return StageResult(files=[f.name for f in files])
 
 
 def load_thumbnails(folder) -> tuple[dict, dict]:
     """(thumbnails {(model, light, geometry): uint8 image}, exposure per light) that an
     ``images`` node wrote (:func:`write_pngs` with ``thumbnails``)."""
-    import numpy as np
-    from PIL import Image
-
     folder = Path(folder)
     out = {}
     for path in sorted(folder.glob("thumb-*.png")):

@@ -9,17 +9,13 @@ from pathlib import Path
 
 import numpy as np
 
+from dermis.geometry.bump import bump_shading_normals_at_hits
+from dermis.lighting.visibility import shared
 from dermis.pipeline.artifacts import BakedMaps, Mesh, renormalise_f64
-from dermis.pipeline.graph import Node, StageResult
 from dermis.rendering.color import linear_to_srgb8
-from dermis.stages import bake
+from dermis.reports.sheets import save_png
 
-__all__ = ["save_map_previews", "save_shaded_comparison", "lambert_render", "NAME", "node", "run"]
-
-NAME = "mesh_previews"
-VERSION = 1
-KERNELS = ()
-PREVIEW_SIZE = 800
+__all__ = ["save_map_previews", "save_shaded_comparison", "lambert_render"]
 
 # Preview light: directional, from the upper left and grazing (about 65 deg from the view
 # axis) so that bumps cast strong shading gradients; not a thesis light (docs/science.md §6
@@ -32,7 +28,6 @@ PREVIEW_FOV_DEG = 30.0
 def _write_png(path: Path, image: np.ndarray) -> Path:
     """Write a (H, W[, 3]) uint8 image as PNG (:func:`dermis.reports.sheets.save_png`: zlib
     level 1, ~3x faster than the default 6 on the 4096^2 maps, 5.8 -> ~1.8 s for the five)."""
-    from dermis.reports.sheets import save_png
     return save_png(path, image)
 
 
@@ -65,7 +60,7 @@ def save_map_previews(maps: BakedMaps, out_dir) -> list[Path]:
 
 def _camera_rays(mesh: Mesh, size: int):
     """Pinhole rays from +Z looking down -Z at the mesh's bounding box (Y up)."""
-    import open3d as o3d
+    import open3d as o3d  # heavy (~1 s to import): only when a preview is drawn
     lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)
     centre = 0.5 * (lo + hi)
     half = 0.5 * max(hi[0] - lo[0], hi[1] - lo[1]) * 1.05
@@ -82,7 +77,6 @@ def _camera_rays(mesh: Mesh, size: int):
 def _cast(mesh: Mesh, rays, memo: dict | None = None):
     """Primary hits: (mask (H, W), triangle ids, barycentrics (N, 2)), on the mesh's shared
     Embree scene (:func:`dermis.lighting.visibility.shared`: the renders built it already)."""
-    from dermis.lighting.visibility import shared
     r = rays.numpy()
     hits = shared(mesh, {} if memo is None else memo).intersect(
         r[..., :3].reshape(-1, 3), r[..., 3:].reshape(-1, 3))
@@ -108,12 +102,12 @@ def lambert_render(mesh: Mesh, *, size: int = 800, maps: BakedMaps | None = None
 
     Without ``maps`` the shading normal is the mesh's interpolated vertex normal (libigl's
     angle-weighted ones when ``mesh.normals`` is None); with ``maps`` it is the bump-mapped normal
-    (:func:`stages.bake.bump_shading_normals_at_hits`, sharp or blurred bump).
+    (:func:`geometry.bump.bump_shading_normals_at_hits`, sharp or blurred bump).
     """
     rays = rays if rays is not None else _camera_rays(mesh, size)
     mask, tri, bary = _cast(mesh, rays, memo)
     if maps is not None:
-        n = bake.bump_shading_normals_at_hits(mesh, maps, tri, bary, blurred=blurred)
+        n = bump_shading_normals_at_hits(mesh, maps, tri, bary, blurred=blurred)
     else:
         w = np.stack([1 - bary[:, 0] - bary[:, 1], bary[:, 0], bary[:, 1]], 1)
         n = np.einsum("nk,nkd->nd", w, renormalise_f64(mesh.vertex_normals())[mesh.faces[tri]])
@@ -150,25 +144,3 @@ def save_shaded_comparison(high: Mesh, low: Mesh, maps: BakedMaps, out_path, *,
     row = np.concatenate([x for p in panels for x in (p, gap)][:-1], axis=1)
     return _write_png(Path(out_path), row)
 
-
-# --------------------------------------------------------------------------- stage
-def node(scene, with_low: bool) -> Node:
-    """PNG previews of the baked maps and of high vs low+bump shading (high only if no low)."""
-    deps = {"high": "mesh_high", **({"low": "mesh_low", "maps": "bake"} if with_low else {})}
-    return Node(NAME, NAME, __name__, {"size": PREVIEW_SIZE, "low": with_low}, deps,
-                label="PNG previews")
-
-
-def run(params: dict, inputs: dict, ctx) -> StageResult:
-    files = []
-    if params["low"]:
-        files += save_map_previews(inputs["maps"], ctx.out_dir)
-        out = ctx.out_dir / "shaded_high_vs_low.png"
-        save_shaded_comparison(inputs["high"], inputs["low"], inputs["maps"], out,
-                               size=params["size"], memo=ctx.memo)
-    else:
-        out = ctx.out_dir / "shaded_high.png"
-        save_shaded_comparison(inputs["high"], None, None, out, size=params["size"],
-                               memo=ctx.memo)
-    files.append(out)
-    return StageResult(files=[Path(f).name for f in files])

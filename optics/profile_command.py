@@ -17,6 +17,11 @@ reference (with the reference's own standard error) and the R(r) error over [0.0
 
 Convention (CSV header and output): R and T per photon that entered the top surface; the
 specular reflection at entry is not counted (per incident photon: times 1 - R_sp).
+
+Before any work the options are checked against the bounds the scene schema uses
+(``--mc`` as ``[optics] photons``, ``--seed`` as ``[optics] seed``; ``--poles`` up to the
+adaptive count's cap) and the peak memory is estimated (:func:`estimate_memory`) against the
+machine's, as for scenes: a problem exits with code 2 and a message naming the option.
 """
 from __future__ import annotations
 
@@ -26,14 +31,36 @@ from pathlib import Path
 
 import numpy as np
 
+from dermis.pipeline import cl as dcl
+from dermis.pipeline.config import MEMORY_ENV_VAR, machine_memory
 from dermis.pipeline.errors import DermisError
-from dermis.optics.layers import PRESETS, load_layers_toml
+from dermis.optics.fresnel import fresnel_normal
+from dermis.optics.layer_file import auto_grid
+from dermis.optics.layers import MAX_MC_PHOTONS, PRESETS, LayerStack, load_layers_toml
+from dermis.optics.multipole import (IMAGE_SUM_CHUNK, MAX_POLES, beam_sources,
+                                     diffusion_constants, relative_indices)
 
-__all__ = ["add_parser", "run", "MODELS", "ERROR_BAND_MM"]
+__all__ = ["add_parser", "run", "check_options", "estimate_memory", "MODELS", "ERROR_BAND_MM"]
 
 MODELS = ("multipole", "diffusion", "dj2005", "monte_carlo")
 ERROR_BAND_MM = (0.05, 5.0)
 ERROR_RINGS = 24
+# Largest --seed: the monte_carlo model runs seed + 1, and seeds are 0 .. 2**32 - 1 (the
+# scene's [optics] seed).
+MAX_SEED = 2**32 - 2
+
+# Peak memory of ``dermis profile`` (resident set size, 2-core PoCL machine; estimate_memory's
+# sum against it): the interpreter with numpy and scipy, 60 MiB (skin1; 68 MiB estimated); a
+# layered stack's FFT adding holds about 24 + 4 x (layers - 2) grids of (2n + 1)^2 float64,
+# at most FFT_GRIDS_MAX; the image sums IMAGE_SUM_ARRAYS float64 arrays of (radii x images)
+# pairs, in chunks of IMAGE_SUM_CHUNK unless one radius has more; the OpenCL Monte Carlo its
+# runtime, buffers and diffusion guide.  Measured (estimated), MiB: two_layer (n = 800) 532
+# (680), with --poles 2000 694 (716), with --mc 20000 644 (808); 3 layers at n = 1024 1009
+# (1144), 5 layers 1034 (1272).  Bytes.
+PROFILE_BASE_BYTES = 64 << 20
+FFT_GRIDS_MAX = 32
+IMAGE_SUM_ARRAYS = 6
+MC_BYTES = 128 << 20
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -42,13 +69,14 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("layers", help=f"layer TOML file, or a preset name ({', '.join(PRESETS)})")
     p.add_argument("--csv", default=None, help="output CSV path")
     p.add_argument("--mc", type=int, default=0, metavar="PHOTONS",
-                   help="also run the OpenCL Monte Carlo with PHOTONS photons per channel and "
-                        "print each model's error against it")
+                   help="also run the OpenCL Monte Carlo with PHOTONS photons per channel "
+                        f"(1 .. {MAX_MC_PHOTONS}) and print each model's error against it")
     p.add_argument("--models", default=",".join(MODELS),
                    help=f"models compared with --mc (comma-separated from {', '.join(MODELS)})")
-    p.add_argument("--poles", type=int, default=None, help="pole pairs n (i = -n..n)")
-    p.add_argument("--seed", type=int, default=0, help="Monte Carlo seed (the monte_carlo "
-                   "model uses seed + 1)")
+    p.add_argument("--poles", type=int, default=None,
+                   help=f"pole pairs n (i = -n..n, 0 .. {MAX_POLES}; default: adaptive)")
+    p.add_argument("--seed", type=int, default=0, help=f"Monte Carlo seed (0 .. {MAX_SEED}; the "
+                   "monte_carlo model uses seed + 1)")
     p.add_argument("--device", default=None, help="OpenCL device: P:D, P, or a name substring")
     p.set_defaults(func=run)
     return p
@@ -141,13 +169,92 @@ def _pct(x, signed=True) -> str:
     return f"{100 * x:+6.1f}%" if signed else f"{100 * x:5.2f}%"
 
 
+def check_options(args) -> None:
+    """Raise :class:`DermisError` (exit code 2) naming every option outside its bounds: the
+    value and what is allowed."""
+    problems = []
+    poles = getattr(args, "poles", None)
+    if poles is not None and not 0 <= poles <= MAX_POLES:
+        problems.append(f"--poles = {poles}: must be an integer in 0 .. {MAX_POLES} (pole pairs "
+                        "i = -n..n per finite layer; omit it for the adaptive count)")
+    mc = getattr(args, "mc", 0)
+    if mc and not 1 <= mc <= MAX_MC_PHOTONS:
+        problems.append(f"--mc = {mc}: must be a photon count per channel in 1 .. "
+                        f"{MAX_MC_PHOTONS} (the bound of [optics] photons; 0 or no --mc: no "
+                        "Monte Carlo)")
+    seed = getattr(args, "seed", 0)
+    if not 0 <= seed <= MAX_SEED:
+        problems.append(f"--seed = {seed}: must be an integer in 0 .. {MAX_SEED} (the "
+                        "monte_carlo model runs seed + 1)")
+    models = [m.strip() for m in str(getattr(args, "models", ",".join(MODELS))).split(",")
+              if m.strip()]
+    bad = [m for m in models if m not in MODELS]
+    if bad:
+        problems.append(f"--models: {', '.join(bad)}: unknown; choose from {', '.join(MODELS)}")
+    if problems:
+        raise DermisError("; ".join(problems))
+
+
+def estimate_memory(stack: LayerStack, poles: int | None = None,
+                    monte_carlo: bool = False) -> list[tuple[str, int]]:
+    """Estimated peak bytes of ``dermis profile`` on ``stack``: (what, bytes) parts whose sum
+    is the peak (module constants; measured values there)."""
+    st = stack.nonzero()
+    parts = [("the interpreter, numpy and scipy", PROFILE_BASE_BYTES)]
+    if not st.layers:
+        return parts
+    h, r_max = auto_grid(st)
+    n = int(math.ceil(r_max / h))
+    if len(st.layers) > 1:
+        grids = min(FFT_GRIDS_MAX, 24 + 4 * (len(st.layers) - 2))
+        parts.append((f"FFT adding on {grids} grids of {2 * n + 1} x {2 * n + 1}",
+                      grids * 8 * (2 * n + 1) ** 2))
+    # one image sum: (sources x images) pairs, evaluated over radii in chunks of
+    # IMAGE_SUM_CHUNK pairs (one radius at a time beyond); sources as beam_sources allots them
+    pairs, most = 0, 0
+    for k, lay in enumerate(st.layers):
+        for c in range(3):
+            ch = diffusion_constants(lay, c, *relative_indices(st, k), "pbd", poles)
+            images = 2 * (2 * ch.poles + 1) + (6 if ch.tail else 0)
+            sources = max(beam_sources(ch, diffuse=d).t.size for d in (False, True))
+            pairs, most = max(pairs, sources * images), max(most, ch.poles)
+    radii = 4 * (n + 1) + 128
+    what = f"image sums ({most} pole pairs" + (", --poles)" if poles is not None else ")")
+    parts.append((what, IMAGE_SUM_ARRAYS * 8 * max(pairs, min(IMAGE_SUM_CHUNK, pairs * radii))))
+    if monte_carlo:
+        parts.append(("the OpenCL Monte Carlo", MC_BYTES))
+    return parts
+
+
+def _check_memory(stack: LayerStack, src: str, args) -> None:
+    """Raise :class:`DermisError` when the estimated peak exceeds the machine's memory."""
+    poles, mc = getattr(args, "poles", None), bool(getattr(args, "mc", 0))
+    parts = estimate_memory(stack, poles, mc)
+    need, have = sum(b for _, b in parts), machine_memory()
+    if need <= have:
+        return
+    detail = ", ".join(f"{what}: {b / 2**30:.2f} GiB" for what, b in parts)
+    fits = [hint for hint, p, m in (("omit --poles (the adaptive pole count fits)", None, mc),
+                                    ("omit --mc", poles, False))
+            if (p, m) != (poles, mc) and sum(b for _, b in estimate_memory(stack, p, m)) <= have]
+    hint = " or ".join(fits) if fits else "the stack's own grid and images need it"
+    raise DermisError(f"profile {src}: needs about {need / 2**30:.2f} GiB at its peak ({detail}); "
+                      f"this machine has {have / 2**30:.2f} GiB (${MEMORY_ENV_VAR} overrides): "
+                      + hint)
+
+
 def run(args) -> int:
     """Execute ``dermis profile``; returns the exit code."""
-    from dermis.stages import profiles
+    # the layer-file library (scipy, ~0.5 s to import) is loaded when the command runs, not
+    # when ``dermis`` builds its parser
+    from dermis.optics.layer_profiles import MultipoleOptions, build_profiles
+    from dermis.optics.monte_carlo_table import mc_bin_edges, monte_carlo_profiles
 
+    check_options(args)
     src = args.layers
     stack = PRESETS[src] if src in PRESETS and not Path(src).exists() else load_layers_toml(src)
-    prof = profiles.build_profiles(stack, poles=getattr(args, "poles", None))
+    _check_memory(stack, src, args)
+    prof = build_profiles(stack, options=MultipoleOptions(poles=getattr(args, "poles", None)))
     r = prof.r_mm
     cols = {"r_mm": r}
     for i, c in enumerate("rgb"):
@@ -156,22 +263,15 @@ def run(args) -> int:
         cols[f"T_{c}"] = prof.T[:, i]
     mc = None
     models = [m.strip() for m in str(getattr(args, "models", ",".join(MODELS))).split(",") if m.strip()]
-    bad = [m for m in models if m not in MODELS]
-    if bad:
-        raise DermisError(f"--models: {', '.join(bad)}: unknown; choose from {', '.join(MODELS)}")
     if args.mc:
-        from dermis.pipeline import cl as dcl
-        if args.mc < 1:
-            raise DermisError(f"--mc = {args.mc}: must be a positive photon count")
         env = dcl.get_env(getattr(args, "device", None))
         # the reference runs on the union of the layer-file rings, the Monte Carlo table's
         # rings (fine near the source) and the error rings, so every rebinning is exact
         edges = ring_edges(prof)
-        mc_edges = profiles.mc_bin_edges(stack)
+        mc_edges = mc_bin_edges(stack)
         union = np.unique(np.concatenate([edges, mc_edges]))
         union = union[union <= max(edges[-1], mc_edges[-1])]
-        mc = profiles.monte_carlo_profiles(stack, photons=args.mc, seed=args.seed, env=env,
-                                           edges=union)
+        mc = monte_carlo_profiles(stack, photons=args.mc, seed=args.seed, env=env, edges=union)
         for name, key in (("MC_R", "R"), ("MC_T", "T")):
             a = _rebin(mc, edges, key)
             for i, c in enumerate("rgb"):
@@ -205,8 +305,8 @@ def _vec(v) -> str:
 
 
 def _report(stack, prof, mc, models, args, env) -> None:
-    from dermis.optics.fresnel import fresnel_normal
-    from dermis.stages import profiles
+    from dermis.optics.layer_profiles import MultipoleOptions, build_profiles  # as in run()
+    from dermis.optics.monte_carlo_table import mc_bin_edges, monte_carlo_profiles
 
     r_sp = fresnel_normal(stack.layers[0].eta / stack.eta_above)
     i = mc.info
@@ -221,12 +321,14 @@ def _report(stack, prof, mc, models, args, env) -> None:
         if m in built:
             continue
         if m == "diffusion":
-            built[m] = profiles.build_profiles(stack, totals="diffusion", poles=args.poles)
+            built[m] = build_profiles(stack, options=MultipoleOptions(totals="diffusion",
+                                                                      poles=args.poles))
         elif m == "dj2005":
-            built[m] = profiles.build_profiles(stack, diffusion="dj2005", poles=args.poles)
+            built[m] = build_profiles(stack, options=MultipoleOptions(diffusion="dj2005",
+                                                                      poles=args.poles))
         elif m == "monte_carlo":
-            built[m] = profiles.monte_carlo_profiles(stack, photons=args.mc, seed=args.seed + 1,
-                                                     env=env, edges=profiles.mc_bin_edges(stack))
+            built[m] = monte_carlo_profiles(stack, photons=args.mc, seed=args.seed + 1,
+                                            env=env, edges=mc_bin_edges(stack))
     lo, hi = ERROR_BAND_MM
     print(f"\n{'model':<12} {'ch':<5} {'Rd':>8} {'dRd':>7} {'(MC se)':>8} {'Tt':>8} {'dTt':>7} "
           f"{'(MC se)':>8}   R(r) over [{lo:g}, {hi:g}] mm: misplaced energy, rms, largest (at r), "

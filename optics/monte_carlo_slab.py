@@ -16,10 +16,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dermis.pipeline import cl as dcl
 from dermis.pipeline.errors import DermisError
 from dermis.optics.layers import LayerStack
 
-__all__ = ["VERSION", "KERNELS", "McResult", "simulate", "combine"]
+__all__ = ["VERSION", "KERNELS", "McResult", "WeightWindow", "simulate", "combine"]
 
 VERSION = 3   # 3: ring edges of any spacing, radial splitting (weight window), log weights
 KERNELS = ("mc_slab.cl",)
@@ -112,9 +113,26 @@ def _layer_table(stack: LayerStack) -> np.ndarray:
     return tab
 
 
+@dataclass(frozen=True)
+class WeightWindow:
+    """Radial splitting and Russian roulette of the tracer (cl/mc_slab.cl): a photon heavier
+    than its window W(rho, z) is split, one lighter than ``w_min`` x W is rouletted."""
+
+    params: object = None
+    """(3, 4) array_like per channel: (kappa 1/mm, rho0 mm, rho1 mm, lambda 1/mm) of
+    W = exp(-kappa clamp(rho - rho0, 0, rho1 - rho0) + lambda z); None or all 0: W = 1, no
+    splitting (the analog tracer with MCML's roulette).  kappa must not exceed the decay rate
+    of the light reaching rho (else the copies multiply without bound);
+    :func:`dermis.optics.monte_carlo_table.monte_carlo_profiles` caps it at MC_KAPPA_CAP
+    sigma_tr of the least absorbing layer."""
+    w_min: float = W_MIN
+    """Russian roulette below w_min x W(rho), survival 1/10 (MCML: 1e-4)."""
+
+
 def simulate(stack: LayerStack, *, photons: int, r_max_mm: float | None = None,
-        bins: int | None = None, seed: int = 0, batches: int = 16, env=None,
-        edges: np.ndarray | None = None, window=None, w_min: float = W_MIN) -> McResult:
+             bins: int | None = None, seed: int = 0, batches: int = 16, env=None,
+             edges: np.ndarray | None = None,
+             weight_window: WeightWindow = WeightWindow()) -> McResult:
     """Trace ``photons`` photons per RGB channel through ``stack`` on OpenCL.
 
     Parameters
@@ -134,22 +152,16 @@ def simulate(stack: LayerStack, *, photons: int, r_max_mm: float | None = None,
         Number of independent batches for standard errors (>= 2).
     env : pipeline.cl.ClEnv, optional
         OpenCL environment; default ``pipeline.cl.get_env()`` (PoCL CPU).
-    window : (3, 4) array_like, optional
-        Radial splitting per channel: (kappa 1/mm, rho0 mm, rho1 mm, lambda 1/mm) of the
-        weight window W = exp(-kappa clamp(rho - rho0, 0, rho1 - rho0) + lambda z)
-        (cl/mc_slab.cl); None or all 0: off (the analog tracer with MCML's roulette).  kappa must not exceed
-        the decay rate of the light reaching rho (else the copies multiply without bound);
-        :func:`stages.profiles.monte_carlo_profiles` caps it at 0.9 sigma_tr of the least
-        absorbing layer.
-    w_min : float
-        Russian roulette below w_min x W(rho), survival 1/10 (MCML: 1e-4).
+    weight_window : WeightWindow
+        Radial splitting and roulette (default: no splitting, MCML's roulette at W_MIN).
+
     Returns
     -------
     McResult
     """
-    from dermis.pipeline import cl as dcl
-    import pyopencl as cl
+    import pyopencl as cl   # the OpenCL runtime: loaded only when photons are traced
 
+    window, w_min = weight_window.params, weight_window.w_min
     want = np.broadcast_to(np.asarray(photons), (3,))
     if not (np.all(np.isfinite(want.astype(np.float64))) and np.all(want >= 1)):
         raise DermisError(f"mc_slab: photons = {photons}: must be >= 1 (one int, or one per "

@@ -1,0 +1,246 @@
+"""The camera and shadow rays of one mesh under one lighting condition, cast once (stage
+``visibility``) and shared by every model rendered with them (BRDF models and the BSSRDF).
+
+Per (mesh, lighting condition, camera, ``[render] spp``, seed) :func:`cast`
+
+1. casts ``spp`` stratified camera rays per pixel through Embree
+   (:func:`dermis.lighting.visibility.subpixel_offsets`; one ray through the pixel centre
+   when spp = 1);
+2. evaluates the model-independent surface attributes at the hits with ``cl/surface.cl``
+   (:func:`dermis.rendering.surface.surface_attributes`: position, two-sided geometric
+   normal facing the camera, interpolated vertex normal);
+3. draws the light samples of every hit (:func:`dermis.lighting.emitters.sample_lights` with
+   ``share = spp``: a disc or environment light's S samples per pixel are spread over the
+   pixel's sub-pixel samples, ceil(S / spp) each, so anti-aliasing costs no extra light
+   samples, and stratified over the whole pixel, :class:`~dermis.lighting.strata.PixelStrata`)
+   and traces their shadow rays;
+4. keeps the unoccluded samples above the geometric horizon: direction and weight per sample,
+   grouped by hit (:class:`dermis.pipeline.artifacts.PixelSamples`).
+
+The render nodes (``stages/render.py``, ``stages/bssrdf.py``) take this artifact as an input,
+so the models under one light on one mesh shade the same rays, and changing a model's
+parameters recasts no ray.  The sharing is also why the model images are comparable pixel
+by pixel: their Monte Carlo noise is the same noise.  Bump-mapped geometries of the low mesh
+share its visibility too: the bump moves the shading normal only (samples it puts below the
+shading horizon get cos = 0 in the shading kernel).
+
+Conventions: mm, linear RGB; pixel index row-major from the top-left.
+Guarded by tests/test_antialias.py and tests/test_render.py.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from dermis.lighting.emitters import SamplingOptions, sample_lights
+from dermis.lighting.environment import environment_map
+from dermis.lighting.lobes import RETRO_FRACTION, RETRO_G_MAX, GlossyLobe, RetroLobe
+from dermis.lighting.strata import PixelStrata
+from dermis.lighting.visibility import Visibility, camera_rays, subpixel_offsets
+from dermis.pipeline.artifacts import PixelSamples
+from dermis.pipeline.cl import get_env
+from dermis.pipeline.errors import ConfigError
+from dermis.pipeline.registry import model
+from dermis.pipeline.reuse import content_key
+from dermis.rendering.options import LightSampling, RenderOptions
+from dermis.rendering.surface import surface_attributes
+
+__all__ = ["cast", "retro_lobe", "samples_per_hit"]
+
+# Light samples drawn and traced per batch: bounds memory (~100 bytes a sample while
+# sampling) while keeping Embree and numpy calls large.
+CHUNK_SAMPLES = 1 << 20
+# Camera rays per Embree call.
+CHUNK_RAYS = 1 << 21
+
+
+def retro_lobe(scene) -> dict | None:
+    """The retro lobe a scene's images need: {"fraction", "k"} when a BRDF rendered reads the
+    scene's layers (HK93, or the asperity term on HK93: ``Model.reads_optics``) and one of its
+    layers scatters backwards (g < RETRO_G_MAX: the Henyey-Greenstein backscatter peak at
+    wi = wo would give fireflies, docs/hardening.md), else None.  The most backward layer sets
+    the lobe's width."""
+    base = scene.render.asperity_base
+    if not any(m.stage == "render" and m.reads_optics(base if m.bases else None)
+               for m in map(model, scene.render.models)):
+        return None
+    layer = min(scene.optics.layers, key=lambda l: l.g)
+    if not layer.g < RETRO_G_MAX:
+        return None
+    return {"fraction": RETRO_FRACTION, "k": RetroLobe.k_for_layer(layer.g, layer.eta)}
+
+
+def _light_sampling(sampling: LightSampling | None, lights) -> LightSampling:
+    """``sampling`` (defaults when None), checked, with the environment map a light needs."""
+    sampling = sampling if sampling is not None else LightSampling()
+    if sampling.shadow_samples is not None and int(sampling.shadow_samples) < 1:
+        raise ConfigError(f"shadow_samples = {sampling.shadow_samples}: must be >= 1")
+    env = sampling.env
+    for lt in lights:
+        if lt.type == "environment" and env is None:
+            env = environment_map(lt)
+    return replace(sampling, env=env)
+
+
+def samples_per_hit(lights, spp: int, shadow_samples: int | None = None) -> int:
+    """Light samples drawn per camera hit: 1 per point or directional light, ceil(S / spp)
+    per disc or environment light (S = ``shadow_samples`` or the light's ``samples``)."""
+    n = 0
+    for lt in lights:
+        if lt.type in ("point", "directional"):
+            n += 1
+        else:
+            n += -(-int(shadow_samples or lt.samples) // spp)
+    return n
+
+
+# --------------------------------------------------------------------------- casting
+def _primary(vis: Visibility, camera, spp: int, seed: int):
+    """Camera hits: (flat pixel index, sub-sample index, triangle, barycentrics) of every
+    sub-pixel ray that hit, and the number of rays cast."""
+    w, h = int(camera.width), int(camera.height)
+    rng = np.random.default_rng((int(seed), 1))
+    offsets = subpixel_offsets(w * h, spp, rng)
+    rows_per = max(1, CHUNK_RAYS // (w * spp))
+    pix, sub, tri, bary = [], [], [], []
+    for r0 in range(0, h, rows_per):
+        r1 = min(h, r0 + rows_per)
+        o, d = camera_rays(camera, offsets, rows=(r0, r1))
+        hits = vis.intersect(o, d)
+        ok = np.flatnonzero(hits.hit)
+        pix.append((ok // spp + r0 * w).astype(np.int32))
+        sub.append((ok % spp).astype(np.int32))
+        tri.append(hits.tri[ok])
+        bary.append(hits.bary[ok])
+    return (np.concatenate(pix), np.concatenate(sub), np.concatenate(tri), np.concatenate(bary),
+            w * h * spp)
+
+
+def _camera_hits(mesh, camera, spp: int, seed: int, vis: Visibility, env_cl,
+                 memo: dict | None):
+    """Camera hits and their surface attributes, which depend on the mesh, camera, spp and
+    seed but not on the light: kept in the run's ``memo`` (one entry per mesh) so the
+    lighting conditions of a mesh cast its camera rays once."""
+    key = ("camera_hits", id(mesh), repr(camera), int(spp), int(seed))
+    if memo is not None and key in memo:
+        return memo[key][1][:-1] + (0.0,)        # no kernel ran for this node
+    pixel, sub, tri, bary, n_rays = _primary(vis, camera, spp, seed)
+    cam_pos = np.asarray(camera.position, dtype=np.float64)
+    surf, k_s = surface_attributes(env_cl, mesh, tri, bary, cam_pos)
+    # the hits' fingerprint, as the artifact stores them: every image of the mesh finds its
+    # shared surface pass by it (rendering/surface.py) instead of hashing ~30 MB per image
+    hits_key = content_key(tri.astype(np.int32), bary.astype(np.float32))
+    out = (pixel, sub, tri, bary, n_rays, surf, hits_key, k_s)
+    if memo is not None:
+        for k in [k for k in memo if k[0] == "camera_hits" and k[1] == id(mesh)]:
+            del memo[k]                      # one camera per mesh at a time
+        memo[key] = (mesh, out)
+    return out
+
+
+def cast(mesh, lights, camera, options: RenderOptions = RenderOptions(), *, cl_env=None,
+         progress=None, memo: dict | None = None) -> PixelSamples:
+    """Camera rays, light samples and shadow rays of one image (module docstring).
+
+    Parameters
+    ----------
+    mesh : pipeline.artifacts.Mesh (mm)
+    lights : LightConfig or sequence of LightConfig (summed)
+    camera : pipeline.config.CameraConfig
+    options : RenderOptions; read are ``spp`` (>= 1, camera samples per pixel, 1 = the pixel
+        centre), ``seed`` (the sub-pixel jitter and the light samples, deterministic),
+        ``visibility`` (the Embree scene of ``mesh`` built earlier, optional) and
+        ``sampling`` (LightSampling, optional research options)
+    cl_env : pipeline.cl.ClEnv, optional
+    progress : callable(float), optional
+    memo : dict, optional
+        The run's scratch dict: the camera hits of a mesh are then cast once for all its
+        lighting conditions (the same rays, so the same result).
+
+    Returns
+    -------
+    pipeline.artifacts.PixelSamples
+    """
+    t_start = time.perf_counter()
+    spp, seed = int(options.spp), options.seed
+    if spp < 1:
+        raise ConfigError(f"render.spp = {spp}: must be >= 1")
+    lights = list(lights) if isinstance(lights, (list, tuple)) else [lights]
+    sampling = _light_sampling(options.sampling, lights)
+    env_cl = cl_env or get_env()
+    vis = options.visibility or Visibility(mesh.vertices, mesh.faces)
+    pixel, sub, tri, bary, n_rays, surf, hits_key, k_s = _camera_hits(
+        mesh, camera, spp, seed, vis, env_cl, memo)
+    # a pixel's light samples, stratified over its sub-samples (one sample: per point)
+    strata = PixelStrata(pixel, sub, spp, int(seed)) if spp > 1 else None
+    t_primary = time.perf_counter() - t_start
+
+    t0 = time.perf_counter()
+    pos, ng = surf["position"], surf["geo_normal"]
+    lobe = None
+    if sampling.glossy_fraction > 0 and sampling.retro_fraction > 0:
+        raise ConfigError("sampling: glossy_fraction and retro_fraction are both > 0; "
+                          "one environment lobe at a time")
+    if sampling.glossy_fraction > 0:
+        lobe = GlossyLobe(surf["wo"], surf["shading_normal"], sampling.glossy_fraction,
+                          sampling.glossy_exponent, sampling.glossy_tilt)
+    elif sampling.retro_fraction > 0:
+        lobe = RetroLobe(surf["wo"], sampling.retro_fraction, sampling.retro_k)
+    t_surface = time.perf_counter() - t0
+
+    per_hit = samples_per_hit(lights, spp, sampling.shadow_samples)
+    chunk = max(1, CHUNK_SAMPLES // max(per_hit, 1))
+    m = len(tri)
+    counts = np.zeros(m, dtype=np.int32)
+    dirs, wts = [], []
+    t_sampling = t_shadows = 0.0
+    n_shadow = 0
+    for c, start in enumerate(range(0, m, chunk)):
+        sl = slice(start, min(m, start + chunk))
+        t0 = time.perf_counter()
+        ls = sample_lights(lights, pos[sl], ng[sl], seed=(int(seed), 0, c),
+                           options=SamplingOptions(samples=sampling.shadow_samples,
+                                                   env=sampling.env,
+                                                   env_strategy=sampling.env_strategy),
+                           share=spp,
+                           strata=strata[sl] if strata is not None else None,
+                           lobe=lobe[sl] if lobe is not None else None)
+        # the live samples by flat index, row-major (grouped by hit, in hit order), and one
+        # ``take`` per array
+        live = ls.live()
+        flat = np.flatnonzero(live)
+        ip = flat // live.shape[1]
+        d = ls.directions.reshape(-1, 3).take(flat, axis=0)
+        t1 = time.perf_counter()
+        t_sampling += t1 - t0
+        blocked = vis.occluded(pos[sl].take(ip, axis=0), ng[sl].take(ip, axis=0), d,
+                               ls.distance.reshape(-1).take(flat))
+        n_shadow += len(ip)
+        keep = np.flatnonzero(~blocked)
+        ip, flat = ip.take(keep), flat.take(keep)
+        counts[sl] = np.bincount(ip, minlength=sl.stop - sl.start)
+        dirs.append(d.take(keep, axis=0))
+        wts.append(ls.weights.reshape(-1, 3).take(flat, axis=0))
+        t_shadows += time.perf_counter() - t1
+        if progress is not None:
+            progress(min(1.0, sl.stop / max(m, 1)))
+    directions = np.concatenate(dirs) if dirs else np.zeros((0, 3), np.float32)
+    weights = np.concatenate(wts) if wts else np.zeros((0, 3), np.float32)
+    w, h = int(camera.width), int(camera.height)
+    info = {"lights": [lt.name for lt in lights], "light_types": [lt.type for lt in lights],
+            "width": w, "height": h, "spp": spp, "seed": int(seed),
+            "light_samples_per_hit": per_hit, "env_strategy": sampling.env_strategy,
+            "env_lobe": (None if lobe is None else {"type": type(lobe).__name__,
+                                                    "fraction": lobe.fraction}),
+            "primary_rays": int(n_rays), "hits": int(m), "camera_hits_key": hits_key,
+            "shadow_rays": int(n_shadow),
+            "unoccluded_samples": int(len(directions)), "triangles": int(len(mesh.faces)),
+            "timings": {"primary": t_primary, "surface": t_surface,
+                        "light_sampling": t_sampling, "shadows": t_shadows,
+                        "kernel_seconds": k_s, "total": time.perf_counter() - t_start}}
+    return PixelSamples(width=w, height=h, spp=spp, pixel=pixel.astype(np.int32),
+                        tri=tri.astype(np.int32), bary=bary.astype(np.float32), counts=counts,
+                        directions=np.ascontiguousarray(directions, dtype=np.float32),
+                        weights=np.ascontiguousarray(weights, dtype=np.float32), info=info)

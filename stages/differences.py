@@ -1,0 +1,30 @@
+"""Stage ``differences``: the difference images and metrics of one lighting condition.
+
+Every model against the BSSRDF and every low geometry against the high mesh, under one
+light (:mod:`dermis.reports.light_differences`): ``diff-*.png`` and ``geomdiff-*.png``
+(exported into the report folder), the light's ``metrics.json`` and thumbnails of its
+difference images for the report's grids and PDF.  One node per lighting condition, so a
+changed light redraws only its own comparisons; the ``report`` node merges them.
+"""
+from __future__ import annotations
+
+from dermis.pipeline.graph import Node, StageResult
+from dermis.reports.light_differences import write_light_differences
+
+NAME = "differences"
+VERSION = 1
+KERNELS = ()
+OUTPUT_FOLDER = "report"      # the difference PNGs go beside the report
+REFERENCE_MODEL = "bssrdf"
+
+
+def node(scene, label: str, render_ids: list[str]) -> Node:
+    ids = sorted(render_ids)
+    return Node(f"differences-{label}", NAME, __name__, {"label": label, "renders": ids},
+                tuple(ids), label=f"differences / {label}")
+
+
+def run(params: dict, inputs: dict, ctx) -> StageResult:
+    images = {nid: inputs[nid] for nid in params["renders"]}
+    files = write_light_differences(images, ctx.out_dir, reference_model=REFERENCE_MODEL)
+    return StageResult(files=[f.name for f in files])

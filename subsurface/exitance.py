@@ -1,0 +1,195 @@
+"""Radiant exitance of the BSSRDF at shading points (docs/science.md §4 "Near field").
+
+The far part of the profile is gathered from the irradiance points (``subsurface/gather.py``
+over the octree of ``subsurface/octree.py``); the near part (``subsurface/near_field.py``) is
+evaluated at each shading point for point and directional lights, from their shadow edges
+(``subsurface/shadow_edges.py``), and gathered from the points for the other lights.
+"""
+from __future__ import annotations
+
+import math
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from dermis.pipeline.cl import get_env
+from dermis.pipeline.reuse import content_key, once, recent_in_run
+from dermis.subsurface.gather import GatherTuning, gather
+from dermis.subsurface.near_field import SHARP_LIGHTS, near_tables, split_profile
+from dermis.subsurface.octree import build_octree, scene_default
+from dermis.subsurface.shadow_edges import shadow_edges, sharp_near_field
+
+__all__ = ["ShadingPoints", "ExitanceOptions", "exitance", "SHARED_GATHERS"]
+
+# Gathers kept per run by :func:`exitance` for reuse: the same points, irradiance, profile and
+# query positions give the same exitance, and the low mesh's two bump variants of a lighting
+# condition shade the same positions (the bump moves normals only) and run together.  Each
+# is a (Q, 3) float32 array, ~30 MB at 800 x 800 x 4 spp; 4 hold a condition's far and soft
+# parts for two profiles.
+SHARED_GATHERS = 4
+
+
+@dataclass(frozen=True)
+class ShadingPoints:
+    """The surface points :func:`exitance` shades (the camera samples' hits).
+
+    positions : (Q, 3) float, mm
+    shading_normals : (Q, 3) float, the normals the near field is shaded with (bump mapped)
+    geo_normals : (Q, 3) float, the geometric normals (shadow-ray offsets, horizon culling)
+    visible : (Q, number of point/directional lights) bool, optional
+        Which of those lights each shading point sees (``shadow_edges.sharp_visibility`` of
+        the shared visibility); None traces a shadow ray per point and light.
+    """
+
+    positions: np.ndarray
+    shading_normals: np.ndarray
+    geo_normals: np.ndarray
+    visible: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class ExitanceOptions:
+    """How :func:`exitance` evaluates the BSSRDF.
+
+    epsilon : float or None
+        Solid-angle criterion of the gather (:func:`gather`; the scene's ``[bssrdf]
+        epsilon``); None only with ``brute_force``.
+    normalisation : {"energy", "thesis"}
+        As :func:`gather`; "thesis" gathers the whole profile from the points.
+    leaf_size : int
+        Octree leaf size (default the scene schema's ``[bssrdf] leaf_size``).
+    brute_force : bool
+        Sum every point with no clustering (the reference; :func:`gather`).
+    near_field : bool
+        False: the thesis's method, the whole profile gathered from the points (blurred by
+        their reconstruction width); so is the "thesis" normalisation.
+    transmittance : callable, optional
+        The entry transmittance (``Transmittance``) the irradiance was weighted with.
+    tuning : GatherTuning
+        Research knobs of the gather; the defaults are what the pipeline runs.
+    env : pipeline.cl.ClEnv, optional
+        OpenCL environment (default ``pipeline.cl.get_env()``).
+    progress : callable(float), optional
+        Called with the fraction done of each gather (:func:`gather`).
+    """
+
+    epsilon: float | None
+    normalisation: str = "energy"
+    leaf_size: int = scene_default("leaf_size")
+    brute_force: bool = False
+    near_field: bool = True
+    transmittance: object = None
+    tuning: GatherTuning = GatherTuning()
+    env: object = None
+    progress: object = None
+
+
+def exitance(points, irradiance: np.ndarray, profile, shading: ShadingPoints, *, lights,
+             visibility, options: ExitanceOptions,
+             memo: dict | None = None) -> tuple[np.ndarray, dict]:
+    """Radiant exitance of the BSSRDF at shading points: the far part of the profile
+    gathered from the points, the near part at each point (module docstring).
+
+    Parameters
+    ----------
+    points : SurfacePoints (positions, normals, areas, info["kernel_sigma_mm"], info
+        ["spacing_mm"]) and ``irradiance`` (N, 3) their entering irradiance for ``lights``
+    profile : LayerProfile
+    shading : ShadingPoints, the points to shade
+    lights : sequence of LightConfig, the lighting condition ``irradiance`` was computed for
+    visibility : lighting.visibility.Visibility of the mesh the points lie on
+    options : ExitanceOptions
+    memo : dict, optional
+        The run's scratch dict: octrees, edges and tables are kept per (points, irradiance),
+        made once when several nodes ask at the same time, and the gathers of the last
+        ``SHARED_GATHERS`` query sets (the low mesh's bump variants shade the same positions:
+        only the sharp near field sees their normals) are reused.
+
+    Returns
+    -------
+    M : (Q, 3) float32; stats : dict (the gathers' stats, timings of each part)
+    """
+    queries, shading_normals, geo_normals, visible = (
+        shading.positions, shading.shading_normals, shading.geo_normals, shading.visible)
+    epsilon, normalisation, leaf_size = options.epsilon, options.normalisation, options.leaf_size
+    brute_force, near_field, transmittance = (options.brute_force, options.near_field,
+                                              options.transmittance)
+    tuning, env, progress = options.tuning, options.env, options.progress
+    t0 = time.perf_counter()
+    memo = {} if memo is None else memo
+    sigma = float(points.info.get("kernel_sigma_mm") or 0.0)
+    spacing = float(points.info.get("spacing_mm") or math.sqrt(
+        float(np.sum(points.areas)) / max(len(points.areas), 1)))
+    lights = list(lights)
+    sharp = [l for l in lights if l.type in SHARP_LIGHTS]
+    soft = [l for l in lights if l.type not in SHARP_LIGHTS]
+    resolved = (near_field and normalisation == "energy" and sigma > 0 and sharp
+                and tuning.kernel_sigma_mm is None)
+    E = np.asarray(irradiance, np.float32)
+    key = (id(points), id(irradiance))
+
+    def tree(name, e):
+        return once(memo, ("octree", name) + key, lambda: (
+            points, irradiance, build_octree(points.positions, points.areas, e(),
+                                             leaf_size=leaf_size,
+                                             kernel_sigma_mm=sigma or None)))[2]
+
+    gkw = dict(epsilon=epsilon, normalisation=normalisation, env=env, brute_force=brute_force,
+               progress=progress, tuning=tuning)
+    qkey = content_key(queries)
+
+    def gathered(name, e, part):
+        """gather() of the octree ``name`` at the queries, or the same gather made earlier in
+        the run (its stats then with no kernel seconds of this call; which node made it
+        depends on the run's order, so nothing else says so: the artifact stays the same)."""
+        gk = (("gather", name, part, qkey, id(profile), epsilon, normalisation, brute_force,
+               repr(tuning)) + key)
+        (_, (m, st)), made = recent_in_run(
+            memo, ("gather", "results"), SHARED_GATHERS, gk,
+            lambda: ((points, irradiance, profile),
+                     gather(tree(name, e), profile, queries, part=part, **gkw)))
+        return m, (st if made else {**st, "kernel_seconds": 0.0})
+
+    stats: dict = {"near_field": bool(resolved)}
+    if not resolved:
+        m, st = gathered("all", lambda: E, "all")
+        stats.update(st)
+        stats["seconds"] = time.perf_counter() - t0
+        return m, stats
+
+    def locate_edges():
+        # the shadow edges (host numpy and Embree, one thread each) are located while this
+        # thread builds the octree and the device gathers the far part: independent work
+        # whose results do not depend on the overlap
+        own = E if len(lights) == 1 else None   # a condition of one light: E is that light's
+        pool = ThreadPoolExecutor(max_workers=len(sharp))
+        pending = [pool.submit(shadow_edges, points.positions, points.normals, l, visibility,
+                               spacing, transmittance=transmittance, irradiance=own)
+                   for l in sharp]
+        pool.shutdown(wait=False)
+        return points, irradiance, pending
+    pending = once(memo, ("edges",) + key, locate_edges)[2]
+    m_far, st = gathered("all", lambda: E, "far")
+    edges = [f.result() for f in pending]
+    t_edges = sum(ed.info["seconds"] for ed in edges)
+    stats.update(st)
+    M = m_far.astype(np.float64)
+    if soft:
+        m_soft, st_soft = gathered("soft", lambda: np.maximum(
+            E - sum(ed.irradiance for ed in edges), 0.0).astype(np.float32), "near")
+        M += m_soft
+        stats["kernel_seconds"] += st_soft["kernel_seconds"]
+    t1 = time.perf_counter()
+    table = once(memo, ("near_table", id(profile), sigma, tuning.cutoff_mm), lambda: (
+        profile, near_tables(split_profile(profile, sigma, cutoff_mm=tuning.cutoff_mm))))[1]
+    for k, (light, ed) in enumerate(zip(sharp, edges)):
+        M += sharp_near_field(queries, shading_normals, geo_normals, light, visibility, ed,
+                              table, transmittance=transmittance, env=env or get_env(),
+                              visible=None if visible is None else visible[:, k])
+    stats.update({"edges_seconds": t_edges, "near_seconds": time.perf_counter() - t1,
+                  "rd_near": table.rd_near.tolist(), "near_radius_mm": table.r_out,
+                  "edge_crossings": [ed.info["crossings"] for ed in edges],
+                  "seconds": time.perf_counter() - t0})
+    return np.nan_to_num(M, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32), stats
