@@ -15,8 +15,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dermis.groundtruth.scene_export import boundary_bsdf, medium_dict, rgb_spectrum
+from dermis.pipeline.shared import Shared
 
-__all__ = ["SlabResult", "slab_reflectance", "SLAB_HALF_WIDTH_MM", "SLAB_DEPTH_MM"]
+__all__ = ["SlabResult", "slab_reflectance", "SLAB_HALF_WIDTH_MM", "SLAB_DEPTH_MM", "SLABS"]
+
+# one slab per stack and boundary in a run: every lighting condition's reference reads it
+SLABS = Shared("reference_slab")
 
 
 @dataclass

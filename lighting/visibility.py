@@ -29,7 +29,8 @@ import numpy as np
 
 from dermis.lighting.strata import stratified_2d
 from dermis.pipeline.errors import ConfigError, DermisError
-from dermis.pipeline.reuse import RecentResults, content_key
+from dermis.pipeline.reuse import content_key
+from dermis.pipeline.shared import RunCache, Shared
 
 __all__ = ["Visibility", "Hits", "OFFSET_FRACTION", "MISS", "camera_rays", "camera_vectors",
            "subpixel_offsets"]
@@ -186,22 +187,21 @@ def _rays(origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
     return rays
 
 
-# Embree scenes kept by this process beyond one run, by mesh content (pipeline/reuse.py):
-# an image re-rendered alone in a new run otherwise rebuilds its mesh's scene (~1 s for the
-# 1.13M-triangle scan).  Two: the high and the low mesh of a scene.
-_SCENES = RecentResults(2)
+# The Embree scene of a mesh, shared by every node of a run that traces that mesh (building
+# it takes ~1 s for the 1.13M-triangle scan).  Two: the high and the low mesh of a scene.
+EMBREE_SCENES = Shared("embree_scene", keep=2)
 
 
-def shared(mesh, memo: dict) -> "Visibility":
-    """One Embree scene per mesh, shared by every node that traces that mesh: per mesh object
-    in a run (``memo``, the run's ``RunContext.memo``; the mesh is kept alive in it so its
-    ``id`` cannot be reused while the entry exists), and across runs of this process per mesh
-    content (the last two meshes)."""
-    key = ("visibility", id(mesh))
-    if key not in memo:
-        v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
-        memo[key] = (mesh, _SCENES.get(content_key(v, f), lambda: Visibility(v, f)))
-    return memo[key][1]
+def embree_scene(mesh, shared: RunCache | None = None, key: str | None = None) -> "Visibility":
+    """The Embree scene of ``mesh``, made once per run for every node that traces it.
+
+    ``shared`` : the run's shared intermediates (``ctx.shared``); None builds a scene here.
+    ``key`` : the mesh's content key (the cache key of the node that made it,
+    ``ctx.input_keys``); by default a digest of its vertices and faces."""
+    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    if shared is None:
+        return Visibility(v, f)
+    return shared.get(EMBREE_SCENES, key or content_key(v, f), lambda: Visibility(v, f))
 
 
 # --------------------------------------------------------------------------- camera

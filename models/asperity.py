@@ -116,7 +116,7 @@ class AsperityParams:
         return out.astype(np.float32)
 
 
-def _scene_params(scene: dict, memo) -> AsperityParams:
+def _scene_params(scene: dict, shared) -> AsperityParams:
     """The default layer over the scene's ``[render] asperity_base``."""
     return AsperityParams(base=scene["asperity_base"])
 

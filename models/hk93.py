@@ -25,6 +25,7 @@ from dermis.models.model import Model
 from dermis.optics.fresnel import diffuse_fresnel_external
 from dermis.optics.layer_profiles import MultipoleOptions, build_profiles
 from dermis.optics.layers import PRESETS, Layer, LayerStack
+from dermis.pipeline.shared import Shared
 from dermis.pipeline.errors import ConfigError
 
 __all__ = ["HK93Layer", "HK93Params", "hk93_params_from_layers",
@@ -400,17 +401,19 @@ def _hk93_single_np(wo, wi, layers) -> np.ndarray:
     return f
 
 
-def _scene_params(scene: dict, memo) -> HK93Params:
-    """HK93Params of the render node's ``optics`` slice (the BSSRDF's layer stack).  ``memo``
-    (the run's scratch dict) keeps one per layer stack: building one integrates the layers'
-    albedo (~0.8 s), and the 12 HK93 images of a matrix share it."""
+# The parameters of a layer stack, shared by the HK93 images of a run: building them
+# integrates the layers' albedo (~0.8 s), and the 12 HK93 images of a matrix read the same
+PARAMS_OF_STACK = Shared("hk93_params")
+
+
+def _scene_params(scene: dict, shared) -> HK93Params:
+    """HK93Params of the render node's ``optics`` slice (the BSSRDF's layer stack), one per
+    layer stack in a run (``shared``, the run's RunCache; None builds them here)."""
     optics = scene["optics"]
-    key = ("hk93_params", json.dumps(optics, sort_keys=True, default=str))
-    if memo is None:
+    if shared is None:
         return HK93Params(layers=LayerStack.from_dict(optics))
-    if key not in memo:
-        memo[key] = HK93Params(layers=LayerStack.from_dict(optics))
-    return memo[key]
+    return shared.get(PARAMS_OF_STACK, json.dumps(optics, sort_keys=True, default=str),
+                      lambda: HK93Params(layers=LayerStack.from_dict(optics)))
 
 
 def _shade_albedo(params: HK93Params, albedo: np.ndarray, textured: bool) -> np.ndarray:
@@ -421,4 +424,5 @@ def _shade_albedo(params: HK93Params, albedo: np.ndarray, textured: bool) -> np.
 
 MODEL = Model(name="hk93", label="hk93", stage="render", doc="docs/science.md §2",
               params=HK93Params, kernel=KERNELS[0], shade=(("DERMIS_BASE", 2),), optics=True,
-              scene_params=_scene_params, shade_albedo=_shade_albedo)
+              scene_params=_scene_params, shade_albedo=_shade_albedo,
+              shares=(PARAMS_OF_STACK,))

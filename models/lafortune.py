@@ -170,7 +170,7 @@ def lobe_albedo_table(params: "LafortuneParams") -> tuple[np.ndarray, np.ndarray
     return _LOBE_TABLES[key]
 
 
-def _scene_params(scene: dict, memo) -> LafortuneParams:
+def _scene_params(scene: dict, shared) -> LafortuneParams:
     """The measured-skin fit: a scene sets no Lafortune parameter."""
     return LafortuneParams()
 

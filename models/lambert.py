@@ -35,7 +35,7 @@ class LambertParams:
         return np.zeros(4, dtype=np.float32)
 
 
-def _scene_params(scene: dict, memo) -> LambertParams:
+def _scene_params(scene: dict, shared) -> LambertParams:
     """The default grey: a scene sets no Lambert parameter."""
     return LambertParams()
 

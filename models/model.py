@@ -39,11 +39,14 @@ class Model:
     shade : ``-D`` (name, value) pairs that select it in ``cl/shade.cl``
     bases : for a term added over a base BRDF, the models it may be added to
     optics : its parameters derive from the scene's ``[optics]`` layer stack
-    scene_params : (config slice of the render node, the run's memo) -> its parameters
+    scene_params : (config slice of the render node, the run's shared intermediates or None)
+        -> its parameters
     shade_albedo : (params, per-hit albedo, textured) -> the albedo ``cl/shade.cl`` reads,
         where it is not the linear albedo itself
     profile : for a BSSRDF, the layer-profile model it reads (None: the scene's ``[optics]
         profile``)
+    shares : the run-wide intermediates (``pipeline.shared.Shared`` kinds) its
+        ``scene_params`` uses; the stage that renders it declares them
     """
 
     name: str
@@ -59,6 +62,7 @@ class Model:
     scene_params: Callable[[dict, Any], Any] | None = None
     shade_albedo: Callable[[Any, Any, bool], Any] | None = None
     profile: str | None = None
+    shares: tuple = ()
 
     def checked(self, params, what: str):
         """``params`` (its defaults when None), else ConfigError: ``what`` must be

@@ -22,6 +22,7 @@ from .imageio import ImageRangeWarning
 from .outputs import export as export_outputs, output_folder
 from .plan import build_graph
 from .registry import STAGE_NAMES
+from .shared import RunCache
 from .store import CACHE_ENV_VAR, Store
 
 __all__ = ["load_scene", "run", "status", "clean", "devices", "cache_dir_for", "RunContext",
@@ -30,19 +31,23 @@ __all__ = ["load_scene", "run", "status", "clean", "devices", "cache_dir_for", "
 
 @dataclass
 class RunContext:
-    """What a node function may use besides its inputs: the OpenCL env, its output dir, progress."""
+    """What a node function may use besides its inputs: the OpenCL env, its output dir,
+    progress, the run's shared intermediates (``shared``: a view restricted to the kinds the
+    node's stage declares in ``SHARES``, pipeline/shared.py) and the cache keys of its inputs
+    by role (``input_keys``: content keys for what it shares)."""
 
     device: str | None = None
     out_dir: Path | None = None
     progress: object = None
-    memo: dict = field(default_factory=dict)   # per-run reuse (e.g. Embree scenes per mesh key)
+    shared: RunCache = field(default_factory=RunCache)
+    input_keys: dict = field(default_factory=dict)
     _env: object = None
     _shared: dict = field(default_factory=lambda: {"lock": threading.Lock()}, repr=False)
 
     def for_node(self) -> "RunContext":
-        """A copy for one node (its own out_dir and progress) sharing the memo and the
-        OpenCL environment (nodes may run on several threads at once)."""
-        return replace(self, out_dir=None, progress=None)
+        """A copy for one node (its own out_dir and progress) sharing the run's intermediates
+        and the OpenCL environment (nodes may run on several threads at once)."""
+        return replace(self, out_dir=None, progress=None, input_keys={})
 
     @property
     def cl(self):
@@ -115,7 +120,8 @@ def _targets(nodes, targets, until):
 
 
 def run(scene: Scene, *, cache=None, until: str | None = None, force=(), device: str | None = None,
-        progress=None, export: bool = True, notice=None, jobs: int | None = None) -> RunSummary:
+        progress=None, export: bool = True, notice=None, jobs: int | None = None,
+        shared: RunCache | None = None) -> RunSummary:
     """Build everything the scene asks for that is not cached; return the per-stage summary.
 
     Parameters
@@ -140,6 +146,10 @@ def run(scene: Scene, *, cache=None, until: str | None = None, force=(), device:
     jobs : int, optional
         Nodes run at once (threads of this process): the argument > $DERMIS_JOBS >
         :data:`DEFAULT_JOBS`.  Any value gives the same artifacts.
+    shared : RunCache, optional
+        The intermediates nodes share (Embree scenes, surface passes, octrees...), new for
+        each run by default; a process that renders several runs one after another may pass
+        one to keep them across runs (keys are content: an equal mesh finds its scene).
     """
     jobs = resolve_jobs(jobs)
     for f in force:
@@ -149,7 +159,7 @@ def run(scene: Scene, *, cache=None, until: str | None = None, force=(), device:
     targets = _targets(nodes, targets, until)
     _check_force(nodes, plan_order(nodes, targets), force, until)
     store = Store(cache_dir_for(scene, cache))
-    ctx = RunContext(device=device)
+    ctx = RunContext(device=device, shared=RunCache() if shared is None else shared)
     from .cl import check_device
     check_device(device)  # --device or $DERMIS_CL_DEVICE: checked before any stage runs
     if notice is None:

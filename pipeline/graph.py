@@ -68,6 +68,13 @@ class Node:
     # params that only say WHERE an input file is ("file", "lights[].map"): left out of the
     # key, whose file content enters through a digest param instead (same scene, any spelling)
     locations: tuple = ()
+    # further modules the node runs that its stage module reaches by name, not by an import
+    # statement (the model a render node looks up in the registry): their import closures
+    # enter the key like the stage module's own (docs/software.md "Cache keys")
+    code: tuple = ()
+    # run-wide intermediates (pipeline/shared.py) this node uses beyond its stage's SHARES
+    # (those of the model it renders)
+    shares: tuple = ()
 
     def __post_init__(self):
         if not isinstance(self.deps, dict):
@@ -80,8 +87,10 @@ class Node:
     def code_hash(self) -> str:
         """Hash of the code this node runs (docs/software.md, "Cache keys")."""
         mod = importlib.import_module(self.module)
-        return hashlib.sha256(f"{getattr(mod, 'VERSION', 0)}:{closure_hash(self.module)}"
-                              .encode()).hexdigest()
+        text = f"{getattr(mod, 'VERSION', 0)}:{closure_hash(self.module)}"
+        for extra in self.code:
+            text += f":{extra}:{closure_hash(extra)}"
+        return hashlib.sha256(text.encode()).hexdigest()
 
     def call(self, inputs: dict, ctx) -> StageResult:
         by_role = {role: inputs[nid] for role, nid in self.deps.items()}
@@ -413,6 +422,11 @@ class _NodeRunner:
         ctx = self.ctx.for_node() if hasattr(self.ctx, "for_node") else copy.copy(self.ctx)
         ctx.out_dir = out_dir
         ctx.progress = (lambda f, _n=node: self.progress(_n, f)) if self._progress else None
+        if node.fn is None and hasattr(ctx, "shared"):
+            # the intermediates the stage declares, keyed by its inputs' cache keys
+            ctx.shared = ctx.shared.restricted(
+                tuple(getattr(importlib.import_module(node.module), "SHARES", ())) + node.shares)
+            ctx.input_keys = {role: self.keys[nid] for role, nid in node.deps.items()}
         return ctx
 
     def run(self, nid: str, rep: NodeReport) -> None:

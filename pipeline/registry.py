@@ -8,7 +8,7 @@ from types import ModuleType
 
 from .errors import ConfigError
 
-__all__ = ["STAGE_NAMES", "stage", "MODEL_NAMES", "model", "COMMANDS", "command"]
+__all__ = ["STAGE_NAMES", "stage", "MODEL_NAMES", "model", "model_module", "COMMANDS", "command"]
 
 
 def _stages() -> dict[str, str]:
@@ -45,9 +45,14 @@ def _models() -> dict[str, str]:
 MODEL_NAMES: tuple[str, ...] = tuple(_models())
 
 
-def model(name: str):
-    """The :class:`~dermis.models.model.Model` named ``name`` (its module's ``MODEL``)."""
+def model_module(name: str) -> str:
+    """The module that declares model ``name`` (a node that renders it hashes its code)."""
     modules = _models()
     if name not in modules:
         raise ConfigError(f"model = {name!r}: must be one of {', '.join(modules)}")
-    return importlib.import_module(modules[name]).MODEL
+    return modules[name]
+
+
+def model(name: str):
+    """The :class:`~dermis.models.model.Model` named ``name`` (its module's ``MODEL``)."""
+    return importlib.import_module(model_module(name)).MODEL

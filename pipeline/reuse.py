@@ -1,10 +1,8 @@
-"""Reuse of expensive per-process results across runs, keyed by the content of their inputs.
-
-Each pipeline run loads its inputs afresh, so keys made of object ids (a run's ``memo``)
-miss when one process renders image after image in separate runs (``api.run`` per image,
-the benchmark's "image_cpu" mode).  :class:`RecentResults` keeps the last few results of
-one computation keyed by :func:`content_key` of its arrays: hashing the 1.13M-triangle
-mesh takes ~30 ms, building its Embree scene ~1 s.
+"""Results kept by the content of their inputs: :func:`content_key` (a digest of arrays and
+plain values; hashing the 1.13M-triangle mesh takes ~30 ms), :class:`RecentResults` (the
+last few results of one computation, thread-safe) and :class:`KeyedLocks`.  A run's shared
+intermediates (pipeline/shared.py) and a few pure functions' tables (the gather's profile
+tables, subsurface/gather.py) are kept in them.
 """
 from __future__ import annotations
 
@@ -15,7 +13,7 @@ from contextlib import contextmanager
 
 import numpy as np
 
-__all__ = ["content_key", "RecentResults", "KeyedLocks", "once", "recent_in_run"]
+__all__ = ["content_key", "RecentResults", "KeyedLocks"]
 
 
 def content_key(*parts) -> str:
@@ -91,32 +89,3 @@ class RecentResults:
     def clear(self) -> None:
         with self._lock:
             self._items.clear()
-
-
-def once(memo: dict, key, make):
-    """``memo[key]``, made by ``make()`` once even when several threads ask for it at the same
-    time: the first computes, the others wait for its result (a run's nodes run on threads
-    and share its ``memo``; without this, two nodes started together each computed it)."""
-    try:
-        return memo[key]
-    except KeyError:
-        pass
-    locks = memo.setdefault(("reuse.once", "locks"), KeyedLocks())
-    with locks(key):
-        if key not in memo:
-            memo[key] = make()
-        return memo[key]
-
-
-def recent_in_run(memo: dict, slot, size: int, key, make) -> tuple:
-    """(value, made): ``key``'s value among the last ``size`` kept in the run's ``memo`` under
-    ``slot`` (a :class:`RecentResults`: concurrent askers wait for one computation), made by
-    ``make()`` when missing; ``made`` says whether this call computed it (what it measured,
-    e.g. kernel seconds, belongs to this call only then)."""
-    cache = memo.setdefault(slot, RecentResults(size))
-    made = []
-
-    def making():
-        made.append(True)
-        return make()
-    return cache.get(key, making), bool(made)

@@ -44,6 +44,7 @@ from dermis.pipeline.cl import get_env
 from dermis.pipeline.errors import ConfigError
 from dermis.pipeline.registry import model
 from dermis.pipeline.reuse import content_key
+from dermis.pipeline.shared import RunCache, Shared
 from dermis.rendering.options import LightSampling, RenderOptions
 from dermis.rendering.surface import surface_attributes
 
@@ -51,6 +52,9 @@ __all__ = ["cast", "retro_lobe", "samples_per_hit"]
 
 # Light samples drawn and traced per batch: bounds memory (~100 bytes a sample while
 # sampling) while keeping Embree and numpy calls large.
+# a mesh's camera hits and their surface attributes, shared by its lighting conditions (one
+# camera per mesh of the run: the high and the low mesh)
+CAMERA_HITS = Shared("camera_hits", keep=2)
 CHUNK_SAMPLES = 1 << 20
 # Camera rays per Embree call.
 CHUNK_RAYS = 1 << 21
@@ -119,29 +123,32 @@ def _primary(vis: Visibility, camera, spp: int, seed: int):
 
 
 def _camera_hits(mesh, camera, spp: int, seed: int, vis: Visibility, env_cl,
-                 memo: dict | None):
+                 shared: RunCache | None, mesh_key: str | None):
     """Camera hits and their surface attributes, which depend on the mesh, camera, spp and
-    seed but not on the light: kept in the run's ``memo`` (one entry per mesh) so the
-    lighting conditions of a mesh cast its camera rays once."""
-    key = ("camera_hits", id(mesh), repr(camera), int(spp), int(seed))
-    if memo is not None and key in memo:
-        return memo[key][1][:-1] + (0.0,)        # no kernel ran for this node
+    seed but not on the light: shared in the run (``CAMERA_HITS``) so the lighting conditions
+    of a mesh cast its camera rays once."""
+    if shared is None:
+        return _cast_camera_hits(mesh, camera, spp, seed, vis, env_cl)
+    key = (mesh_key or content_key(np.asarray(mesh.vertices), np.asarray(mesh.faces)),
+           repr(camera), int(spp), int(seed))
+    out, made = shared.get_made(CAMERA_HITS, key, lambda: _cast_camera_hits(
+        mesh, camera, spp, seed, vis, env_cl))
+    return out if made else out[:-1] + (0.0,)     # no kernel ran for this node
+
+
+def _cast_camera_hits(mesh, camera, spp: int, seed: int, vis: Visibility, env_cl):
     pixel, sub, tri, bary, n_rays = _primary(vis, camera, spp, seed)
     cam_pos = np.asarray(camera.position, dtype=np.float64)
     surf, k_s = surface_attributes(env_cl, mesh, tri, bary, cam_pos)
     # the hits' fingerprint, as the artifact stores them: every image of the mesh finds its
     # shared surface pass by it (rendering/surface.py) instead of hashing ~30 MB per image
     hits_key = content_key(tri.astype(np.int32), bary.astype(np.float32))
-    out = (pixel, sub, tri, bary, n_rays, surf, hits_key, k_s)
-    if memo is not None:
-        for k in [k for k in memo if k[0] == "camera_hits" and k[1] == id(mesh)]:
-            del memo[k]                      # one camera per mesh at a time
-        memo[key] = (mesh, out)
-    return out
+    return pixel, sub, tri, bary, n_rays, surf, hits_key, k_s
 
 
 def cast(mesh, lights, camera, options: RenderOptions = RenderOptions(), *, cl_env=None,
-         progress=None, memo: dict | None = None) -> PixelSamples:
+         progress=None, shared: RunCache | None = None,
+         mesh_key: str | None = None) -> PixelSamples:
     """Camera rays, light samples and shadow rays of one image (module docstring).
 
     Parameters
@@ -155,9 +162,11 @@ def cast(mesh, lights, camera, options: RenderOptions = RenderOptions(), *, cl_e
         ``sampling`` (LightSampling, optional research options)
     cl_env : pipeline.cl.ClEnv, optional
     progress : callable(float), optional
-    memo : dict, optional
-        The run's scratch dict: the camera hits of a mesh are then cast once for all its
-        lighting conditions (the same rays, so the same result).
+    shared : RunCache, optional
+        The run's shared intermediates: the camera hits of a mesh are then cast once for all
+        its lighting conditions (the same rays, so the same result).
+    mesh_key : str, optional
+        The mesh's content key (its node's cache key); by default a digest of the mesh.
 
     Returns
     -------
@@ -172,7 +181,7 @@ def cast(mesh, lights, camera, options: RenderOptions = RenderOptions(), *, cl_e
     env_cl = cl_env or get_env()
     vis = options.visibility or Visibility(mesh.vertices, mesh.faces)
     pixel, sub, tri, bary, n_rays, surf, hits_key, k_s = _camera_hits(
-        mesh, camera, spp, seed, vis, env_cl, memo)
+        mesh, camera, spp, seed, vis, env_cl, shared, mesh_key)
     # a pixel's light samples, stratified over its sub-samples (one sample: per point)
     strata = PixelStrata(pixel, sub, spp, int(seed)) if spp > 1 else None
     t_primary = time.perf_counter() - t_start

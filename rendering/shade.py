@@ -30,8 +30,8 @@ Decisions touched here (docs/science.md §6):
   centre, the pre-anti-aliasing renderer.
 * Asperity is a term added to a base model (docs/science.md §5; ``Model.bases``); the base
   is chosen by the caller (``RenderOptions.base``, in scenes ``[render] asperity_base``);
-  ``"none"`` renders the term alone so the BSSRDF stage can add it to its own image (same
-  light, same exposure: images are linear).
+  ``"none"`` renders the term alone, a linear image a caller may add to another image of the
+  same light and camera (a BSSRDF image, say); no stage does.
 
 Conventions: mm, linear RGB, camera y-up.  A pixel's value is the sum of its hit samples /
 spp (missed samples count 0); ``mask`` is true where any sample hit.  Guarded by
@@ -47,6 +47,7 @@ import numpy as np
 
 from dermis.lighting.visibility import Visibility
 from dermis.models.model import Model
+from dermis.pipeline.shared import RunCache
 from dermis.pipeline.cl import event_seconds, get_env, to_device
 from dermis.pipeline.errors import ConfigError
 from dermis.rendering.cast import cast
@@ -191,7 +192,7 @@ def _image(radiance: np.ndarray, px: PixelSurface) -> tuple[np.ndarray, int]:
 
 def render(mesh, light, model: Model, params, camera, options: RenderOptions = RenderOptions(),
            *, cl_env=None, progress: Callable[[float], None] | None = None,
-           memo: dict | None = None) -> RenderResult:
+           shared: RunCache | None = None, keys: tuple | None = None) -> RenderResult:
     """Render one image of ``mesh`` under ``light`` with a BRDF model.
 
     Parameters
@@ -210,9 +211,9 @@ def render(mesh, light, model: Model, params, camera, options: RenderOptions = R
     cl_env : pipeline.cl.ClEnv, optional
     progress : callable(float), optional
         Called with the completed fraction in [0, 1].
-    memo : dict, optional
-        The run's scratch dict: surface attributes shared with the run's other images
-        (:func:`dermis.rendering.surface.pixel_surface`).
+    shared, keys : RunCache and the (mesh, maps) content keys, optional
+        The run's shared intermediates: surface attributes shared with the run's other
+        images (:func:`dermis.rendering.surface.pixel_surface`).
 
     Raises
     ------
@@ -242,7 +243,8 @@ def render(mesh, light, model: Model, params, camera, options: RenderOptions = R
         t_visibility = time.perf_counter() - t0 - scene_build
     t0 = time.perf_counter()
     px = pixel_surface(mesh, camera, samples, options,
-                       albedo_const=_fallback_albedo(base, bparams), cl_env=env_cl, memo=memo)
+                       albedo_const=_fallback_albedo(base, bparams), cl_env=env_cl,
+                       shared=shared, keys=keys)
     t_surface = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -252,10 +254,10 @@ def render(mesh, light, model: Model, params, camera, options: RenderOptions = R
     t_shading = time.perf_counter() - t0
     if progress is not None:
         progress(1.0)
-    # in a run (``memo``) every image of a geometry shares one surface pass, as every image of a
-    # mesh and light shares its visibility: its seconds are kept apart ("surface_shared", the
-    # same in each image) and ``total`` is this image's own work, whichever image made the pass
-    own = time.perf_counter() - t_start - (t_surface if memo is not None else 0.0)
+    # in a run (``shared``) every image of a geometry shares one surface pass, as every image
+    # of a mesh and light shares its visibility: its seconds are kept apart ("surface_shared",
+    # the same in each image) and ``total`` is this image's own work, whichever image made it
+    own = time.perf_counter() - t_start - (t_surface if shared is not None else 0.0)
     timings = {"visibility": t_visibility, "surface": t_surface,
                "surface_shared": px.surface_seconds, "shading": t_shading,
                "kernel_seconds": px.kernel_seconds + stats["kernel_seconds"],

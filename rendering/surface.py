@@ -18,7 +18,8 @@ import numpy as np
 from dermis.pipeline.artifacts import PixelSamples
 from dermis.pipeline.cl import event_seconds, get_env, to_device
 from dermis.pipeline.errors import ConfigError, DermisError
-from dermis.pipeline.reuse import content_key, recent_in_run
+from dermis.pipeline.reuse import content_key
+from dermis.pipeline.shared import RunCache, Shared
 from dermis.rendering.color import srgb_to_linear
 from dermis.rendering.options import RenderOptions
 
@@ -157,18 +158,22 @@ class PixelSurface:
 # the 36 BRDF images of the 48-image matrix went from 29.3 to 14.7 s of node time with the
 # session's other changes (bench/results/pipeline_default_48.json, per_stage and before).
 SURFACE_CACHE_SIZE = 3
+SURFACES = Shared("pixel_surface", keep=SURFACE_CACHE_SIZE)
 
 
 def pixel_surface(mesh, camera, samples: PixelSamples,
                   options: RenderOptions = RenderOptions(), *, albedo_const=(0.5, 0.5, 0.5),
-                  cl_env=None, memo: dict | None = None) -> PixelSurface:
+                  cl_env=None, shared: RunCache | None = None,
+                  keys: tuple | None = None) -> PixelSurface:
     """cl/surface.cl at the camera hits of ``samples``: the shading inputs of every hit.
 
     ``samples`` : the visibility artifact (:func:`dermis.rendering.cast.cast`).
     ``options`` : its ``maps``, ``bump`` and ``textured`` are read; ``textured=False`` ignores
     the albedo texture (``albedo_const`` everywhere).
-    ``memo`` : the run's scratch dict: the attributes of a geometry are then computed once per
-    run (``SURFACE_CACHE_SIZE`` geometries kept) and shared read-only by its images.
+    ``shared`` : the run's shared intermediates: the attributes of a geometry are then
+    computed once per run (``SURFACE_CACHE_SIZE`` geometries kept) and shared read-only by its
+    images.  ``keys`` : the content keys of the mesh and the maps (their nodes' cache keys);
+    by default digests of the arrays read.
     """
     env_cl = cl_env or get_env()
     maps, bump = options.maps, options.bump
@@ -189,8 +194,12 @@ def pixel_surface(mesh, camera, samples: PixelSamples,
                                       texture=texture, bump_map=bump_map,
                                       bump_range=bump_range, albedo_const=const)
         return surf, ks, time.perf_counter() - t0
-    surf, ks, seconds = compute() if memo is None else _shared_surface(
-        memo, (mesh, texture, bump_map), (bump_range, tuple(cam_pos)), samples, compute)
+    if keys is None and shared is not None:
+        keys = tuple(None if a is None else content_key(a)
+                     for a in (np.asarray(mesh.vertices), texture, bump_map))
+    surf, ks, seconds = compute() if shared is None else _shared_surface(
+        shared, (tuple(keys), options.bump if maps is not None else None, texture is None),
+        (bump_range, tuple(cam_pos)), samples, compute)
     if texture is None or not options.textured:
         # cl/surface.cl writes the constant as the albedo of every hit when it has no texture:
         # the same float32 values, so the shared attributes serve every albedo
@@ -202,22 +211,19 @@ def pixel_surface(mesh, camera, samples: PixelSamples,
                         seconds)
 
 
-def _shared_surface(memo: dict, objects: tuple, values: tuple, samples, compute):
-    """``compute()``'s (surf, kernel seconds, seconds), once per run for equal inputs: keyed by the
-    identity of ``objects`` (the run's loaded mesh, texture and bump map; the entry holds them,
-    so their ids stay theirs), ``values`` and the content of the camera hits (each lighting
-    condition's visibility node holds its own copy of the same hits; the cast stored their
-    fingerprint).  The arrays are shared
-    read-only; a reuse reports 0 kernel seconds (no kernel ran)."""
+def _shared_surface(shared: RunCache, inputs: tuple, values: tuple, samples, compute):
+    """``compute()``'s (surf, kernel seconds, seconds), once per run for equal inputs: keyed by
+    ``inputs`` (the content keys of the mesh and maps, the bump variant, whether a texture is
+    read), ``values`` and the content of the camera hits (each lighting condition's
+    visibility node holds its own copy of the same hits; the cast stored their fingerprint).
+    The arrays are shared read-only; a reuse reports 0 kernel seconds (no kernel ran)."""
     def make():
         surf, ks, seconds = compute()
         for a in surf.values():
             a.setflags(write=False)
-        return objects, surf, ks, seconds
+        return surf, ks, seconds
     hits = ((samples.info or {}).get("camera_hits_key")      # rendering/cast.py cast
             or content_key(samples.tri, samples.bary))
-    key = (tuple(id(o) for o in objects), values, hits)
-    (_, surf, ks, seconds), made = recent_in_run(memo, ("pixel_surface",), SURFACE_CACHE_SIZE,
-                                                 key, make)
+    (surf, ks, seconds), made = shared.get_made(SURFACES, (inputs, values, hits), make)
     return surf, (ks if made else 0.0), seconds
 

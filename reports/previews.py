@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from dermis.geometry.bump import bump_shading_normals_at_hits
-from dermis.lighting.visibility import shared
+from dermis.lighting.visibility import embree_scene
 from dermis.pipeline.artifacts import BakedMaps, Mesh, renormalise_f64
 from dermis.rendering.color import linear_to_srgb8
 from dermis.reports.sheets import save_png
@@ -74,11 +74,12 @@ def _camera_rays(mesh: Mesh, size: int):
     return o3d.core.Tensor(np.ascontiguousarray(rays[::-1, ::-1]))
 
 
-def _cast(mesh: Mesh, rays, memo: dict | None = None):
-    """Primary hits: (mask (H, W), triangle ids, barycentrics (N, 2)), on the mesh's shared
-    Embree scene (:func:`dermis.lighting.visibility.shared`: the renders built it already)."""
+def _cast(mesh: Mesh, rays, scene=None):
+    """Primary hits: (mask (H, W), triangle ids, barycentrics (N, 2)), on ``scene`` (the
+    mesh's Embree scene, :func:`dermis.lighting.visibility.embree_scene`; the renders of a
+    run built it already) or one built here."""
     r = rays.numpy()
-    hits = shared(mesh, {} if memo is None else memo).intersect(
+    hits = (scene or embree_scene(mesh)).intersect(
         r[..., :3].reshape(-1, 3), r[..., 3:].reshape(-1, 3))
     mask = hits.hit.reshape(r.shape[:2])
     return mask, hits.tri[hits.hit].astype(np.int64), hits.bary[hits.hit]
@@ -97,7 +98,7 @@ def _shade(mask: np.ndarray, normals: np.ndarray, albedo: np.ndarray | float = 0
 
 
 def lambert_render(mesh: Mesh, *, size: int = 800, maps: BakedMaps | None = None,
-                   blurred: bool = False, rays=None, memo: dict | None = None) -> np.ndarray:
+                   blurred: bool = False, rays=None, scene=None) -> np.ndarray:
     """Grey Lambert image (size, size, 3) uint8 of ``mesh`` seen from +Z.
 
     Without ``maps`` the shading normal is the mesh's interpolated vertex normal (libigl's
@@ -105,7 +106,7 @@ def lambert_render(mesh: Mesh, *, size: int = 800, maps: BakedMaps | None = None
     (:func:`geometry.bump.bump_shading_normals_at_hits`, sharp or blurred bump).
     """
     rays = rays if rays is not None else _camera_rays(mesh, size)
-    mask, tri, bary = _cast(mesh, rays, memo)
+    mask, tri, bary = _cast(mesh, rays, scene)
     if maps is not None:
         n = bump_shading_normals_at_hits(mesh, maps, tri, bary, blurred=blurred)
     else:
@@ -116,7 +117,7 @@ def lambert_render(mesh: Mesh, *, size: int = 800, maps: BakedMaps | None = None
 
 
 def save_shaded_comparison(high: Mesh, low: Mesh, maps: BakedMaps, out_path, *,
-                           size: int = 800, memo: dict | None = None) -> Path:
+                           size: int = 800, scenes=(None, None)) -> Path:
     """Side-by-side Lambert renders: high mesh | low + bump | low + blurred bump | low alone
     (the high panel alone when ``low`` is None).
 
@@ -126,6 +127,7 @@ def save_shaded_comparison(high: Mesh, low: Mesh, maps: BakedMaps, out_path, *,
     maps : BakedMaps baked from ``high`` into ``low``
     out_path : path-like of the PNG
     size : int, side of each panel in pixels (800 as the thesis's images, docs/science.md §6)
+    scenes : the Embree scenes of ``high`` and ``low`` (the run's shared ones), else built here
 
     Returns
     -------
@@ -134,12 +136,13 @@ def save_shaded_comparison(high: Mesh, low: Mesh, maps: BakedMaps, out_path, *,
     Shading uses a constant grey albedo so that only geometry differs between panels.
     """
     rays = _camera_rays(high, size)
-    memo = {} if memo is None else memo
-    panels = [lambert_render(high, rays=rays, memo=memo)]
+    high_scene = scenes[0] or embree_scene(high)
+    panels = [lambert_render(high, rays=rays, scene=high_scene)]
     if low is not None:  # no low mesh (render.geometries = ["high"] or []): the high panel only
-        panels += [lambert_render(low, maps=maps, rays=rays, memo=memo),
-                   lambert_render(low, maps=maps, blurred=True, rays=rays, memo=memo),
-                   lambert_render(low, rays=rays, memo=memo)]
+        low_scene = scenes[1] or embree_scene(low)
+        panels += [lambert_render(low, maps=maps, rays=rays, scene=low_scene),
+                   lambert_render(low, maps=maps, blurred=True, rays=rays, scene=low_scene),
+                   lambert_render(low, rays=rays, scene=low_scene)]
     gap = np.full((size, 4, 3), 255, np.uint8)
     row = np.concatenate([x for p in panels for x in (p, gap)][:-1], axis=1)
     return _write_png(Path(out_path), row)

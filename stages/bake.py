@@ -6,6 +6,7 @@ from dataclasses import asdict
 
 from dermis.geometry.bake import bake_maps
 from dermis.pipeline.graph import Node, StageResult
+from dermis.pipeline.registry import stage
 
 __all__ = ["NAME", "VERSION", "KERNELS", "node", "run"]
 
@@ -25,3 +26,9 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
                      blur_sigma_px=params["blur_sigma_px"], dilate_px=params["dilate_px"],
                      reference=params["reference"], progress=ctx.progress)
     return StageResult(maps, info=maps.info)
+
+
+def plan(scene, plan) -> None:
+    """Only for a bump geometry."""
+    if any(stage("render").GEOMETRY[g][1] for g in scene.render.geometries):
+        plan.add(node(scene), target=True)

@@ -18,42 +18,52 @@ from dataclasses import asdict
 import numpy as np
 
 from dermis.pipeline.artifacts import RenderedImage
-from dermis.pipeline.config import CameraConfig, LightConfig, profile_model, profiles_node_id
+from dermis.pipeline.config import CameraConfig, LightConfig
 from dermis.pipeline.graph import Node, StageResult
 from dermis.pipeline.imageio import write_exr
-from dermis.stages import render
+from dermis.pipeline import registry
 from dermis.models import lafortune
 from dermis.optics.transmittance import Transmittance
 from dermis.rendering.options import RenderOptions
 from dermis.rendering import shade
-from dermis.rendering.surface import pixel_surface
-from dermis.subsurface.exitance import ExitanceOptions, ShadingPoints, exitance
+from dermis.rendering.surface import SURFACES, pixel_surface
+from dermis.subsurface.exitance import (GATHERS, NEAR_TABLES, OCTREES, SHADOW_EDGES,
+                                        ExitanceOptions, ShadingPoints, exitance)
 from dermis.subsurface.near_field import SHARP_LIGHTS
 from dermis.subsurface.radiance import exitance_to_radiance
 from dermis.subsurface.shadow_edges import sharp_visibility
 from dermis.lighting.emitters import light_params
-from dermis.lighting.visibility import shared as shared_embree
+from dermis.lighting.visibility import EMBREE_SCENES, embree_scene
 
 NAME = "bssrdf"
 VERSION = 2   # 2: optics-resolved near field, entry/exit transmittance
 KERNELS = ()
+SHARES = (EMBREE_SCENES, SURFACES, OCTREES, SHADOW_EDGES, NEAR_TABLES, GATHERS)
 OUTPUT_FOLDER = "render"   # exported beside the BRDF images: render/<model>-<light>-<geometry>.exr
+
+
+def node_id(model: str, label: str, geometry: str) -> str:
+    """A BSSRDF image's id, in the form every image has (``render-<model>-<lighting>-<geometry>``,
+    stages/render.py node_id): the images, differences and report stages read them alike."""
+    return f"render-{model}-{label}-{geometry}"
 
 
 def node(scene, label: str, lights: tuple, geometry: str, model: str = "bssrdf") -> Node:
     """One BSSRDF image; ``model`` (a key of ``config.BSSRDF_MODELS``) picks the profiles
     node its gather reads: ``bssrdf`` the scene's ``[optics] profile``, ``bssrdf_mc`` the
     Monte Carlo table.  Points, irradiance and visibility are the same for both."""
+    render, profiles = registry.stage("render"), registry.stage("profiles")
     mesh_node, bump = render.GEOMETRY[geometry]
-    deps = {**render.geometry_inputs(geometry, label), "points": f"samples-{mesh_node}",
-            "irradiance": f"irradiance-{mesh_node}-{label}",
-            "profile": profiles_node_id(scene, profile_model(scene, model))}
+    deps = {**render.geometry_inputs(geometry, label),
+            "points": registry.stage("samples").node_id(mesh_node),
+            "irradiance": registry.stage("irradiance").node_id(mesh_node, label),
+            "profile": profiles.node_id(scene, profiles.profile_of(scene, registry.model(model)))}
     params = {"label": label, "geometry": geometry, "camera": asdict(scene.camera),
               "bump": bump, "bssrdf": asdict(scene.bssrdf), **light_params(lights),
               "seed": scene.mesh.seed, "eta": scene.optics.layers[0].eta / scene.optics.eta_above}
     if model != "bssrdf":
         params["model"] = model
-    return Node(f"render-{model}-{label}-{geometry}", NAME, __name__, params, deps,
+    return Node(node_id(model, label, geometry), NAME, __name__, params, deps,
                 label=f"{model} / {label} / {geometry}", locations=("lights[].map",))
 
 
@@ -63,7 +73,8 @@ def _surface_term(mesh, lights, camera, maps, bump, seed, samples, ctx) -> tuple
     spec = shade.render(mesh, lights, lafortune.MODEL,
                         lafortune.LafortuneParams(rho_d=(0.0, 0.0, 0.0)), camera,
                         RenderOptions(maps=maps, bump=bump, seed=seed, samples=samples,
-                                      textured=False), cl_env=ctx.cl, memo=ctx.memo)
+                                      textured=False), cl_env=ctx.cl, shared=ctx.shared,
+                        keys=(ctx.input_keys["mesh"], ctx.input_keys.get("maps")))
     return spec.linear.reshape(-1, 3), spec.timings
 
 
@@ -75,7 +86,8 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     lights = [LightConfig(**d) for d in params["lights"]]
     vis = inputs["visibility"]   # shared camera + shadow rays (rendering/cast.py)
     px = pixel_surface(mesh, camera, vis, RenderOptions(maps=maps, bump=params["bump"]),
-                       cl_env=ctx.cl, memo=ctx.memo)
+                       cl_env=ctx.cl, shared=ctx.shared,
+                       keys=(ctx.input_keys["mesh"], ctx.input_keys.get("maps")))
     t_vis = time.perf_counter() - t_start
     front, surf = px.front_idx, px.surf
     t0 = time.perf_counter()
@@ -85,7 +97,7 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     # the mesh's Embree scene only where the near field traces it (point/directional lights'
     # shadow edges): building it for the 1M-triangle scan took 3.5 s of a 10.5 s image
     # re-rendered alone (bench/results/bssrdf.json), unused by area and environment light
-    vis_embree = (shared_embree(mesh, ctx.memo)
+    vis_embree = (embree_scene(mesh, ctx.shared, ctx.input_keys["mesh"])
                   if any(l.type in SHARP_LIGHTS for l in lights) else None)
     shading = ShadingPoints(surf["position"][front], surf["shading_normal"][front],
                             surf["geo_normal"][front],
@@ -94,7 +106,10 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
                               leaf_size=b["leaf_size"], brute_force=b["brute_force"],
                               transmittance=transmit, env=ctx.cl, progress=ctx.progress)
     M, stats = exitance(inputs["points"], inputs["irradiance"].irradiance, profile, shading,
-                        lights=lights, visibility=vis_embree, options=options, memo=ctx.memo)
+                        lights=lights, visibility=vis_embree, options=options,
+                        shared=ctx.shared, keys=(ctx.input_keys["points"],
+                                                 ctx.input_keys["irradiance"],
+                                                 ctx.input_keys["profile"]))
     t_gather = time.perf_counter() - t0
     cos_o = np.einsum("ij,ij->i", surf["shading_normal"][front], surf["wo"][front])
     albedo = None if b["albedo_mode"] == "none" else surf["albedo"][front]
@@ -126,3 +141,22 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
             "gather": {k: v for k, v in stats.items() if isinstance(v, (int, float, str))}}
     return StageResult(RenderedImage(linear, mask, timings, info), files=[f"{name}.exr"],
                        info={"timings": timings, "kernel_seconds": timings["kernel_seconds"]})
+
+
+def plan(scene, plan) -> None:
+    """Every BSSRDF model x lighting condition x geometry, with the inputs they share: the
+    visibility of the mesh and lighting, the mesh's irradiance points and their irradiance
+    under the lighting (the profiles are the profiles stage's)."""
+    render = registry.stage("render")
+    visibility, samples = registry.stage("visibility"), registry.stage("samples")
+    irradiance = registry.stage("irradiance")
+    for model in scene.render.models:
+        if registry.model(model).stage != NAME:
+            continue
+        for label, lights in scene.light_groups():
+            for geometry in scene.render.geometries:
+                mesh_node = render.GEOMETRY[geometry][0]
+                plan.add(visibility.node(scene, mesh_node, label, lights))
+                plan.add(samples.node(scene, mesh_node))
+                plan.add(irradiance.node(scene, mesh_node, label, lights))
+                plan.add(node(scene, label, lights, geometry, model), provides="image")

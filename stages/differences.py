@@ -15,16 +15,36 @@ NAME = "differences"
 VERSION = 1
 KERNELS = ()
 OUTPUT_FOLDER = "report"      # the difference PNGs go beside the report
-REFERENCE_MODEL = "bssrdf"
+# the model every other is compared with (the thesis's most complete model), while no
+# path-traced reference is rendered
+BASELINE = "bssrdf"
+
+
+def compared(scene) -> bool:
+    """Whether the scene renders the baseline and at least one model to compare with it."""
+    return BASELINE in scene.render.models and len(scene.render.models) > 1
+
+
+def node_id(label: str) -> str:
+    return f"{NAME}-{label}"
 
 
 def node(scene, label: str, render_ids: list[str]) -> Node:
     ids = sorted(render_ids)
-    return Node(f"differences-{label}", NAME, __name__, {"label": label, "renders": ids},
+    return Node(node_id(label), NAME, __name__, {"label": label, "renders": ids},
                 tuple(ids), label=f"differences / {label}")
 
 
 def run(params: dict, inputs: dict, ctx) -> StageResult:
     images = {nid: inputs[nid] for nid in params["renders"]}
-    files = write_light_differences(images, ctx.out_dir, reference_model=REFERENCE_MODEL)
+    files = write_light_differences(images, ctx.out_dir, reference_model=BASELINE)
     return StageResult(files=[f.name for f in files])
+
+
+def plan(scene, plan) -> None:
+    """One node per lighting condition, over that condition's images."""
+    if not compared(scene):
+        return
+    images = plan.provided("image")
+    for label, _ in scene.light_groups():
+        plan.add(node(scene, label, [n.id for n in images if n.params.get("label") == label]))

@@ -24,3 +24,10 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     files = write_pngs({nid: inputs[nid] for nid in params["renders"]}, ctx.out_dir,
                        thumbnails=True)
     return StageResult(files=[f.name for f in files])
+
+
+def plan(scene, plan) -> None:
+    """Every rendered image of the run, when there is one."""
+    images = plan.provided("image")
+    if images:
+        plan.add(node(scene, [n.id for n in images]), target=True)

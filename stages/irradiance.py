@@ -16,30 +16,37 @@ import time
 from dermis.pipeline.artifacts import PointIrradiance
 from dermis.pipeline.config import LightConfig
 from dermis.pipeline.graph import Node, StageResult
+from dermis.pipeline.registry import stage
 from dermis.lighting.emitters import SamplingOptions, light_params
 from dermis.lighting.irradiance import irradiance
-from dermis.lighting.visibility import shared as shared_visibility
+from dermis.lighting.visibility import EMBREE_SCENES, embree_scene
 from dermis.optics.transmittance import Transmittance
 
 NAME = "irradiance"
 VERSION = 2   # 2: entering irradiance (entry transmittance per light sample)
 KERNELS = ()
+SHARES = (EMBREE_SCENES,)
+
+
+def node_id(mesh_node: str, label: str) -> str:
+    return f"{NAME}-{mesh_node}-{label}"
 
 
 def node(scene, mesh_node: str, label: str, lights: tuple) -> Node:
-    params = {**light_params(lights), "samples": scene.bssrdf.irradiance_samples,
+    """Pass 1 of one mesh's points under one lighting condition (``label``)."""
+    params = {"label": label, **light_params(lights), "samples": scene.bssrdf.irradiance_samples,
               "seed": scene.mesh.seed,
               "entry": {"eta": scene.optics.layers[0].eta / scene.optics.eta_above,
                         "surface_reflection": scene.bssrdf.surface_reflection}}
-    return Node(f"irradiance-{mesh_node}-{label}", NAME, __name__, params,
-                {"points": f"samples-{mesh_node}", "mesh": mesh_node}, label=f"irradiance {label}",
+    return Node(node_id(mesh_node, label), NAME, __name__, params,
+                {"points": stage("samples").node_id(mesh_node), "mesh": mesh_node}, label=f"irradiance {label}",
                 locations=("lights[].map",))
 
 
 def run(params: dict, inputs: dict, ctx) -> StageResult:
     pts, mesh = inputs["points"], inputs["mesh"]
     t0 = time.perf_counter()
-    vis = shared_visibility(mesh, ctx.memo)
+    vis = embree_scene(mesh, ctx.shared, ctx.input_keys.get("mesh"))
     lights = [LightConfig(**d) for d in params["lights"]]
     entry = params["entry"]
     transmit = Transmittance(entry["eta"], entry["surface_reflection"])

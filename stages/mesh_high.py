@@ -6,6 +6,7 @@ from dermis.geometry.subdivision import make_high
 from dermis.pipeline.artifacts import angle_weighted_normals
 from dermis.pipeline.graph import Node, StageResult
 from dermis.pipeline.imageio import read_image
+from dermis.pipeline.registry import stage
 from dermis.pipeline.store import file_digest
 
 NAME = "mesh_high"
@@ -32,3 +33,9 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
                      displacement_mid=params["displacement_mid"])
     high.normals = angle_weighted_normals(high.vertices, high.faces)
     return StageResult(high, info={"triangles": high.n_triangles})
+
+
+def plan(scene, plan) -> None:
+    """An output of its own when no image uses the low mesh."""
+    meshes = {stage("render").GEOMETRY[g][0] for g in scene.render.geometries}
+    plan.add(node(scene), target=meshes <= {NAME})

@@ -6,6 +6,7 @@ from __future__ import annotations
 from dermis.geometry.simplification import simplify
 from dermis.geometry.uv_transfer import transfer_uv
 from dermis.pipeline.graph import Node, StageResult
+from dermis.pipeline.registry import stage
 
 NAME = "mesh_low"
 VERSION = 1
@@ -22,3 +23,10 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     low = simplify(high, target_triangles=params["target_triangles"])
     low, report = transfer_uv(high, low)
     return StageResult(low, info={"uv_transfer": report, "triangles": low.n_triangles})
+
+
+def plan(scene, plan) -> None:
+    """Only for a low geometry; an output of its own when no image uses the bump maps."""
+    geometry = stage("render").GEOMETRY
+    if any(geometry[g][0] == NAME for g in scene.render.geometries):
+        plan.add(node(scene), target=not any(geometry[g][1] for g in scene.render.geometries))

@@ -45,3 +45,8 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
         raise DermisError(f"{params['file']}: no triangle is left after removing degenerate "
                           "ones; the mesh has no surface")
     return StageResult(mesh, info={"repairs": repairs, "triangles": mesh.n_triangles})
+
+
+def plan(scene, plan) -> None:
+    """Every scene starts from its mesh."""
+    plan.add(node(scene))

@@ -5,13 +5,13 @@ The layer file the BSSRDF gathers with, from the scene's ``[optics]`` profile mo
 """
 from __future__ import annotations
 
-from dermis.pipeline.config import profiles_node_id
 from dermis.pipeline.graph import Node, StageResult
+from dermis.pipeline.registry import model as lookup_model
 from dermis.optics.layer_profiles import build_profiles
 from dermis.optics.layers import (LayerStack, DEFAULT_PROFILE_MODEL, DEFAULT_MC_PHOTONS,
                                    DEFAULT_MC_SEED)
 
-__all__ = ["NAME", "VERSION", "KERNELS", "node", "run"]
+__all__ = ["NAME", "VERSION", "KERNELS", "profile_of", "node_id", "node", "plan", "run"]
 
 NAME = "profiles"
 
@@ -19,6 +19,19 @@ VERSION = 2   # 2: beam-integrated P1 diffusion with real extinction, explicit n
               #    Monte Carlo tables
 
 KERNELS = ()  # the Monte Carlo model builds mc_slab.cl through optics/monte_carlo_slab.py
+
+
+def profile_of(scene, model) -> str:
+    """The layer-profile model a BSSRDF ``model`` (a :class:`~dermis.models.model.Model`)
+    reads: its own ``profile``, else the scene's ``[optics] profile``."""
+    return model.profile or getattr(scene.optics, "profile", DEFAULT_PROFILE_MODEL)
+
+
+def node_id(scene, profile: str) -> str:
+    """``profiles`` for the scene's own ``[optics] profile``, ``profiles-<profile>`` for
+    another (the ``bssrdf_mc`` images' Monte Carlo table beside a multipole scene)."""
+    own = getattr(scene.optics, "profile", DEFAULT_PROFILE_MODEL)
+    return NAME if profile == own else f"{NAME}-{profile}"
 
 
 def node(scene, model: str | None = None) -> Node:
@@ -30,7 +43,7 @@ def node(scene, model: str | None = None) -> Node:
     if model == "monte_carlo":
         params["photons"] = int(getattr(optics, "photons", DEFAULT_MC_PHOTONS))
         params["seed"] = int(getattr(optics, "seed", DEFAULT_MC_SEED))
-    return Node(profiles_node_id(scene, model), NAME, __name__, params, (),
+    return Node(node_id(scene, model), NAME, __name__, params, (),
                 label=f"layer profiles ({model})")
 
 
@@ -48,3 +61,12 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
                                    "Tt": list(map(float, prof.Tt)),
                                    "negative_lobes": len(prof.info.get("negative_lobes", [])),
                                    "kernel_seconds": kernel_seconds})
+
+
+def plan(scene, plan) -> None:
+    """The profiles every BSSRDF model of the scene reads (outputs of their own: the
+    report's profile page and ``dermis profile`` read them)."""
+    for name in scene.render.models:
+        m = lookup_model(name)
+        if m.stage == "bssrdf":
+            plan.add(node(scene, profile_of(scene, m)), target=True)

@@ -26,6 +26,7 @@ message).
 from __future__ import annotations
 
 import json
+import sys
 import time
 from dataclasses import asdict
 
@@ -36,7 +37,7 @@ from dermis.groundtruth import mitsuba
 from dermis.groundtruth.noise import noise_curve, noise_fit, two_seed_noise
 from dermis.groundtruth.passes import render_two_seeds
 from dermis.groundtruth.scene_export import HeadSceneOptions, head_scene, release
-from dermis.groundtruth.slab import slab_reflectance
+from dermis.groundtruth.slab import SLABS, slab_reflectance
 from dermis.lighting.emitters import light_params
 from dermis.optics.layers import LayerStack
 from dermis.pipeline.artifacts import RenderedImage
@@ -48,6 +49,7 @@ from dermis.pipeline.imageio import write_exr, write_png
 NAME = "reference"
 VERSION = 1
 KERNELS = ()
+SHARES = (SLABS,)
 GEOMETRY = "high"
 MESH_NODE = "mesh_high"
 
@@ -55,6 +57,10 @@ MESH_NODE = "mesh_high"
 def unavailable_reason() -> str | None:
     """Why the stage cannot run here (Mitsuba missing), or None."""
     return mitsuba.mitsuba_missing_reason()
+
+
+def node_id(label: str) -> str:
+    return f"{NAME}-{label}"
 
 
 def node(scene, label: str, lights: tuple) -> Node:
@@ -69,7 +75,7 @@ def node(scene, label: str, lights: tuple) -> Node:
                           f"must keep the camera's aspect ({cam.width} x {cam.height})")
     params = {"label": label, "camera": asdict(cam), **light_params(lights),
               "optics": scene.optics.to_dict(), "reference": asdict(r)}
-    return Node(f"reference-{label}", NAME, __name__, params, {"mesh": MESH_NODE},
+    return Node(node_id(label), NAME, __name__, params, {"mesh": MESH_NODE},
                 label=f"reference / {label} (Mitsuba)")
 
 
@@ -86,11 +92,9 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     # the path tracer's own Rd of the stack: the albedo tint's normalisation (one per run)
     key = ("reference_slab", json.dumps(params["optics"], sort_keys=True), r["roughness"],
            r["max_depth"], r["rr_depth"], r["slab_samples"], variant)
-    if key not in ctx.memo:
-        ctx.memo[key] = slab_reflectance(mi, stack, roughness=r["roughness"],
-                                         samples=r["slab_samples"], seed=r["seed"],
-                                         max_depth=r["max_depth"], rr_depth=r["rr_depth"])
-    slab = ctx.memo[key]
+    slab = ctx.shared.get(SLABS, key, lambda: slab_reflectance(
+        mi, stack, roughness=r["roughness"], samples=r["slab_samples"], seed=r["seed"],
+        max_depth=r["max_depth"], rr_depth=r["rr_depth"]))
     t0 = time.perf_counter()
     head = head_scene(mi, mesh, stack, camera, lights, width=r["width"], height=r["height"],
                       options=HeadSceneOptions(roughness=r["roughness"], tint_rd=slab.Rd,
@@ -139,3 +143,28 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
                        info={"timings": timings, "variant": variant, "noise": noise,
                              "kernel_seconds": 0.0})
 
+
+_SKIP_NOTICES: set = set()   # each reason once per process
+
+
+def plan(scene, plan) -> None:
+    """One reference per lighting condition of ``[reference] lights`` (all when empty), when
+    enabled; where Mitsuba cannot run, none, with the reason said once and recorded for the
+    report."""
+    if not scene.reference.enabled:
+        return
+    groups = dict(scene.light_groups())
+    wanted = scene.reference.lights or tuple(groups)
+    unknown = [l for l in wanted if l not in groups]
+    if unknown:
+        raise ConfigError(f"{scene.path}: reference.lights: {unknown[0]!r} is not a lighting "
+                          f"condition of [render] lights ({', '.join(groups)})")
+    reason = unavailable_reason()
+    if reason:
+        if reason not in _SKIP_NOTICES:
+            _SKIP_NOTICES.add(reason)
+            print(f"dermis: reference stage skipped: {reason}", file=sys.stderr)
+        plan.skipped[NAME] = f"Reference stage skipped: {reason}"
+        return
+    for label in wanted:
+        plan.add(node(scene, label, groups[label]), target=True)

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 from dataclasses import asdict
 
-from dermis.models import asperity, hk93, lafortune
 from dermis.pipeline import registry
 from dermis.pipeline.artifacts import RenderedImage
 from dermis.pipeline.config import CameraConfig
@@ -16,18 +15,15 @@ from dermis.pipeline.graph import Node, StageResult
 from dermis.pipeline.imageio import write_exr
 from dermis.rendering.options import RenderOptions
 from dermis.rendering.shade import render
+from dermis.rendering.surface import SURFACES
 
-__all__ = ["NAME", "VERSION", "KERNELS", "GEOMETRY", "geometry_inputs", "visibility_id", "node",
+__all__ = ["NAME", "VERSION", "KERNELS", "GEOMETRY", "geometry_inputs", "node_id", "node", "plan",
            "run"]
 
 NAME = "render"
 VERSION = 2
 KERNELS = ()   # rendering/surface.py and rendering/shade.py declare the kernels they build
-
-# The models this stage renders.  Imported, not only looked up by name: a node's key covers
-# the code it runs by following import statements (pipeline/codehash.py), which do not reach
-# through the registry; node() refuses a model missing here.
-KEYED_MODELS = (lafortune.MODEL, asperity.MODEL, hk93.MODEL)
+SHARES = (SURFACES,)   # a model adds its own (Model.shares) to its nodes
 
 # geometry -> (mesh node, bump map variant)
 GEOMETRY = {"high": ("mesh_high", None), "low": ("mesh_low", None),
@@ -38,20 +34,21 @@ def geometry_inputs(geometry: str, label: str | None = None) -> dict:
     """Upstream roles of an image of ``geometry``: its mesh, the baked maps when bumped, and
     (given the lighting ``label``) the shared visibility of that mesh and lighting."""
     mesh_node, bump = GEOMETRY[geometry]
+    visibility = registry.stage("visibility")
     return {"mesh": mesh_node, **({"maps": "bake"} if bump else {}),
-            **({"visibility": visibility_id(mesh_node, label)} if label is not None else {})}
+            **({"visibility": visibility.node_id(mesh_node, label)} if label is not None else {})}
 
 
-def visibility_id(mesh_node: str, label: str) -> str:
-    """Node id of the shared visibility of a mesh and lighting condition (stages/visibility.py)."""
-    return f"visibility-{mesh_node}-{label}"
+def node_id(model: str, label: str, geometry: str) -> str:
+    """An image's id: ``render-<model>-<lighting>-<geometry>``."""
+    return f"{NAME}-{model}-{label}-{geometry}"
 
 
 def _model(name: str):
     m = registry.model(name)
-    if m.stage != NAME or m not in KEYED_MODELS:
-        raise ConfigError(f"model = {name!r}: not a model of the render stage "
-                          f"({', '.join(k.name for k in KEYED_MODELS)})")
+    if m.stage != NAME:
+        raise ConfigError(f"model = {name!r}: not a model of the render stage (its stage is "
+                          f"{m.stage!r})")
     return m
 
 
@@ -63,19 +60,35 @@ def node(scene, model: str, label: str, lights: tuple, geometry: str) -> Node:
               "camera": asdict(scene.camera), "bump": GEOMETRY[geometry][1],
               "asperity_base": base,
               "optics": scene.optics.to_dict() if m.reads_optics(base) else None}
-    return Node(f"render-{model}-{label}-{geometry}", NAME, __name__, params,
-                geometry_inputs(geometry, label), label=f"{model} / {label} / {geometry}")
+    return Node(node_id(model, label, geometry), NAME, __name__, params,
+                geometry_inputs(geometry, label), label=f"{model} / {label} / {geometry}",
+                code=(registry.model_module(model),),
+                shares=m.shares + (m.base(base).shares if base is not None else ()))
+
+
+def plan(scene, plan) -> None:
+    """Every BRDF model x lighting condition x geometry, each with its mesh and lighting's
+    shared visibility (one node however many models read it)."""
+    visibility = registry.stage("visibility")
+    for model in scene.render.models:
+        if registry.model(model).stage != NAME:
+            continue
+        for label, lights in scene.light_groups():
+            for geometry in scene.render.geometries:
+                plan.add(visibility.node(scene, GEOMETRY[geometry][0], label, lights))
+                plan.add(node(scene, model, label, lights, geometry), provides="image")
 
 
 def run(params: dict, inputs: dict, ctx) -> StageResult:
     mesh, model, samples = inputs["mesh"], params["model"], inputs["visibility"]
     m, base = _model(model), params["asperity_base"]
-    p = m.scene_params(params, ctx.memo)
-    base_params = m.base(base).scene_params(params, ctx.memo) if base is not None else None
+    p = m.scene_params(params, ctx.shared)
+    base_params = m.base(base).scene_params(params, ctx.shared) if base is not None else None
     result = render(mesh, [], m, p, CameraConfig(**params["camera"]),
                     RenderOptions(maps=inputs.get("maps"), bump=params["bump"], samples=samples,
                                   base=base, base_params=base_params),
-                    cl_env=ctx.cl, progress=ctx.progress, memo=ctx.memo)
+                    cl_env=ctx.cl, progress=ctx.progress, shared=ctx.shared,
+                    keys=(ctx.input_keys["mesh"], ctx.input_keys.get("maps")))
     result.timings["visibility_shared"] = float(
         (samples.info.get("timings") or {}).get("total", 0.0))
     name = f"{model}-{params['label']}-{params['geometry']}"

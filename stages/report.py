@@ -7,10 +7,12 @@ from their thumbnails and writes the PDF, so a changed light recomputes one ligh
 comparisons, not all of them."""
 from __future__ import annotations
 
+from dataclasses import asdict
 from pathlib import Path
 
 from dermis.pipeline.config import CameraConfig
 from dermis.pipeline.graph import Node, StageResult
+from dermis.pipeline.registry import stage
 from dermis.reports import diff, pdf_report
 from dermis.reports.comparison_images import load_thumbnails
 from dermis.reports.ground_truth import ground_truth_section
@@ -20,32 +22,46 @@ from dermis.reports.profile_pages import profile_pages
 NAME = "report"
 VERSION = 3
 KERNELS = ()
-REFERENCE_MODEL = "bssrdf"
 GROUND_TRUTH_MESH = "mesh_high"   # the references are of the high mesh; regions are on it
 
 
-def node(scene, render_ids: list[str], irradiance_ids: list[str],
+def node(scene, render_ids: list[str], irradiance: dict[str, tuple[str, str]],
          difference_ids: list[str] = (), images_id: str | None = None,
-         reference_ids: list[str] = (), reference_skipped: str | None = None) -> Node:
-    """The report of the renders; with ``reference_ids`` (Mitsuba ground truth) also the
-    distance-to-ground-truth section, which needs the high mesh (regions) and the camera.
-    ``reference_skipped`` is the reason the scene asked for references and got none."""
-    params = {"renders": sorted(render_ids), "irradiance": sorted(irradiance_ids),
+         reference_ids: list[str] = (), reference_skipped: str | None = None,
+         profile_ids: list[str] = ()) -> Node:
+    """The report of the renders.  ``irradiance``: the BSSRDF's irradiance passes, id ->
+    (lighting label, mesh node), whose seconds the timing table adds; ``profile_ids``: the
+    layer profiles the BSSRDF models read (the profile page).  With ``reference_ids``
+    (Mitsuba ground truth) also the distance-to-ground-truth section, which needs the high
+    mesh (regions) and the camera; ``reference_skipped`` is the reason the scene asked for
+    references and got none."""
+    params = {"renders": sorted(render_ids),
+              "irradiance": {nid: list(irradiance[nid]) for nid in sorted(irradiance)},
               "differences": sorted(difference_ids), "images": images_id,
               "references": sorted(reference_ids), "reference_skipped": reference_skipped,
+              "profiles": sorted(profile_ids),
               "scene_name": scene.scene.name, "credits": list(scene.credits())}
-    deps = (tuple(render_ids) + tuple(irradiance_ids) + tuple(sorted(difference_ids))
-            + ((images_id,) if images_id else ()) + tuple(sorted(reference_ids)))
+    deps = (tuple(render_ids) + tuple(params["irradiance"]) + tuple(params["differences"])
+            + ((images_id,) if images_id else ()) + tuple(params["references"]))
     if reference_ids:
-        from dataclasses import asdict
         params["camera"] = asdict(scene.camera)
         deps += (GROUND_TRUTH_MESH,)
-    # the layer profiles every BSSRDF model reads: the profile page (reports/profile_pages.py)
-    from dermis.pipeline.config import BSSRDF_MODELS, profile_model, profiles_node_id
-    params["profiles"] = sorted({profiles_node_id(scene, profile_model(scene, m))
-                                 for m in scene.render.models if m in BSSRDF_MODELS})
     deps += tuple(params["profiles"])
     return Node(NAME, NAME, __name__, params, deps, label="grids + PDF")
+
+
+def plan(scene, plan) -> None:
+    """When the differences are drawn: the baseline and another model are rendered."""
+    differences = stage("differences")
+    if not differences.compared(scene):
+        return
+    images = plan.of_stage("images")
+    plan.add(node(
+        scene, [n.id for n in plan.provided("image")],
+        {n.id: (n.params["label"], n.deps["mesh"]) for n in plan.of_stage("irradiance")},
+        [n.id for n in plan.of_stage("differences")], images[0].id if images else None,
+        [n.id for n in plan.of_stage("reference")], plan.skipped.get("reference"),
+        [n.id for n in plan.of_stage("profiles")]), target=True)
 
 
 def run(params: dict, inputs: dict, ctx) -> StageResult:
@@ -56,10 +72,10 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
                                                  ctx.out_dir, tiles)
     else:   # no differences nodes: compute them here
         files, metrics = diff.write_differences(images, ctx.out_dir,
-                                                reference_model=REFERENCE_MODEL, tiles_out=tiles)
+                                                reference_model=stage("differences").BASELINE,
+                                                tiles_out=tiles)
     extra = {}
-    for nid in params["irradiance"]:  # irradiance-<mesh node>-<lighting label>
-        _, mesh_node, label = nid.split("-", 2)
+    for nid, (label, mesh_node) in params["irradiance"].items():
         extra[(label, mesh_node)] = float(inputs[nid].info.get("seconds", 0.0))
     thumbs = None
     if params.get("images"):   # the images stage's tone-mapped thumbnails for the image pages

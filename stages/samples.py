@@ -10,17 +10,21 @@ from __future__ import annotations
 from dermis.pipeline.graph import Node, StageResult
 from dermis.subsurface.points import sample_points, spacing_from_mfp
 
-__all__ = ["VERSION", "KERNELS", "NAME", "node", "run"]
+__all__ = ["VERSION", "KERNELS", "NAME", "node_id", "node", "run"]
 
 NAME = "samples"
 VERSION = 3
 KERNELS = ()
 
 
+def node_id(mesh_node: str) -> str:
+    return f"{NAME}-{mesh_node}"
+
+
 def node(scene, mesh_node: str) -> Node:
     params = {"spacing_mm": spacing_from_mfp(scene.optics, scene.bssrdf.point_density),
               "seed": scene.mesh.seed}
-    return Node(f"samples-{mesh_node}", NAME, __name__, params, {"mesh": mesh_node},
+    return Node(node_id(mesh_node), NAME, __name__, params, {"mesh": mesh_node},
                 label="irradiance points")
 
 

@@ -10,10 +10,10 @@ from __future__ import annotations
 from dataclasses import asdict
 
 from dermis.lighting.emitters import light_params
-from dermis.lighting.visibility import shared as shared_visibility
+from dermis.lighting.visibility import EMBREE_SCENES, embree_scene
 from dermis.pipeline.config import CameraConfig, LightConfig
 from dermis.pipeline.graph import Node, StageResult
-from dermis.rendering.cast import cast, retro_lobe
+from dermis.rendering.cast import CAMERA_HITS, cast, retro_lobe
 from dermis.rendering.options import LightSampling, RenderOptions
 
 __all__ = ["NAME", "VERSION", "KERNELS", "node", "run"]
@@ -21,6 +21,11 @@ __all__ = ["NAME", "VERSION", "KERNELS", "node", "run"]
 NAME = "visibility"
 VERSION = 1
 KERNELS = ()   # rendering/surface.py declares cl/surface.cl
+SHARES = (EMBREE_SCENES, CAMERA_HITS)
+
+
+def node_id(mesh_node: str, label: str) -> str:
+    return f"{NAME}-{mesh_node}-{label}"
 
 
 def node(scene, mesh_node: str, label: str, lights: tuple) -> Node:
@@ -30,7 +35,7 @@ def node(scene, mesh_node: str, label: str, lights: tuple) -> Node:
     retro = retro_lobe(scene) if any(lt.type == "environment" for lt in lights) else None
     if retro is not None:          # only then: every other scene keeps its node keys
         params["retro_lobe"] = retro
-    return Node(f"visibility-{mesh_node}-{label}", NAME, __name__, params, {"mesh": mesh_node},
+    return Node(node_id(mesh_node, label), NAME, __name__, params, {"mesh": mesh_node},
                 label=f"rays {mesh_node} / {label}", locations=("lights[].map",))
 
 
@@ -41,9 +46,10 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     sampling = (LightSampling(retro_fraction=retro["fraction"], retro_k=retro["k"])
                 if retro else None)
     options = RenderOptions(spp=params["spp"], seed=params["seed"], sampling=sampling,
-                            visibility=shared_visibility(mesh, ctx.memo))
+                            visibility=embree_scene(mesh, ctx.shared, ctx.input_keys["mesh"]))
     samples = cast(mesh, lights, CameraConfig(**params["camera"]), options,
-                   cl_env=ctx.cl, progress=ctx.progress, memo=ctx.memo)
+                   cl_env=ctx.cl, progress=ctx.progress, shared=ctx.shared,
+                   mesh_key=ctx.input_keys["mesh"])
     samples.info["label"] = params["label"]
     return StageResult(samples, info={"timings": samples.info["timings"],
                                       "kernel_seconds": samples.info["timings"]["kernel_seconds"]})

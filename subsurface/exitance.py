@@ -15,13 +15,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from dermis.pipeline.cl import get_env
-from dermis.pipeline.reuse import content_key, once, recent_in_run
+from dermis.pipeline.reuse import content_key
+from dermis.pipeline.shared import RunCache, Shared
 from dermis.subsurface.gather import GatherTuning, gather
 from dermis.subsurface.near_field import SHARP_LIGHTS, near_tables, split_profile
 from dermis.subsurface.octree import build_octree, scene_default
 from dermis.subsurface.shadow_edges import shadow_edges, sharp_near_field
 
-__all__ = ["ShadingPoints", "ExitanceOptions", "exitance", "SHARED_GATHERS"]
+__all__ = ["ShadingPoints", "ExitanceOptions", "exitance", "SHARED_GATHERS", "OCTREES",
+           "SHADOW_EDGES", "NEAR_TABLES", "GATHERS"]
 
 # Gathers kept per run by :func:`exitance` for reuse: the same points, irradiance, profile and
 # query positions give the same exitance, and the low mesh's two bump variants of a lighting
@@ -29,6 +31,13 @@ __all__ = ["ShadingPoints", "ExitanceOptions", "exitance", "SHARED_GATHERS"]
 # is a (Q, 3) float32 array, ~30 MB at 800 x 800 x 4 spp; 4 hold a condition's far and soft
 # parts for two profiles.
 SHARED_GATHERS = 4
+# What the BSSRDF images of a run share (pipeline/shared.py): the octrees of a mesh's points
+# under a lighting condition, the shadow edges located on them, the near-field tables of a
+# profile, and the last gathers (the low mesh's bump variants gather at the same positions)
+OCTREES = Shared("octree")
+SHADOW_EDGES = Shared("shadow_edges")
+NEAR_TABLES = Shared("near_table")
+GATHERS = Shared("gather", keep=SHARED_GATHERS)
 
 
 @dataclass(frozen=True)
@@ -88,7 +97,8 @@ class ExitanceOptions:
 
 def exitance(points, irradiance: np.ndarray, profile, shading: ShadingPoints, *, lights,
              visibility, options: ExitanceOptions,
-             memo: dict | None = None) -> tuple[np.ndarray, dict]:
+             shared: RunCache | None = None,
+             keys: tuple[str, str, str] | None = None) -> tuple[np.ndarray, dict]:
     """Radiant exitance of the BSSRDF at shading points: the far part of the profile
     gathered from the points, the near part at each point (module docstring).
 
@@ -101,11 +111,14 @@ def exitance(points, irradiance: np.ndarray, profile, shading: ShadingPoints, *,
     lights : sequence of LightConfig, the lighting condition ``irradiance`` was computed for
     visibility : lighting.visibility.Visibility of the mesh the points lie on
     options : ExitanceOptions
-    memo : dict, optional
-        The run's scratch dict: octrees, edges and tables are kept per (points, irradiance),
-        made once when several nodes ask at the same time, and the gathers of the last
-        ``SHARED_GATHERS`` query sets (the low mesh's bump variants shade the same positions:
-        only the sharp near field sees their normals) are reused.
+    shared : RunCache, optional
+        The run's shared intermediates: octrees, edges and tables are kept per (points,
+        irradiance), made once when several nodes ask at the same time, and the gathers of
+        the last ``SHARED_GATHERS`` query sets (the low mesh's bump variants shade the same
+        positions: only the sharp near field sees their normals) are reused.
+    keys : (points, irradiance, profile) content keys, optional
+        With ``shared``: the cache keys of the nodes that made them (``ctx.input_keys``); by
+        default digests of their arrays.
 
     Returns
     -------
@@ -118,7 +131,12 @@ def exitance(points, irradiance: np.ndarray, profile, shading: ShadingPoints, *,
                                               options.transmittance)
     tuning, env, progress = options.tuning, options.env, options.progress
     t0 = time.perf_counter()
-    memo = {} if memo is None else memo
+    cache = RunCache() if shared is None else shared    # a private one: nothing is shared
+    if keys is None:
+        keys = (("points", "irradiance", "profile") if shared is None else
+                (content_key(points.positions, points.areas), content_key(irradiance),
+                 content_key(*(np.asarray(getattr(profile, f)) for f in
+                                        ("r_mm", "R", "T", "Rd", "cutoff_mm")))))
     sigma = float(points.info.get("kernel_sigma_mm") or 0.0)
     spacing = float(points.info.get("spacing_mm") or math.sqrt(
         float(np.sum(points.areas)) / max(len(points.areas), 1)))
@@ -128,13 +146,12 @@ def exitance(points, irradiance: np.ndarray, profile, shading: ShadingPoints, *,
     resolved = (near_field and normalisation == "energy" and sigma > 0 and sharp
                 and tuning.kernel_sigma_mm is None)
     E = np.asarray(irradiance, np.float32)
-    key = (id(points), id(irradiance))
+    key, profile_key = tuple(keys[:2]), keys[2]
 
     def tree(name, e):
-        return once(memo, ("octree", name) + key, lambda: (
-            points, irradiance, build_octree(points.positions, points.areas, e(),
-                                             leaf_size=leaf_size,
-                                             kernel_sigma_mm=sigma or None)))[2]
+        return cache.get(OCTREES, (name, leaf_size, sigma) + key, lambda: build_octree(
+            points.positions, points.areas, e(), leaf_size=leaf_size,
+            kernel_sigma_mm=sigma or None))
 
     gkw = dict(epsilon=epsilon, normalisation=normalisation, env=env, brute_force=brute_force,
                progress=progress, tuning=tuning)
@@ -144,12 +161,10 @@ def exitance(points, irradiance: np.ndarray, profile, shading: ShadingPoints, *,
         """gather() of the octree ``name`` at the queries, or the same gather made earlier in
         the run (its stats then with no kernel seconds of this call; which node made it
         depends on the run's order, so nothing else says so: the artifact stays the same)."""
-        gk = (("gather", name, part, qkey, id(profile), epsilon, normalisation, brute_force,
+        gk = ((name, part, qkey, profile_key, epsilon, normalisation, brute_force,
                repr(tuning)) + key)
-        (_, (m, st)), made = recent_in_run(
-            memo, ("gather", "results"), SHARED_GATHERS, gk,
-            lambda: ((points, irradiance, profile),
-                     gather(tree(name, e), profile, queries, part=part, **gkw)))
+        (m, st), made = cache.get_made(GATHERS, gk, lambda: gather(
+            tree(name, e), profile, queries, part=part, **gkw))
         return m, (st if made else {**st, "kernel_seconds": 0.0})
 
     stats: dict = {"near_field": bool(resolved)}
@@ -169,8 +184,9 @@ def exitance(points, irradiance: np.ndarray, profile, shading: ShadingPoints, *,
                                spacing, transmittance=transmittance, irradiance=own)
                    for l in sharp]
         pool.shutdown(wait=False)
-        return points, irradiance, pending
-    pending = once(memo, ("edges",) + key, locate_edges)[2]
+        return pending
+    pending = cache.get(SHADOW_EDGES, (spacing, repr(sharp), repr(transmittance)) + key,
+                        locate_edges)
     m_far, st = gathered("all", lambda: E, "far")
     edges = [f.result() for f in pending]
     t_edges = sum(ed.info["seconds"] for ed in edges)
@@ -182,8 +198,8 @@ def exitance(points, irradiance: np.ndarray, profile, shading: ShadingPoints, *,
         M += m_soft
         stats["kernel_seconds"] += st_soft["kernel_seconds"]
     t1 = time.perf_counter()
-    table = once(memo, ("near_table", id(profile), sigma, tuning.cutoff_mm), lambda: (
-        profile, near_tables(split_profile(profile, sigma, cutoff_mm=tuning.cutoff_mm))))[1]
+    table = cache.get(NEAR_TABLES, (profile_key, sigma, tuning.cutoff_mm), lambda: near_tables(
+        split_profile(profile, sigma, cutoff_mm=tuning.cutoff_mm)))
     for k, (light, ed) in enumerate(zip(sharp, edges)):
         M += sharp_near_field(queries, shading_normals, geo_normals, light, visibility, ed,
                               table, transmittance=transmittance, env=env or get_env(),

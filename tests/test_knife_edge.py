@@ -1,5 +1,5 @@
 """Knife edge: the BSSRDF's blur is the skin profile's (subsurface/near_field.py,
-docs/science.md §4; issue 10).
+docs/science.md §4).
 
 A large flat slab lies half in the shadow of a straight occluder edge (a plate above it)
 under a directional light.  Across the shadow edge the exitance :func:`exitance.exitance`
@@ -27,6 +27,8 @@ import math
 import numpy as np
 import pytest
 
+from dermis.pipeline.shared import RunCache
+from dermis.subsurface.exitance import GATHERS, SHADOW_EDGES
 from dermis.pipeline.config import BssrdfConfig, LightConfig
 from dermis.optics.layers import PRESETS
 from dermis.lighting.irradiance import irradiance
@@ -84,7 +86,7 @@ def knife_edge(prof, stack, cl_env, *, density=None, near_field=True, seed=1):
     return (M - ref) / (sc["lit"] * prof.Rd), sc["q"], stats
 
 
-def sc_exitance(sc, prof, cl_env, *, near_field=True, shading_normals=None, memo=None):
+def sc_exitance(sc, prof, cl_env, *, near_field=True, shading_normals=None, shared=None):
     """exitance() on a knife_scene at the shipped settings."""
     cfg = BssrdfConfig()
     nrm = np.tile([0.0, 0.0, 1.0], (len(sc["q"]), 1))
@@ -92,7 +94,7 @@ def sc_exitance(sc, prof, cl_env, *, near_field=True, shading_normals=None, memo
     options = ExitanceOptions(epsilon=cfg.epsilon, transmittance=sc["transmit"],
                               leaf_size=cfg.leaf_size, near_field=near_field, env=cl_env)
     return exitance(sc["pts"], sc["E"], prof, shading, lights=[sc["light"]],
-                    visibility=sc["vis"], options=options, memo=memo)
+                    visibility=sc["vis"], options=options, shared=shared)
 
 
 def knife_scene(prof, stack, *, density=None, seed=1) -> dict:
@@ -168,7 +170,7 @@ def test03_hk93_uses_the_same_layer_file(layer_files):
 
 def test04_bump_variants_share_the_gathers(cl_env, layer_files):
     # The low mesh's two bump variants shade the same positions with other normals: in one
-    # run (``memo``) the second reuses the first's octree, shadow edges and far gather
+    # run (``shared``) the second reuses the first's octree, shadow edges and far gather
     # (subsurface/exitance.py), and both exitances equal the ones computed alone, bit for
     # bit; only the sharp near field sees the normals.
     prof = layer_files["two_layer"]
@@ -176,11 +178,11 @@ def test04_bump_variants_share_the_gathers(cl_env, layer_files):
     q = sc["q"]
     tilt = np.stack([0.3 * np.sin(q[:, 0]), 0.2 * np.cos(q[:, 1]), np.ones(len(q))], axis=1)
     tilt /= np.linalg.norm(tilt, axis=1, keepdims=True)
-    memo: dict = {}
+    run = RunCache()
     for normals in (None, tilt):
         alone, _ = sc_exitance(sc, prof, cl_env, shading_normals=normals)
-        shared, stats = sc_exitance(sc, prof, cl_env, shading_normals=normals, memo=memo)
+        shared, stats = sc_exitance(sc, prof, cl_env, shading_normals=normals, shared=run)
         np.testing.assert_array_equal(shared, alone)
     assert not np.array_equal(alone, sc_exitance(sc, prof, cl_env)[0])   # normals matter
-    assert sum(1 for key in memo if key[0] == "edges") == 1
-    assert len(memo[("gather", "results")]._items) == 1     # one far gather for both
+    assert len(run._stores[SHADOW_EDGES.name]._items) == 1
+    assert len(run._stores[GATHERS.name]._items) == 1     # one far gather for both

@@ -59,7 +59,7 @@ def _grey_albedo(params: GreyParams, albedo: np.ndarray, textured: bool) -> np.n
 
 GREY = Model(name="grey", label="grey Lambert", stage="render", doc="docs/science.md §5",
              params=GreyParams, shade=(("DERMIS_BASE", 0),),
-             scene_params=lambda config, memo: GreyParams(), shade_albedo=_grey_albedo)
+             scene_params=lambda config, shared: GreyParams(), shade_albedo=_grey_albedo)
 
 
 @pytest.fixture

@@ -135,11 +135,13 @@ def test08_results_kept_across_runs_by_content():
         def __init__(self):
             self.vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float64)
             self.faces = np.array([[0, 1, 2]], np.int32)
-    first = visibility.shared(Mesh(), {})
-    assert visibility.shared(Mesh(), {}) is first
+    from dermis.pipeline.shared import RunCache
+    cache = RunCache()                          # one cache kept across the runs
+    first = visibility.embree_scene(Mesh(), cache)
+    assert visibility.embree_scene(Mesh(), cache) is first
     other = Mesh()
     other.vertices = other.vertices * 2.0
-    assert visibility.shared(other, {}) is not first
+    assert visibility.embree_scene(other, cache) is not first
 
 
 def test09_nodes_run_at_once_give_the_same_bytes_as_one_by_one(built, tmp_path):
@@ -201,16 +203,16 @@ def test10_concurrent_askers_of_one_result_share_one_computation():
     assert len(made) == 1 and len(got) == 4 and len({id(g) for g in got}) == 1
 
 
-def test10b_run_memo_entries_are_made_once_by_concurrent_nodes():
-    """reuse.once: the run's memo entry asked for by four threads at once is made once, and
+def test10b_run_intermediates_are_made_once_by_concurrent_nodes():
+    """pipeline/shared.py: an intermediate asked for by four threads at once is made once, and
     a later ask gets it without making (two BSSRDF nodes started together each located the
     same shadow edges before, subsurface/exitance.py)."""
-    from dermis.pipeline.reuse import once
-    memo: dict = {}
-    made, got = _ask_at_once(lambda make: once(memo, ("edges", 1), make))
+    from dermis.pipeline.shared import RunCache, Shared
+    edges, run = Shared("edges"), RunCache()
+    made, got = _ask_at_once(lambda make: run.get(edges, ("k", 1), make))
     assert len(made) == 1 and len(got) == 4 and len({id(g) for g in got}) == 1
-    assert once(memo, ("edges", 1), lambda: 1 / 0) is got[0]
-    assert once(memo, ("edges", 2), object) is not got[0]
+    assert run.get(edges, ("k", 1), lambda: 1 / 0) is got[0]
+    assert run.get(edges, ("k", 2), object) is not got[0]
 
 
 def test11_jobs_are_checked():

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from dermis.pipeline.shared import RunCache
 from dermis.pipeline.config import CameraConfig, LightConfig, load_scene
 from dermis.geometry.regions import REGION_LABELS, face_regions
 
@@ -235,7 +236,7 @@ def test08_stage_runs_and_distances_are_honest(mi, quick_mesh, tmp_path):
         "enabled": True, "width": 40, "height": 40, "spp": 16, "slab_samples": 4096}})
     label, lights = scene.light_groups()[0]
     node = reference.node(scene, label, lights)
-    ctx = SimpleNamespace(out_dir=tmp_path, progress=None, memo={})
+    ctx = SimpleNamespace(out_dir=tmp_path, progress=None, shared=RunCache())
     ref = reference.run(node.params, {"mesh": quick_mesh}, ctx).artifact
     info = ref.info
     assert info["noise"]["1"]["rel"] > info["noise"]["4"]["rel"] > 0       # averaging helps

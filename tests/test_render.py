@@ -13,6 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from dermis.pipeline.shared import RunCache
+from dermis.rendering.surface import SURFACES
 from dermis.pipeline.artifacts import BakedMaps
 from dermis.pipeline.config import CameraConfig, LightConfig
 from dermis.pipeline.errors import ConfigError, DermisError
@@ -417,7 +419,7 @@ def test13_surface_attributes_shared_within_a_run(cl_env):
     jobs = [(lambert.MODEL, None, True), (lafortune.MODEL, LafortuneParams(), True),
             (lafortune.MODEL, LafortuneParams(rho_d=(0.0, 0.0, 0.0)), False),
             (hk93.MODEL, None, True)]
-    memo: dict = {}
+    run = RunCache()
     pass_seconds: dict = {}
     for k, (samples, (model, params, textured)) in enumerate(
             (s, j) for s in visibility for j in jobs):
@@ -427,14 +429,15 @@ def test13_surface_attributes_shared_within_a_run(cl_env):
                            cl_env=cl_env)
             shared = render(mesh, [], model, params, cam,
                             RenderOptions(maps=maps, bump=bump, samples=samples,
-                                          textured=textured), cl_env=cl_env, memo=memo)
+                                          textured=textured), cl_env=cl_env, shared=run,
+                            keys=("mesh", "maps"))
             np.testing.assert_array_equal(shared.linear, alone.linear)
             assert alone.info["textured"] == shared.info["textured"] == textured
             # every image of a geometry reports the one pass it shares, outside its own total
             t = shared.timings
             assert t["surface_shared"] == pass_seconds.setdefault(bump, t["surface_shared"]) > 0
             assert alone.timings["total"] >= alone.timings["surface"]   # alone: its own pass
-    cached = memo[("pixel_surface",)]
+    cached = run._stores[SURFACES.name]
     assert len(cached._items) == 2          # one surface pass per bump map, no more
-    for _, surf, _, _ in cached._items.values():
+    for surf, _, _ in cached._items.values():
         assert all(not a.flags.writeable for a in surf.values())

@@ -1,9 +1,7 @@
 """The run-wide cache of shared intermediates (pipeline/shared.py): declared kinds only,
-content keys only, one computation however many threads ask."""
+content keys only, the most recent kept (one computation however many threads ask:
+tests/test_pipeline.py test10b)."""
 from __future__ import annotations
-
-import threading
-import time
 
 import numpy as np
 import pytest
@@ -11,25 +9,6 @@ import pytest
 from dermis.pipeline.shared import RunCache, Shared
 
 A, B = Shared("test_a"), Shared("test_b", keep=2)
-
-
-def test_concurrent_askers_share_one_computation():
-    cache, calls, out = RunCache(), [], []
-
-    def make():
-        calls.append(1)
-        time.sleep(0.05)           # long enough for every thread to ask while it runs
-        return object()
-
-    threads = [threading.Thread(target=lambda: out.append(cache.get_made(A, ("k", 1), make)))
-               for _ in range(8)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    assert len(calls) == 1
-    assert len({id(v) for v, _ in out}) == 1
-    assert sorted(m for _, m in out) == [False] * 7 + [True]
 
 
 def test_a_node_gets_only_the_kinds_it_declares():

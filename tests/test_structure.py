@@ -109,14 +109,11 @@ def base_keys(scene):
     return _keys(scene)
 
 
-def _stage_of(nid: str) -> str:
-    for prefix, name in (("render-bssrdf-", "bssrdf"), ("render-bssrdf_mc-", "bssrdf"),
-                         ("profiles-", "profiles"), ("render-", "render"),
-                         ("samples-", "samples"), ("irradiance-", "irradiance"),
-                         ("visibility-", "visibility"), ("differences-", "differences")):
-        if nid.startswith(prefix):
-            return name
-    return nid
+def _runs(node, spec: set) -> bool:
+    """Whether ``node`` is named by ``spec``: its stage ("render"), or its stage and the model
+    it renders ("render/hk93": a render node looks its model up in the registry and hashes
+    that model's module, pipeline/graph.py Node.code)."""
+    return node.stage in spec or f"{node.stage}/{node.params.get('model')}" in spec
 
 
 # file -> the stages whose nodes execute it (from what each stage runs, written out by hand)
@@ -124,10 +121,10 @@ PROBE = {
     "cl/surface.cl": {"render", "bssrdf", "visibility"},  # hit attributes: rays + images
     "cl/optics.h": {"render", "bssrdf"},               # Fresnel in HK93 (cl/shade.cl includes it)
     "cl/bssrdf_gather.cl": {"bssrdf"},
-    "stages/render.py": {"render", "bssrdf"},          # GEOMETRY, geometry_inputs
-    "models/lafortune.py": {"render", "bssrdf", "irradiance"},  # the BSSRDF's surface lobes
-                                                       # and the entry transmittance they cap
-    "models/hk93.py": {"render", "bssrdf"},            # the render stage's models
+    "stages/render.py": {"render"},                    # others read GEOMETRY when planning
+    # the BSSRDF's surface lobes and the entry transmittance they cap; a term's bases
+    "models/lafortune.py": {"render/lafortune", "render/asperity", "bssrdf", "irradiance"},
+    "models/hk93.py": {"render/hk93", "render/asperity"},   # only the images of its model
     # the previews cast their rays on the renders' shared Embree scenes (lighting/visibility.py,
     # which imports lighting/strata.py for the sub-pixel offsets)
     "lighting/visibility.py": {"render", "bssrdf", "irradiance", "visibility", "mesh_previews"},
@@ -168,9 +165,9 @@ def test06_a_harmless_edit_changes_exactly_the_keys_of_nodes_that_run_it(relpath
     changed = {nid for nid, k in _keys(scene).items() if base_keys[nid] != k}
     monkeypatch.undo()
     codehash.clear()
-    direct = {nid for nid in base_keys if _stage_of(nid) in PROBE[relpath]}
-    # a changed node changes its downstream nodes' keys too (their upstream keys changed)
     nodes, _ = build_graph(scene)
+    direct = {nid for nid in base_keys if _runs(nodes[nid], PROBE[relpath])}
+    # a changed node changes its downstream nodes' keys too (their upstream keys changed)
     expected, grew = set(direct), True
     while grew:
         more = {nid for nid, n in nodes.items() if set(n.dep_ids) & expected} - expected
@@ -203,31 +200,3 @@ def test08_keys_follow_file_content_not_path_spelling(tmp_path):
         (REPO / "scenes" / "assets" / "lps_head" / "Map-COL.jpg").read_bytes()[:-1] + b"\0")
     d = _keys(load_scene(tmp_path / "scenes" / "default.toml"))
     assert d["mesh_source"] != a["mesh_source"]          # content changed: key changed
-
-
-def test_documentation_cited_by_the_code_is_in_the_repository():
-    # a user's clone has only this repository: every docs/*.md a source file, kernel, bench,
-    # scene or doc cites exists, every "docs/science.md §N" names a section it has, and nothing
-    # points outside the repository (../shared, design notes)
-    import re
-    import subprocess
-    files = subprocess.run(["git", "ls-files"], cwd=REPO, capture_output=True, text=True,
-                           check=True).stdout.split()
-    sections = set(re.findall(r"^## §(\d+)", (REPO / "docs/science.md").read_text(), re.M))
-    assert sections, "docs/science.md has no numbered sections"
-    bad = []
-    for name in files:
-        if not name.endswith((".py", ".cl", ".h", ".md", ".toml", ".sh")) or name.startswith(
-                "bench/results/") or name == "tests/test_structure.py":
-            continue
-        text = (REPO / name).read_text(errors="replace")
-        for doc in set(re.findall(r"docs/([\w-]+\.md)", text)):
-            if not (REPO / "docs" / doc).is_file():
-                bad.append(f"{name}: docs/{doc} does not exist")
-        for sec in set(re.findall(r"docs/science\.md §(\d+)", text)):
-            if sec not in sections:
-                bad.append(f"{name}: docs/science.md has no §{sec}")
-        # the path spelled in two pieces, so this guard does not cite it itself
-        if ("shared/" "design") in text:
-            bad.append(f"{name}: cites the design notes outside the repository")
-    assert not bad, "\n".join(bad)
