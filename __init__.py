@@ -1,13 +1,18 @@
 """dermis: classic human-skin rendering techniques side by side, measured.
 
-The repository's top-level folders install as one import package:
-``dermis.pipeline`` (engine), ``dermis.physics`` (host physics shared by stages),
-``dermis.stages`` (one module per stage), ``dermis.reports`` (images, previews,
-report), ``dermis.cl`` (OpenCL kernels) and ``dermis.scenes`` (scene presets).
-See docs/software.md in this repository ("Layout").
+The repository's top-level folders install as one import package, grouped by concept:
+``dermis.pipeline`` (the engine: config, plan, graph, cache, OpenCL runtime, CLI, API),
+the libraries ``dermis.geometry`` (meshes, bake), ``dermis.optics`` (layered skin along
+depth), ``dermis.subsurface`` (the point-based BSSRDF), ``dermis.lighting`` (emitters,
+environment, visibility) and ``dermis.rendering`` (camera to pixels), ``dermis.models``
+(one unit per local illumination model), ``dermis.groundtruth`` (the Mitsuba reference),
+``dermis.stages`` (thin adapters, one per stage), ``dermis.reports`` (images, differences,
+report), ``dermis.cl`` (OpenCL kernels) and ``dermis.scenes`` (scene presets).  This module is
+the composition root: the engine imports no stage, model or command module and loads them by
+name from the lists below (pipeline/registry.py).  See docs/software.md "Layout".
 """
 __version__ = "0.2.0"
-__all__ = ["__version__", "STAGES", "MODELS", "COMMANDS"]
+__all__ = ["__version__", "STAGES", "MODELS", "THESIS_MODELS", "SECTIONS", "COMMANDS"]
 
 # The stages, in pipeline order: (name, module).  The composition root: the engine
 # (dermis.pipeline) imports no stage module; it loads these by name (pipeline/registry.py).
@@ -39,5 +44,14 @@ MODELS = (
     ("bssrdf_mc", "dermis.models.bssrdf_mc"),
 )
 
+# The thesis's four models, in its order: the default [render] models and the ones the
+# report's conclusions are about.
+THESIS_MODELS = ("lafortune", "asperity", "hk93", "bssrdf")
+
+# Scene sections whose parsing belongs to a physics package: (section, module).  The layer
+# stack's schema (layers, presets, profile options) is the optics package's.
+SECTIONS = (("optics", "dermis.optics.layers"),)
+
 # CLI subcommands provided by the physics packages: (name, module with add_parser and run).
-COMMANDS = (("profile", "dermis.optics.profile_command"), ("sweep", "dermis.reports.sweep"))
+COMMANDS = (("report", "dermis.reports.report_command"), ("profile", "dermis.optics.profile_command"),
+            ("sweep", "dermis.reports.sweep"))

@@ -7,9 +7,9 @@ Cases (each run in its own subprocess so its peak RSS is its own):
              midpoint-subdivided 3 times (1,131,776 triangles) and displaced along its normals
              by the 4096^2 displacement JPEG (amplitude chosen here: +-1 mm around the median;
              the true scale is lost, see the data README), textured with Map-COL.jpg.
-             Skipped when /work/shared/data/lps_head is absent.
+             Skipped when the scan's data folder beside the repository (DATA) is absent.
 
-Target (brief): <= 25 s and <= 3 GB for 4096^2 against ~1.1M triangles, 2 cores.
+Target: <= 25 s and <= 3 GB for 4096^2 against ~1.1M triangles, 2 cores.
 Usage: python bench/bench_bake.py [--out bench/results/bake.json] [--resolution 4096]
 """
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Benchmark of the BSSRDF images (issue 10): seconds per 800x800 image and per lighting
+"""Benchmark of the BSSRDF images: seconds per 800x800 image and per lighting
 condition (irradiance pass, gather, surface term) on the high and the low mesh, the
 gather's error against brute force, peak memory; the knife-edge error; the models'
 directional albedo; HK93 against the layer profile's Rd.

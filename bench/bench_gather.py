@@ -1,11 +1,12 @@
 """Benchmark of the hierarchical BSSRDF gather (subsurface/gather.py) against brute force.
 
-Scene: the LPS head OBJ (/work/shared/data/lps_head, centimetres -> mm, ~369,000 mm^2), blue-
-noise points from subsurface/points.py, irradiance of one directional light from the upper
-front right, E = max(0, n.l) with a hard shadow ray per point (open3d), profile from
-optics/layer_profiles.py (default preset skin2, cut-off 24 mm).  Query points: the surface points
-seen by an orthographic camera looking down -z at the face, in scanline order, up to
---queries of them.  Falls back to a unit-sphere-like synthetic mesh if the asset is absent.
+Scene: the LPS head OBJ (ASSET: the same bytes as scenes/assets/lps_head/LeePerrySmith_cm.obj;
+centimetres -> mm, ~369,000 mm^2), blue-noise points from subsurface/points.py, irradiance of
+one directional light from the upper front right, E = max(0, n.l) with a hard shadow ray per
+point (open3d), profile from optics/layer_profiles.py (default preset skin2, cut-off 24 mm).
+Query points: the surface points seen by an orthographic camera looking down -z at the face,
+in scanline order, up to --queries of them.  Falls back to a unit-sphere-like synthetic mesh
+if the asset is absent.
 
 Measured: kernel time (profiling events) and relative RMSE (per channel
 sqrt(mean((h - b)^2)) / sqrt(mean(b^2)), max over channels) of the hierarchical gather against

@@ -8,7 +8,8 @@ thesis's headline that with area and environment lights the cached-irradiance BS
 fastest model (docs/science.md §7, the thesis's timings, in this repository).  With ``--warm-light NAME`` it then scales that light's
 intensity by 1.1 and runs again on the same cache: what one changed light costs (warm).
 
-    python3 bench/bench_pipeline.py [SCENE] [--cache DIR] [--out bench/results/pipeline.json]
+    python3 bench/bench_pipeline.py [SCENE] [--cache DIR]
+        [--out bench/results/pipeline_default.json]
         [--warm-light point]
 
 Peak memory is the process's maximum resident set (``ru_maxrss``), which includes the

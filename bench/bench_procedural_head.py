@@ -4,7 +4,7 @@ Run: python bench/bench_procedural_head.py [--triangles 1000000] [--texture 2048
                                            [--out bench/results/procedural_head.json]
 Prints wall time (best of --repeat), per-phase times from a profile-free second pass, the
 process's peak resident memory (resource.getrusage ru_maxrss, which includes the interpreter and
-imports) and the mesh's own size, and writes them as JSON.  Target (brief): <= 10 s on 2 cores.
+imports) and the mesh's own size, and writes them as JSON.  Target: <= 10 s on 2 cores.
 """
 from __future__ import annotations
 

@@ -3,7 +3,7 @@
 Usage: python bench/bench_profile_table.py [--out bench/results/profiles_table.json]
        [--photons N] [--stack two_layer] [--seed S]
 
-Target (issue 12): a two-layer skin R(r) table with <= 1 % relative noise per ring over
+Target: a two-layer skin R(r) table with <= 1 % relative noise per ring over
 [0.05, 5] mm in all three channels, in <= 15 s on the 2-core machine.  It times
 ``optics.monte_carlo_table.monte_carlo_profiles`` (the stage's own call: diffusion guide,
 ring edges, weight window, OpenCL run) for the stack and reports photons/s, the noise reached per

@@ -1,5 +1,5 @@
 """Benchmark the layer-optics stage: layer-file build time, and every profile model's error
-against dermis's own Monte Carlo on the issue-12 cases and the skin presets.
+against dermis's own Monte Carlo on the layer files of scenes/layers/ and the skin presets.
 
 Usage: python bench/bench_profiles.py [--out bench/results/profiles.json] [--photons N]
        [--cases a,b,...]

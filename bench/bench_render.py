@@ -34,8 +34,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "bench" / "results"
 
-# Firefly: a pixel more than this times its converged luminance (the issue's "about 1 % of
-# head pixels" at 16 samples before anti-aliasing is this threshold, bench/results/
+# Firefly: a pixel more than this times its converged luminance ("about 1 % of head pixels"
+# at 16 samples before anti-aliasing is measured with this threshold, bench/results/
 # render_fireflies.json "before").
 FIREFLY_FACTOR = 1.5
 

@@ -62,9 +62,9 @@ def _stage_module(name: str, ref: str | None):
 
 def _child(cache: Path, nid: str, ref: str | None, arrays_out: Path) -> dict:
     """Run one node once; return its timings and save its arrays to ``arrays_out``."""
-    import open3d  # noqa: F401  (import cost is not the node's: the engine has it loaded)
-    import scipy.sparse  # noqa: F401
-    import scipy.spatial  # noqa: F401
+    import importlib
+    for preloaded in ("open3d", "scipy.sparse", "scipy.spatial"):
+        importlib.import_module(preloaded)   # import cost is not the node's: the engine has it
     from dermis.pipeline.api import RunContext
     from dermis.pipeline.graph import _load, _one_blas_thread
     nodes, keys, store = _graph(cache)

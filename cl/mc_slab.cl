@@ -91,7 +91,7 @@
 #endif
 /* Philox rounds of the tracer: 7 (Philox4x32-7, the fewest that pass BigCrush in Salmon et
  * al. 2011, Table 2) or 10 (the paper's safety margin).  A/B on two_layer (2-core AVX2
- * machine, PoCL): 10 -> 7 rounds 1.12x faster (docs/profiles.md "Monte Carlo speed"). */
+ * machine, PoCL): 10 -> 7 rounds 1.12x faster (docs/profiles.md "The Monte Carlo table"). */
 #ifndef PHILOX_ROUNDS
 #define PHILOX_ROUNDS 7
 #endif

@@ -3,7 +3,7 @@
  * One work-item per (surface point, light sample) pair that survived the host's culling
  * (above both horizons, unoccluded).  It writes
  *     L_s = f(wo, wi) * W_s * cos(theta_i)
- * and the host sums L_s per point, so the pixel is the estimator of pipeline/lights.py:
+ * and the host sums L_s per point, so the pixel is the estimator of lighting/emitters.py:
  * L_o = sum_s f(wo, wi_s) W_s cos(theta_s) V_s.  One item per sample instead of a loop over
  * samples keeps the body loop-free, so PoCL vectorises it across work-items
  * (docs/software.md, measured there).
@@ -11,7 +11,8 @@
  * Models (docs/science.md §1, §2, §5), chosen with -D DERMIS_BASE:
  *   0 lambert (albedo / pi, test material and asperity base), 1 lafortune
  *   (cl/brdf_lafortune.cl, albedo texture replaces rho_d as in the thesis), 2 hk93
- *   (cl/brdf_hk93.cl), -1 none (asperity term alone, for adding to a BSSRDF image).
+ *   (cl/brdf_hk93.cl), -1 none (the asperity term alone: a linear image a caller may add to
+ *   another, e.g. a BSSRDF image; no stage does).
  * -D DERMIS_ASPERITY=1 adds the Koenderink-Pont term (cl/asperity.cl) on top of the base:
  * "a term added on top of a skin model" (docs/science.md §5); the base is seen through the
  * asperity layer (asperity_transmit), which keeps the sum's albedo <= 1.

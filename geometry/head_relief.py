@@ -14,7 +14,7 @@ __all__ = ["detail_height", "grid_normals", "gauss", "lip_mask"]
 
 # Skin-detail amplitudes (mm).  Pore depth and wrinkle depths are of the order reported by
 # skin-replica profilometry (e.g. Lemperle et al. 2001 wrinkle scale; pores tens of microns);
-# the brief asks for 0.02-0.1 mm pores and somewhat deeper wrinkles.
+# the head uses 0.06 mm pores (0.02-0.1 mm in those sources) and somewhat deeper wrinkles.
 PORE_DEPTH = 0.06
 PORE_SPACING = 0.9             # facial pore density ~1 per mm^2
 MICRO_RELIEF = 0.015

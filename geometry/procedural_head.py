@@ -17,7 +17,7 @@ that UV space from anatomical region masks plus band-limited noise.  Eyeballs ar
 closed icospheres sitting in the sockets, textured in a strip at the top of the atlas.
 
 Frame: mm, Y up, face towards +Z, placed like the Lee Perry-Smith scan (nose tip near
-(0, -35, 51) mm, top of the head near y = 120 mm; see /work/shared/data/lps_head/README.md).
+(0, -35, 51) mm, top of the head near y = 120 mm; scenes/assets/README.md).
 """
 from __future__ import annotations
 

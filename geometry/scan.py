@@ -33,7 +33,8 @@ UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
 
 # glTF files known to store TEXCOORD_0 in OBJ convention (v = 0 at the image bottom) against the
 # glTF spec (v = 0 at the top).  Keyed by SHA-256 of the whole file, so only these exact bytes are
-# treated specially.  See /work/shared/data/lps_head/README.md ("UV pitfall").
+# treated specially: the three.js copy of the Lee Perry-Smith glb, whose v runs from the image
+# bottom (checked against all four of its maps; the shipped OBJ's UVs follow the OBJ rule).
 _GLTF_OBJ_CONVENTION_SHA256 = {
     "402b8a8ac9f03232e6d64b5962929703a069daf99d3c49ac8eb0e48bedc9c576":
         "three.js examples/models/gltf/LeePerrySmith/LeePerrySmith.glb",

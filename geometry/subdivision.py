@@ -35,7 +35,7 @@ __all__ = ["LPS_DISPLACEMENT_SCALE_MM", "LPS_DISPLACEMENT_MID", "make_high", "sa
 LPS_DISPLACEMENT_SCALE_MM = 6.69
 LPS_DISPLACEMENT_MID = 0.498
 
-# make_high: "already dense" if the mesh has at least this fraction of the requested count (brief).
+# make_high: "already dense" if the mesh has at least this fraction of the requested count.
 _DENSE_FRACTION = 0.8
 
 

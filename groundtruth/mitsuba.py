@@ -13,6 +13,7 @@ variant lacks, and one path at a time would take hours.
 """
 from __future__ import annotations
 
+
 import glob
 import importlib.util
 import os
@@ -68,7 +69,7 @@ def load_mitsuba(variant: str = "auto"):
         if lib:
             os.environ["DRJIT_LIBLLVM_PATH"] = lib
     # optional dependency (the ``reference`` extra): imported only once it is known present
-    import drjit  # noqa: F401
+    importlib.import_module("drjit")   # before mitsuba, with the libLLVM path set above
     import mitsuba as mi
     _STATE["drjit"] = True
     if variant != "auto":

@@ -121,6 +121,13 @@ def _scene_params(scene: dict, shared) -> AsperityParams:
     return AsperityParams(base=scene["asperity_base"])
 
 
+def _check_scene(stack, sections: dict, where: str) -> list[str]:
+    """What the base under the term needs of the scene (``[render] asperity_base``)."""
+    render = sections.get("render")
+    base = next((b for b in BASES if render is not None and b.name == render.asperity_base), None)
+    return base.check(stack, sections, where) if base is not None and base.check else []
+
+
 MODEL = Model(name="asperity", label="asperity", stage="render", doc="docs/science.md §5",
               params=AsperityParams, kernel=KERNELS[0], shade=(("DERMIS_ASPERITY", 1),),
-              bases=BASES, scene_params=_scene_params)
+              bases=BASES, scene_params=_scene_params, check=_check_scene)

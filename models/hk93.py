@@ -401,6 +401,28 @@ def _hk93_single_np(wo, wi, layers) -> np.ndarray:
     return f
 
 
+# The Hanrahan-Krueger model's range of a layer's (absolute) refractive index and its number
+# of layers of non-zero thickness (HK93Params validates them again when it is built)
+ETA_RANGE = (1.0, 3.0)
+LAYER_COUNTS = (1, 2)
+
+
+def check_scene(stack, sections: dict, where: str) -> list[str]:
+    """What the Hanrahan-Krueger model needs of the layer stack, checked at load."""
+    out = []
+    layers = [(i, l) for i, l in enumerate(stack.layers) if l.thickness_mm > 0]
+    lo, hi = ETA_RANGE
+    for i, l in layers:
+        if not lo <= l.eta <= hi:
+            out.append(f"{where}: optics.layers[{i}].eta = {l.eta:g}: must be in "
+                       f"[{lo:g}, {hi:g}] for the hk93 model (absolute refractive index; "
+                       "the Hanrahan-Krueger model's range)")
+    if not LAYER_COUNTS[0] <= len(layers) <= LAYER_COUNTS[1]:
+        out.append(f"{where}: optics: {len(layers)} layers of non-zero thickness; the hk93 "
+                   f"model takes {LAYER_COUNTS[0]} or {LAYER_COUNTS[1]}")
+    return out
+
+
 # The parameters of a layer stack, shared by the HK93 images of a run: building them
 # integrates the layers' albedo (~0.8 s), and the 12 HK93 images of a matrix read the same
 PARAMS_OF_STACK = Shared("hk93_params")
@@ -425,4 +447,4 @@ def _shade_albedo(params: HK93Params, albedo: np.ndarray, textured: bool) -> np.
 MODEL = Model(name="hk93", label="hk93", stage="render", doc="docs/science.md §2",
               params=HK93Params, kernel=KERNELS[0], shade=(("DERMIS_BASE", 2),), optics=True,
               scene_params=_scene_params, shade_albedo=_shade_albedo,
-              shares=(PARAMS_OF_STACK,))
+              shares=(PARAMS_OF_STACK,), check=check_scene)

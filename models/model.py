@@ -47,6 +47,10 @@ class Model:
         profile``)
     shares : the run-wide intermediates (``pipeline.shared.Shared`` kinds) its
         ``scene_params`` uses; the stage that renders it declares them
+    profiles : it reads the layer profiles (of ``profile``, else the scene's)
+    check : (validated layer stack, validated scene sections by name, file) -> problems:
+        what it needs of the scene, checked when the scene is loaded (the scene is refused
+        before any stage runs)
     """
 
     name: str
@@ -63,6 +67,8 @@ class Model:
     shade_albedo: Callable[[Any, Any, bool], Any] | None = None
     profile: str | None = None
     shares: tuple = ()
+    profiles: bool = False
+    check: Callable[[Any, dict, str], list] | None = None
 
     def checked(self, params, what: str):
         """``params`` (its defaults when None), else ConfigError: ``what`` must be

@@ -281,7 +281,8 @@ def parse_layer_stack(table: dict, *, where: str) -> LayerStack:
     """
     if not isinstance(table, dict):
         raise ConfigError(f"{where}: must be a table with [[layers]]")
-    # every problem is listed at once, like the rest of the scene validation (issue 16 item 9)
+    # every problem is listed at once, like the rest of the scene validation
+    # (docs/hardening.md "The rule")
     problems = _unknown(table.keys(), _TOP_KEYS, where, "")
     layers = table.get("layers")
     parsed: list = []

@@ -66,7 +66,7 @@ MC_DEPTH = 0.5
 # all three end with about the same noise (the pilot's photons are kept: monte_carlo_slab.combine).
 # Without it every channel gets the same photons and the slowest-converging channel sets the
 # count: on two_layer the blue far tail needs 3x the red's photons (bench/results/
-# profiles_table.json "allocation").  Below MC_PILOT_MIN pilot photons: equal shares.
+# profiles_table.json, "runs" photons_per_channel).  Below MC_PILOT_MIN pilot photons: equal shares.
 MC_PILOT = 0.1
 MC_PILOT_MIN = 2000
 NOISE_BAND_MM = (0.05, 5.0)
@@ -201,7 +201,8 @@ def monte_carlo_profiles(stack: LayerStack, *, photons: int = DEFAULT_MC_PHOTONS
     pilot_n = int(MC_PILOT * photons)
     if split and pilot_n >= MC_PILOT_MIN:
         # a pilot run measures each channel's noise per photon; the rest of the budget goes
-        # where it equalises the channels' final noise (docs/profiles.md "allocation")
+        # where it equalises the channels' final noise
+        # (docs/profiles.md "Photons shared among the channels")
         pilot = simulate(st, photons=pilot_n, seed=_pilot_seed(seed), **run)
         n_pilot = np.asarray(pilot.info["photons_per_channel"], np.float64)
         per_photon = n_pilot * np.square(_band_noise(pilot, band))   # noise^2 x photons

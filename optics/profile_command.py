@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from dermis.pipeline import cl as dcl
-from dermis.pipeline.config import MEMORY_ENV_VAR, machine_memory
+from dermis.pipeline.resources import MEMORY_ENV_VAR, machine_memory
 from dermis.pipeline.errors import DermisError
 from dermis.optics.fresnel import fresnel_normal
 from dermis.optics.layer_file import auto_grid

@@ -9,14 +9,17 @@ import errno
 import os
 import sys
 import traceback
+from pathlib import Path
 
-from .errors import DermisError
+import dermis
+
+from .errors import ConfigError, DermisError
 from .registry import COMMANDS, command
 
 __all__ = ["main"]
 
 
-def _progress_bars():
+def progress_bars():
     """A progress callback drawing one tqdm bar per running stage (stderr)."""
     from tqdm import tqdm
 
@@ -48,22 +51,10 @@ def cmd_run(args) -> int:
     print(f"scene {scene.path}  cache {api.cache_dir_for(scene, args.cache).resolve()}",
           file=sys.stderr)
     summary = api.run(scene, cache=args.cache, until=args.until, force=tuple(args.force or ()),
-                      device=args.device, progress=None if args.quiet else _progress_bars(),
+                      device=args.device, progress=None if args.quiet else progress_bars(),
                       jobs=args.jobs)
     print(summary.table())
     print(f"outputs in {os.path.join(scene.output.output_dir, scene.scene.name)}")
-    return 0
-
-
-def cmd_report(args) -> int:
-    """Build what the PDF report needs (renders, differences) and print where it is."""
-    from . import api
-    scene = _scene(args)
-    summary = api.run(scene, cache=args.cache, until="report", device=args.device,
-                      progress=None if args.quiet else _progress_bars(), jobs=args.jobs)
-    print(summary.table())
-    out = os.path.join(scene.output.output_dir, scene.scene.name, "report", "report.pdf")
-    print(f"report: {out}")
     return 0
 
 
@@ -107,6 +98,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = argparse.ArgumentParser(prog="dermis", description=(
         "Render faces with classic skin models side by side and measure them."))
+    p.add_argument("--version", action="version", version=f"dermis {dermis.__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
     def jobs(sp):
@@ -116,7 +108,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     def common(sp, scene_optional=True):
         sp.add_argument("scene", nargs="?" if scene_optional else None, default=None,
-                        help="scene TOML (default: the embedded procedural-head scene)")
+                        help="scene TOML (default: the embedded scene, scenes/default.toml)")
         sp.add_argument("--cache", default=None, help="cache directory (or $DERMIS_CACHE)")
 
     r = sub.add_parser("run", help="build what is stale for a scene")
@@ -128,13 +120,6 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--device", default=None, help="OpenCL device: P:D, P, or a name substring")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     r.set_defaults(func=cmd_run)
-
-    rp = sub.add_parser("report", help="build the renders, difference images and PDF report")
-    common(rp)
-    jobs(rp)
-    rp.add_argument("--device", default=None, help="OpenCL device: P:D, P, or a name substring")
-    rp.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
-    rp.set_defaults(func=cmd_report)
 
     s = sub.add_parser("status", help="what is cached, what is stale and why")
     common(s)
@@ -186,6 +171,22 @@ def user_fault(exc: BaseException) -> str | None:
     return None
 
 
+def check_text_file(path) -> None:
+    """Refuse a scene file that is not UTF-8 text (TOML is UTF-8), naming the file and the
+    first byte that is not: the commands' own readers raised a bare UnicodeDecodeError.  A
+    file that is missing or unreadable is left to them."""
+    try:
+        data = Path(path).read_bytes()
+    except OSError:
+        return
+    try:
+        data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not a text (UTF-8) file: byte 0x{data[exc.start]:02x} at "
+                          f"offset {exc.start} is not UTF-8 (scene files are TOML, which is "
+                          "UTF-8)") from None
+
+
 def main(argv: list[str] | None = None) -> int:
     try:
         parser = build_parser()
@@ -193,6 +194,8 @@ def main(argv: list[str] | None = None) -> int:
             args = parser.parse_args(argv)
         except SystemExit as exc:  # argparse: usage errors exit 2, --help exits 0
             return int(exc.code or 0)
+        if getattr(args, "scene", None):
+            check_text_file(args.scene)
         return int(args.func(args) or 0)
     except DermisError as exc:
         print(f"dermis: error: {exc}", file=sys.stderr)

@@ -5,13 +5,16 @@ A node's cache key must change when any code it executes changes, and only then
 from what happens to be imported: every ``import`` / ``from ... import`` statement
 of the stage module, function-local ones included, that names a module of the
 ``dermis`` package is followed, recursively.  Engine bookkeeping modules
-(:data:`NOT_RESULTS`: the executor, the store, the scene schema, the CLI) cannot
-change a stage's output and are neither hashed nor followed.  Every module in the
-closure may declare ``KERNELS`` (``.cl`` file names it builds); those files and
-the headers they ``#include`` are hashed too.
+(:data:`NOT_RESULTS`: the executor, the store, the planner, the scene checks and memory
+estimates, the CLI) cannot change a stage's output and are neither hashed nor followed;
+the scene schema (pipeline/config.py: its dataclasses and defaults, which stages rebuild
+their config slices from) is hashed like any module a stage imports.  Every module in the
+closure may declare ``KERNELS`` (``.cl`` file names it builds); those files and the
+headers they ``#include`` are hashed too.  A node also hashes the modules it names in
+``Node.code`` (the model a render node looks up by name).
 
-Probe: tests/test_codehash.py appends a comment to files and checks that exactly
-the nodes executing them get new keys.
+Probe: tests/test_structure.py (``PROBE``) appends a comment to files and checks that
+exactly the nodes executing them get new keys.
 """
 from __future__ import annotations
 
@@ -29,7 +32,8 @@ ROOT_PACKAGE = "dermis"
 NOT_RESULTS = frozenset({
     "dermis.pipeline.graph", "dermis.pipeline.store", "dermis.pipeline.api",
     "dermis.pipeline.cli", "dermis.pipeline.plan",
-    "dermis.pipeline.config", "dermis.pipeline.errors", "dermis.pipeline.codehash",
+    "dermis.pipeline.errors", "dermis.pipeline.codehash", "dermis.pipeline.resources",
+    "dermis.pipeline.scene_rules",
     "dermis.pipeline.registry", "dermis.pipeline", ROOT_PACKAGE,
 })
 

@@ -20,56 +20,25 @@ from pathlib import Path
 from typing import Any, get_type_hints
 
 from .errors import ConfigError
+from . import registry
+from .registry import model
+from .scene_rules import (check_camera, check_environment_file, check_reference,
+                          direction_problem, fmt, plain_name_problem)
 
-__all__ = ["Scene", "load_scene", "default_scene_path", "LENGTH_UNITS", "MODELS", "ASPERITY_BASES",
-           "THESIS_MODELS", "BSSRDF_MODELS", "MODEL_LABELS", "model_label", "profile_model",
-           "profiles_node_id",
-           "GEOMETRIES", "estimate_memory", "machine_memory", "resource_problems",
+__all__ = ["Scene", "load_scene", "default_scene_path", "LENGTH_UNITS", "GEOMETRIES",
            "scene_warnings"]
 
 LENGTH_UNITS = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
-# The four models in the thesis's order (measured BRDF, asperity, Hanrahan-Krueger, BSSRDF),
-# then the BSSRDF with the Monte Carlo-tabulated layer profile (issue 12, docs/profiles.md):
-# scene vocabulary, plan order, contact sheets and report grids all use this one tuple.
-MODELS = ("lafortune", "asperity", "hk93", "bssrdf", "bssrdf_mc")
-THESIS_MODELS = MODELS[:4]
-# BSSRDF models -> the layer-profile model their gather reads (None: the scene's [optics]
-# profile, "multipole" unless set); they share points, irradiance and visibility.
-BSSRDF_MODELS = {"bssrdf": None, "bssrdf_mc": "monte_carlo"}
-# How the images, sheets and the report name a model (the scene name where not listed).
-MODEL_LABELS = {"bssrdf_mc": "BSSRDF (Monte Carlo profile)"}
-
-
-def model_label(model: str) -> str:
-    """The name a model is shown under in the images and the report."""
-    return MODEL_LABELS.get(model, model)
-
-
-def profile_model(scene, model: str) -> str:
-    """The layer-profile model (``optics.layers.PROFILE_MODELS``) BSSRDF ``model`` reads."""
-    from dermis.optics.layers import DEFAULT_PROFILE_MODEL
-    return BSSRDF_MODELS[model] or getattr(scene.optics, "profile", DEFAULT_PROFILE_MODEL)
-
-
-def profiles_node_id(scene, profile: str) -> str:
-    """Id of the ``profiles`` node of layer-profile model ``profile``: ``profiles`` for the
-    scene's own ``[optics] profile``, ``profiles-<profile>`` for another (the ``bssrdf_mc``
-    images' Monte Carlo table beside a multipole scene).  The BSSRDF and report nodes name
-    their inputs with it."""
-    from dermis.optics.layers import DEFAULT_PROFILE_MODEL
-    own = getattr(scene.optics, "profile", DEFAULT_PROFILE_MODEL)
-    return "profiles" if profile == own else f"profiles-{profile}"
-# Models the asperity term can sit on (docs/science.md §5); the BSSRDF is not one of them.
-ASPERITY_BASES = ("lambert", "lafortune", "hk93")
 GEOMETRIES = ("high", "low", "low_bump", "low_bump_blur")
 LIGHT_TYPES = ("point", "disc", "directional", "environment")
 
 
 def spec(default=MISSING, *, lo=None, hi=None, lo_open=False, hi_open=False, choices=None,
-         unit=None, doc="", factory=None):
-    """A dataclass field with validation metadata."""
+         unit=None, doc="", factory=None, names=False):
+    """A dataclass field with validation metadata.  A tuple field is a vector of 3 numbers,
+    unless it has ``choices`` or ``names`` (a list of strings: names of lights)."""
     meta = dict(lo=lo, hi=hi, lo_open=lo_open, hi_open=hi_open, choices=choices, unit=unit,
-                doc=doc)
+                doc=doc, names=names)
     if factory is not None:
         return field(default_factory=factory, metadata=meta)
     return field(default=default, metadata=meta)
@@ -144,17 +113,19 @@ class LightConfig:
 @dataclass(frozen=True)
 class RenderConfig:
     # default: the thesis's four; bssrdf_mc costs a Monte Carlo table (docs/profiles.md)
-    models: tuple = spec(THESIS_MODELS, choices=MODELS, doc="models to render (bssrdf is the reference "
-                                                     "of the difference images; bssrdf_mc: the "
-                                                     "BSSRDF with the Monte Carlo profile)")
-    lights: tuple = spec((), doc='lighting conditions to render: names of [[lights]], "a+b" '
-                                "lights several together (the thesis's two directional "
-                                "lights); empty = each light alone")
+    # the registered models (dermis.MODELS), read when a scene is checked: plugins may add some
+    models: tuple = spec(registry.default_models(), choices=registry.model_names,
+                         doc="models to render (bssrdf is the reference of the difference "
+                             "images; bssrdf_mc: the BSSRDF with the Monte Carlo profile)")
+    lights: tuple = spec((), names=True,
+                         doc='lighting conditions to render: names of [[lights]], "a+b" '
+                             "lights several together (the thesis's two directional "
+                             "lights); empty = each light alone")
     geometries: tuple = spec(("high", "low_bump", "low_bump_blur"), choices=GEOMETRIES,
                              doc="high mesh; low mesh plain, with the sharp or the blurred bump map")
     # Lambert default: in the thesis's timings asperity renders beat Lafortune for every light
     # (docs/science.md §7), so its base cannot have been a costlier model (an inference; see asperity.cl)
-    asperity_base: str = spec("lambert", choices=ASPERITY_BASES,
+    asperity_base: str = spec("lambert", choices=registry.term_bases,
                               doc="model under the asperity term")
     # Measured (bench/bench_render.py --spp, bench/results/render_spp.json; Lafortune, high
     # mesh): point light, error vs 64 spp over the head 0.0196 / 0.0110 / 0.0058 / 0.0039 at
@@ -210,7 +181,8 @@ class ReferenceConfig:
     height: int = spec(100, lo=1, hi=16384, doc="pixels; must divide camera.height")
     spp: int = spec(256, lo=1, hi=1 << 20, doc="samples per pixel of each of the two seeds")
     seed: int = spec(1, lo=0, hi=30000, doc="the two independent renders use seeds 2 seed and 2 seed + 1")
-    lights: tuple = spec((), doc="lighting conditions to reference (names as in [render] lights); empty = all")
+    lights: tuple = spec((), names=True,
+                         doc="lighting conditions to reference (names as in [render] lights); empty = all")
     roughness: float = spec(0.3, lo=0.0, lo_open=True, hi=1.0, doc="GGX alpha of the skin boundary")
     # ground-truth.md trap 7, and rr_depth measured here: Mitsuba's Russian roulette keeps a
     # path with probability <= 0.99 per event, so in skin (hundreds of events) it biases red
@@ -285,76 +257,88 @@ class _Problems(list):
         self.append(f"{where}: {key}{msg}")
 
 
-def _fmt(value) -> str:
-    if isinstance(value, str):
-        return f'"{value}"'
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_fmt(v) for v in value) + "]"
-    return repr(value)
-
-
 def _did_you_mean(key: str, allowed) -> str:
     close = difflib.get_close_matches(key, list(allowed), n=1, cutoff=0.6)
     return f" (did you mean '{close[0]}'?)" if close else ""
+
+
+# Largest coordinate or size, in mm, after the unit conversion.  The renderer squares
+# distances between points in float32 (a light sample's |q - p|^2, lighting/emitters.py),
+# which overflows (3.4e38) beyond |q - p| ~ 1.8e19 mm; two points within 1e18 mm of the
+# origin are at most 2 sqrt(3) 1e18 mm apart, 1.2e37 squared (a light-year is 9.5e18 mm).
+MAX_LENGTH_MM = 1e18
+UNIT_NAMES = {scale: name for name, scale in LENGTH_UNITS.items()}
 
 
 def _check_number(value, meta, where, key, problems, *, integer: bool, scale: float) -> Any:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or (
             integer and not isinstance(value, int)):
         kind = "an integer" if integer else "a number"
-        problems.add(where, key, f" = {_fmt(value)}: must be {kind}")
+        problems.add(where, key, f" = {fmt(value)}: must be {kind}")
         return None
     if not math.isfinite(value):
-        problems.add(where, key, f" = {_fmt(value)}: must be finite")
+        problems.add(where, key, f" = {fmt(value)}: must be finite")
         return None
     lo, hi = meta.get("lo"), meta.get("hi")
-    unit = " (mm)" if meta.get("unit") == "length" else ""
+    length = meta.get("unit") == "length"
+    unit = f" ({UNIT_NAMES.get(scale, 'mm')})" if length else ""
     if lo is not None and (value < lo or (meta.get("lo_open") and value == lo)):
         rel = ">" if meta.get("lo_open") else ">="
-        problems.add(where, key, f" = {_fmt(value)}{unit}: must be {rel} {lo}")
+        problems.add(where, key, f" = {fmt(value)}{unit}: must be {rel} {lo}")
         return None
     if hi is not None and (value > hi or (meta.get("hi_open") and value == hi)):
         rel = "<" if meta.get("hi_open") else "<="
-        problems.add(where, key, f" = {_fmt(value)}{unit}: must be {rel} {hi}")
+        problems.add(where, key, f" = {fmt(value)}{unit}: must be {rel} {hi}")
         return None
-    return value * scale if scale != 1.0 else value
+    out = value * scale if scale != 1.0 else value
+    if length and not abs(out) <= MAX_LENGTH_MM:
+        problems.add(where, key, f" = {fmt(value)}{unit}: is {float(out):g} mm; a length "
+                     f"must be at most {MAX_LENGTH_MM:g} mm in magnitude (the renderer squares "
+                     "distances in single precision, which overflows beyond)")
+        return None
+    return out
 
 
 def _check_value(value, tp, meta, where, key, problems, length_scale):
     scale = length_scale if meta.get("unit") == "length" else 1.0
-    choices = meta.get("choices")
+    choices = _choices(meta)
     if tp is bool:
         if not isinstance(value, bool):
-            problems.add(where, key, f" = {_fmt(value)}: must be true or false")
+            problems.add(where, key, f" = {fmt(value)}: must be true or false")
             return None
         return value
     if tp is int or tp is float:
         return _check_number(value, meta, where, key, problems, integer=tp is int, scale=scale)
     if tp is str:
         if not isinstance(value, str):
-            problems.add(where, key, f" = {_fmt(value)}: must be a string")
+            problems.add(where, key, f" = {fmt(value)}: must be a string")
             return None
         if choices and value not in choices:
-            problems.add(where, key, f" = {_fmt(value)}: must be one of "
-                         + ", ".join(_fmt(c) for c in choices) + _did_you_mean(value, choices))
+            problems.add(where, key, f" = {fmt(value)}: must be one of "
+                         + ", ".join(fmt(c) for c in choices) + _did_you_mean(value, choices))
             return None
         return value
-    if tp is tuple:  # vectors of numbers, or lists of choices / names
+    if tp is tuple:  # vectors of 3 numbers, or lists of choices / names
         if not isinstance(value, list):
-            problems.add(where, key, f" = {_fmt(value)}: must be an array")
+            problems.add(where, key, f" = {fmt(value)}: must be an array")
             return None
         if choices:
             bad = [v for v in value if v not in choices]
             if bad:
-                problems.add(where, key, f" = {_fmt(value)}: {_fmt(bad[0])} is not one of "
-                             + ", ".join(_fmt(c) for c in choices)
+                problems.add(where, key, f" = {fmt(value)}: {fmt(bad[0])} is not one of "
+                             + ", ".join(fmt(c) for c in choices)
                              + _did_you_mean(str(bad[0]), choices))
                 return None
             return tuple(value)
-        if all(isinstance(v, str) for v in value):
+        if meta.get("names"):
+            bad = [v for v in value if not isinstance(v, str)]
+            if bad:
+                problems.add(where, key, f" = {fmt(value)}: {fmt(bad[0])} is not a string; "
+                             "must be an array of names (strings)")
+                return None
             return tuple(value)
         if len(value) != 3:
-            problems.add(where, key, f" = {_fmt(value)}: must have 3 numbers")
+            problems.add(where, key, f" = {fmt(value)}: must have 3 numbers")
             return None
         out = [_check_number(v, meta, where, f"{key}[{i}]", problems, integer=False, scale=scale)
                for i, v in enumerate(value)]
@@ -365,7 +349,7 @@ def _check_value(value, tp, meta, where, key, problems, length_scale):
 def _build(cls, table, where: str, prefix: str, problems: _Problems, length_scale: float):
     """Validate ``table`` against dataclass ``cls``; collect problems, return instance or None."""
     if not isinstance(table, dict):
-        problems.add(where, prefix.rstrip("."), f" = {_fmt(table)}: must be a table")
+        problems.add(where, prefix.rstrip("."), f" = {fmt(table)}: must be a table")
         return None
     hints = get_type_hints(cls)
     known = {f.name: f for f in fields(cls) if f.name != "path"}
@@ -404,12 +388,19 @@ def _fmt_default(f) -> str:
         return f"{int(v):,}"
     if isinstance(v, int) and not isinstance(v, bool) and abs(v) >= 1e4:
         return f"{v:,}"
-    return _fmt(v).replace("True", "true").replace("False", "false")
+    return fmt(v).replace("True", "true").replace("False", "false")
+
+
+def _choices(meta) -> tuple | None:
+    """A field's allowed values: a tuple, or a function giving them (the registered models,
+    which plugins may extend)."""
+    choices = meta.get("choices")
+    return choices() if callable(choices) else choices
 
 
 def _fmt_rule(meta) -> str:
-    if meta.get("choices"):
-        return "one of " + ", ".join(str(c) for c in meta["choices"])
+    if _choices(meta):
+        return "one of " + ", ".join(str(c) for c in _choices(meta))
     parts = []
     if meta.get("lo") is not None:
         parts.append((">" if meta.get("lo_open") else ">=") + f" {meta['lo']}")
@@ -477,140 +468,6 @@ def load_scene(path: str | Path | None = None, *, overrides: dict | None = None)
     return scene_from_dict(table, where=where, overrides=overrides)
 
 
-def _not_plain_name(value: str, extra: str = "") -> str | None:
-    """Why ``value`` cannot be used as one file-name component (None if it can)."""
-    if not value.strip():
-        return "must not be empty"
-    if value in (".", "..") or value.startswith("."):
-        return "must not start with '.'"
-    bad = [c for c in "/\\" + extra if c in value]
-    if bad:
-        return f"must be a plain name without {' or '.join(repr(c) for c in bad)}"
-    if any(ord(c) < 32 or ord(c) == 127 for c in value):
-        return "must not contain control characters"
-    if len(value.encode()) > 100:
-        return "must be at most 100 bytes long"
-    return None
-
-
-def _check_camera(camera: CameraConfig, where: str) -> list[str]:
-    """The camera problems the renderer would otherwise find only after the mesh stages."""
-    out = []
-    pos, look, up = camera.position, camera.look_at, camera.up
-    fwd = [b - a for a, b in zip(pos, look)]
-    nf = math.sqrt(sum(x * x for x in fwd))
-    nu = math.sqrt(sum(x * x for x in up))
-    if not nf > 0:
-        out.append(f"{where}: camera.look_at = {_fmt(look)}: must differ from camera.position "
-                   f"= {_fmt(pos)}")
-    elif not nu > 0:
-        out.append(f"{where}: camera.up = {_fmt(up)}: must not be zero")
-    else:
-        cross = (fwd[1] * up[2] - fwd[2] * up[1], fwd[2] * up[0] - fwd[0] * up[2],
-                 fwd[0] * up[1] - fwd[1] * up[0])
-        if not math.sqrt(sum(x * x for x in cross)) > 1e-9 * nf * nu:
-            out.append(f"{where}: camera.up = {_fmt(up)}: must not be parallel to the view "
-                       f"direction camera.look_at - camera.position = {_fmt(tuple(fwd))}")
-    return out
-
-
-def _check_environment_file(path: Path, where: str, key: str, value: str) -> list[str]:
-    """Header check of an environment map file (the pixels are read by the stages)."""
-    try:
-        import OpenImageIO as oiio
-    except ImportError:  # pragma: no cover - a dependency
-        return []
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        reason = oiio.geterror().strip() or "not an image format OpenImageIO reads"
-        return [f"{where}: {key} = {_fmt(value)}: cannot be read as an image ({reason}); "
-                "give a lat-long HDR or EXR file"]
-    try:
-        spec = inp.spec()
-        if spec.width < 2 or spec.height < 1:
-            return [f"{where}: {key} = {_fmt(value)}: the image is {spec.width} x "
-                    f"{spec.height} pixels; a lat-long map needs at least 2 x 1"]
-    finally:
-        inp.close()
-    return []
-
-
-# --------------------------------------------------------------------------- resources
-# Peak memory of the stages that grow with a scene setting, fitted to measured peaks
-# (docs/hardening.md "Memory estimates": resident set size of `dermis run --until STAGE`
-# on the procedural head, 2-core PoCL machine).  Bytes.
-MEMORY_BASE = 300 << 20          # interpreter, numpy, open3d, OpenCL runtime (measured 290 MB)
-RENDER_BYTES_PER_PIXEL = 104     # BRDF render: camera rays, hits, surface attributes, image
-BSSRDF_BYTES_PER_PIXEL = 180     # BSSRDF render: the same plus gather queries and exitance
-RENDER_BATCH_BYTES = 300 << 20   # light samples of one batch (render.CHUNK_SAMPLES)
-BAKE_BYTES_PER_TEXEL = 48        # rasterised positions/normals, bake rays, maps, blur
-POINT_BYTES = 2800               # sample points: candidates, kd-trees, partition-of-unity areas
-# Surface area of the embedded procedural head (mm^2, measured at 2k-60k triangles: 1.55e5
-# to 1.59e5); a scan is assumed head-sized, twice that (the LPS head: 3.7e5 mm^2).
-HEAD_AREA_MM2 = {"procedural": 1.6e5, "scan": 4.0e5}
-MEMORY_ENV_VAR = "DERMIS_MEMORY_MB"   # override the machine memory the check compares with
-
-
-def machine_memory() -> int:
-    """Bytes of memory this process may use: ``$DERMIS_MEMORY_MB``, else the smaller of the
-    machine's physical memory and the cgroup limit."""
-    import os
-    env = os.environ.get(MEMORY_ENV_VAR, "").strip()
-    if env:
-        try:
-            return int(float(env) * (1 << 20))
-        except ValueError:
-            raise ConfigError(f"${MEMORY_ENV_VAR} = {env!r}: must be a number of MiB") from None
-    total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    for limit in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
-        try:
-            text = Path(limit).read_text().strip()
-        except OSError:
-            continue
-        if text.isdigit():
-            total = min(total, int(text))
-    return total
-
-
-def estimate_memory(scene: Scene) -> list[tuple[str, str, int]]:
-    """Estimated peak bytes of the stages that grow with a setting: (what, key, bytes)."""
-    out = []
-    cam = scene.camera
-    renders = bool(scene.render.models and scene.lights and scene.render.geometries)
-    if renders:
-        px = cam.width * cam.height
-        per_px = (BSSRDF_BYTES_PER_PIXEL if set(BSSRDF_MODELS) & set(scene.render.models)
-                  else RENDER_BYTES_PER_PIXEL)
-        out.append((f"rendering {cam.width} x {cam.height} pixels", "camera.width, camera.height",
-                    MEMORY_BASE + RENDER_BATCH_BYTES + per_px * px))
-    if set(scene.render.geometries) & {"low_bump", "low_bump_blur"}:
-        n = scene.bake.resolution
-        out.append((f"baking {n} x {n} texels", "bake.resolution",
-                    MEMORY_BASE + BAKE_BYTES_PER_TEXEL * n * n))
-    if renders and set(BSSRDF_MODELS) & set(scene.render.models) and scene.optics is not None:
-        pairs = [(a, s) for l in scene.optics.layers if l.thickness_mm > 0
-                 for a, s in zip(l.sigma_a, l.sigma_s_prime)]
-        if pairs:
-            mfp = min(1.0 / (a + s) for a, s in pairs)
-            kind = "procedural" if scene.mesh.source == "procedural" else "scan"
-            points = HEAD_AREA_MM2[kind] * scene.bssrdf.point_density / (math.pi * mfp * mfp)
-            out.append((f"about {points:.3g} irradiance points", "bssrdf.point_density",
-                        MEMORY_BASE + int(POINT_BYTES * points)))
-    return out
-
-
-def resource_problems(scene: Scene) -> list[str]:
-    """Settings whose estimated peak memory exceeds the machine's (see :func:`estimate_memory`)."""
-    have = machine_memory()
-    out = []
-    for what, key, need in estimate_memory(scene):
-        if need > have:
-            out.append(f"{key}: {what} needs about {need / 2**30:.1f} GiB at its peak; this "
-                       f"machine has {have / 2**30:.1f} GiB (${MEMORY_ENV_VAR} overrides); "
-                       f"lower {key}")
-    return out
-
-
 def scene_warnings(scene: Scene) -> list[str]:
     """Settings that validate but make a run useless (it would render nothing, or black)."""
     where = scene.path
@@ -627,15 +484,21 @@ def scene_warnings(scene: Scene) -> list[str]:
                                              else (l.scale,))]
         if r.models and r.geometries and len(dark) == len(lights):
             keys = ", ".join(f"lights.{l.name}." + ("scale = 0.0" if l.type == "environment"
-                                                    else f"intensity = {_fmt(l.intensity)}")
+                                                    else f"intensity = {fmt(l.intensity)}")
                              for l in dark)
-            out.append(f"{where}: lighting condition {_fmt(label)} emits no light ({keys}); "
+            out.append(f"{where}: lighting condition {fmt(label)} emits no light ({keys}); "
                        "its renders will be black")
-    both = [m for m in BSSRDF_MODELS if m in r.models]
-    if len(both) > 1 and len({profile_model(scene, m) for m in both}) == 1:
-        out.append(f"{where}: render.models has bssrdf and bssrdf_mc, but optics.profile = "
-                   f"{_fmt(profile_model(scene, 'bssrdf'))} makes them the same image (drop "
-                   "optics.profile to compare the multipole with the Monte Carlo profile)")
+    own = getattr(scene.optics, "profile", None)
+    readers: dict = {}      # layer-profile model -> the rendered models that read it
+    for name in r.models:
+        m = model(name)
+        if m.profiles:
+            readers.setdefault(m.profile or own, []).append(name)
+    for profile, names in readers.items():
+        if len(names) > 1:
+            out.append(f"{where}: render.models has {' and '.join(names)}, but optics.profile = "
+                       f"{fmt(profile)} makes them the same image (drop optics.profile to "
+                       "compare the multipole with the Monte Carlo profile)")
     return out
 
 
@@ -665,17 +528,18 @@ def _merge(base: dict, over: dict) -> dict:
 
 def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | None = None) -> Scene:
     """Validate an already-parsed scene table (see :func:`load_scene`)."""
-    from dermis.optics.layers import (parse_layer_stack, PRESETS, split_profile_options,
-                                       with_profile)  # layer optics own their validation
+    layers = registry.section("optics")      # the layer optics own their validation
+    parse_layer_stack, PRESETS = layers.parse_layer_stack, layers.PRESETS
+    split_profile_options, with_profile = layers.split_profile_options, layers.with_profile
 
     if overrides:
         table = _merge(table, overrides)
     problems = _Problems()
     units = table.get("scene", {}).get("units", "mm") if isinstance(table.get("scene"), dict) else "mm"
-    length_scale = LENGTH_UNITS.get(units, 1.0)
+    length_scale = LENGTH_UNITS.get(units, 1.0) if isinstance(units, str) else 1.0  # else: refused
     body = {k: v for k, v in table.items() if k not in ("lights", "optics", "sweep")}
     if "sweep" in table and not isinstance(table["sweep"], dict):  # checked by `dermis sweep`
-        problems.add(where, "sweep", f" = {_fmt(table['sweep'])}: must be a table ([sweep])")
+        problems.add(where, "sweep", f" = {fmt(table['sweep'])}: must be a table ([sweep])")
     scene = _build(Scene, body, where, "", problems, length_scale)
 
     lights, light_index = [], []
@@ -690,27 +554,31 @@ def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | No
             light_index.append(i)
     for k, light in enumerate(lights):  # map paths are relative to the scene file
         i = light_index[k]
-        why = _not_plain_name(light.name, extra="+")
+        why = plain_name_problem(light.name, extra="+")
         if why:
-            problems.add(where, f"lights[{i}].name", f" = {_fmt(light.name)}: {why} (light "
+            problems.add(where, f"lights[{i}].name", f" = {fmt(light.name)}: {why} (light "
                          "names become parts of output file names; '+' joins lights in "
                          "render.lights)")
-        if light.type in ("directional", "disc") and not any(light.direction):
-            problems.add(where, f"lights[{i}].direction", f" = {_fmt(light.direction)}: must "
-                         f"not be zero (the {light.type} light's "
+        why = direction_problem(light.direction)
+        if light.type in ("directional", "disc") and why:
+            problems.add(where, f"lights[{i}].direction", f" = {fmt(light.direction)}: {why} "
+                         f"(the {light.type} light's "
                          + ("direction towards the light)" if light.type == "directional"
                             else "disc normal)"))
         if light.type == "environment" and light.map != "procedural_sunset":
             p = _resolve(light.map, where)
             if not p.is_file():
-                problems.add(where, f"lights[{i}].map", f" = {_fmt(light.map)}: file not found "
+                problems.add(where, f"lights[{i}].map", f" = {fmt(light.map)}: file not found "
                              f'({p}); use "procedural_sunset" for the embedded sky')
             else:
-                problems += _check_environment_file(p, where, f"lights[{i}].map", light.map)
+                problems += check_environment_file(p, where, f"lights[{i}].map", light.map)
             lights[k] = replace(light, map=str(p.resolve()))
     names = [l.name for l in lights]
+    # lights refused above keep their names for render.lights (one problem, not two)
+    named = names + [lt["name"] for lt in raw_lights if isinstance(lt, dict)
+                     and isinstance(lt.get("name"), str) and lt["name"] not in names]
     for n in {n for n in names if names.count(n) > 1}:
-        problems.add(where, "lights", f": name {_fmt(n)} is used twice; names must be unique")
+        problems.add(where, "lights", f": name {fmt(n)} is used twice; names must be unique")
 
     optics = table.get("optics", {"preset": "two_layer"})
     stack = None
@@ -719,15 +587,15 @@ def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | No
         optics, profile, bad = split_profile_options(optics, where=f"{where}: optics")
         problems.extend(bad)
     if not isinstance(optics, dict):
-        problems.add(where, "optics", f" = {_fmt(optics)}: must be a table")
+        problems.add(where, "optics", f" = {fmt(optics)}: must be a table")
     elif "preset" in optics:
         extra = set(optics) - {"preset"}
         if extra:
             problems.add(where, "optics", f": preset and {sorted(extra)} conflict; give either "
                          "preset or an explicit [[optics.layers]] stack")
-        elif optics["preset"] not in PRESETS:
-            problems.add(where, "optics.preset", f" = {_fmt(optics['preset'])}: must be one of "
-                         + ", ".join(_fmt(p) for p in PRESETS)
+        elif not isinstance(optics["preset"], str) or optics["preset"] not in PRESETS:
+            problems.add(where, "optics.preset", f" = {fmt(optics['preset'])}: must be one of "
+                         + ", ".join(fmt(p) for p in PRESETS)
                          + _did_you_mean(str(optics["preset"]), PRESETS))
         else:
             stack = PRESETS[optics["preset"]]
@@ -741,44 +609,53 @@ def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | No
 
     # cross-field checks run on every table that validated, even when another did not
     sc = scene if scene is not None else _sections(body, where, length_scale)
-    why = _not_plain_name(sc.scene.name) if sc.scene is not None else None
+    why = plain_name_problem(sc.scene.name) if sc.scene is not None else None
     if why:
-        problems.add(where, "scene.name", f" = {_fmt(sc.scene.name)}: {why} (outputs go "
+        problems.add(where, "scene.name", f" = {fmt(sc.scene.name)}: {why} (outputs go "
                      "to output_dir/<scene.name>/)")
     render = sc.render
     if render is not None:
         for label in render.lights:
             parts = label.split("+")
             for n in parts:
-                if n not in names:
-                    problems.add(where, "render.lights", f": {_fmt(n)} (in {_fmt(label)}) names "
+                if n not in named:
+                    problems.add(where, "render.lights", f": {fmt(n)} (in {fmt(label)}) names "
                                  "no [[lights]] entry; defined: "
-                                 + (", ".join(_fmt(x) for x in names) or "none"))
+                                 + (", ".join(fmt(x) for x in named) or "none"))
             for n in sorted({n for n in parts if parts.count(n) > 1}):
-                problems.add(where, "render.lights", f": {_fmt(label)} names light {_fmt(n)} "
+                problems.add(where, "render.lights", f": {fmt(label)} names light {fmt(n)} "
                              f"{parts.count(n)} times; each light may appear once in a lighting "
                              "condition (raise its intensity to brighten it)")
         for key in ("lights", "models", "geometries"):
             values = getattr(render, key)
             for v in sorted({v for v in values if values.count(v) > 1}):
-                problems.add(where, f"render.{key}", f": {_fmt(v)} is listed twice; list each "
+                problems.add(where, f"render.{key}", f": {fmt(v)} is listed twice; list each "
                              "once")
         if render.models and not raw_lights:
             problems.add(where, "lights", f": no [[lights]] defined, but render.models = "
-                         f"{_fmt(list(render.models))} need at least one light (or set "
+                         f"{fmt(list(render.models))} need at least one light (or set "
                          "render.models = [] to prepare the meshes only)")
     if sc.camera is not None:
-        problems += _check_camera(sc.camera, where)
+        problems += check_camera(sc.camera, where)
+    if render is not None and stack is not None:   # what each rendered model needs
+        for name in render.models:
+            check = model(name).check
+            found = check(stack, dict(vars(sc)), where) if check is not None else []
+            problems += [p for p in found if p not in problems]   # bssrdf_mc shares bssrdf's
+    given = table.get("reference")
+    if sc.reference is not None and not sc.reference.enabled and isinstance(given, dict):
+        labels = (render.lights or tuple(names)) if render is not None else None
+        problems += check_reference(sc.reference, set(given), sc.camera, labels, where)
     if sc.mesh is not None:
         if sc.mesh.source != "procedural":
             p = _resolve(sc.mesh.source, where)
             if not p.is_file():
-                problems.add(where, "mesh.source", f" = {_fmt(sc.mesh.source)}: file not found "
+                problems.add(where, "mesh.source", f" = {fmt(sc.mesh.source)}: file not found "
                              f"({p}); use \"procedural\" for the embedded head")
         for key in ("texture", "displacement"):
             val = getattr(sc.mesh, key)
             if val and not _resolve(val, where).is_file():
-                problems.add(where, f"mesh.{key}", f" = {_fmt(val)}: file not found "
+                problems.add(where, f"mesh.{key}", f" = {fmt(val)}: file not found "
                              f"({_resolve(val, where)})")
         if sc.mesh.low_triangles >= sc.mesh.high_triangles:
             problems.add(where, "mesh.low_triangles", f" = {sc.mesh.low_triangles}: must be "
@@ -787,6 +664,7 @@ def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | No
         raise ConfigError("\n".join(problems))
     out = Scene(**{**{f.name: getattr(scene, f.name) for f in fields(Scene)},
                    "lights": tuple(lights), "optics": stack, "path": where})
+    from .resources import resource_problems   # resources reads this module's vocabulary
     problems += [f"{where}: {p}" for p in resource_problems(out)]
     if problems:
         raise ConfigError("\n".join(problems))

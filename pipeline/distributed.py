@@ -11,7 +11,10 @@ is retried and, stages being deterministic, writes the same bytes.
 """
 from __future__ import annotations
 
+import contextlib
+import logging
 import os
+import signal
 import time
 from dataclasses import dataclass, field
 
@@ -22,6 +25,9 @@ from .store import Store
 __all__ = ["run_graphs", "DistributedStats"]
 
 TASK_RETRIES = 2   # a killed worker's task is resubmitted this many times
+# Seconds to reach a ``--scheduler`` before giving up (Dask's own default, 30 s, left a
+# mistyped address hanging that long before its OSError).
+CONNECT_TIMEOUT_S = 10
 
 
 @dataclass
@@ -203,7 +209,8 @@ def local_cluster(workers: int, threads: int | None = None):
     try:
         with dask.config.set(unset):       # read when the nannies are made, below
             return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                dashboard_address=None, env=worker_environment(threads))
+                                dashboard_address=None, env=worker_environment(threads),
+                                preload=[__name__])   # dask_setup: Ctrl-C left to this process
     finally:
         for k in set(os.environ) | set(saved):     # only what changed
             if k not in saved:
@@ -212,14 +219,91 @@ def local_cluster(workers: int, threads: int | None = None):
                 os.environ[k] = saved[k]
 
 
-def _run_dask(tasks, cache_root, device, workers, scheduler, progress, warm) -> dict:
-    from dask.distributed import Client, as_completed
+def dask_setup(worker) -> None:
+    """Preload of the local workers (``local_cluster``): Ctrl-C is the submitting process's
+    to handle (it closes the cluster); a worker process interrupted on its own printed its own
+    traceback over the message.  The worker state machine's one warning, a running task
+    cancelled, is logged only while the worker closes (distributed/worker_state_machine.py
+    ``_finish_async_instruction``): after an interrupt or a failure reported anyway."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    logging.getLogger("distributed.worker.state_machine").setLevel(logging.ERROR)
 
-    cluster = None
+
+def connect(scheduler: str | None, cluster=None):
+    """A Dask client of ``scheduler`` (an address) or of a local ``cluster``; an address that
+    is malformed or answers nothing within :data:`CONNECT_TIMEOUT_S` is a :class:`DermisError`
+    naming it."""
+    from dask.distributed import Client
     if scheduler is None:
-        cluster = local_cluster(workers)
-    client = Client(scheduler or cluster)
+        return Client(cluster)
     try:
+        return Client(scheduler, timeout=CONNECT_TIMEOUT_S)
+    except ValueError as exc:     # distributed's address parser
+        raise DermisError(f"--scheduler {scheduler!r}: not a Dask scheduler address ({exc}); "
+                          "give one as tcp://HOST:PORT, or leave --scheduler out to run local "
+                          "workers") from None
+    except OSError as exc:        # refused, unreachable, or timed out
+        raise DermisError(f"--scheduler {scheduler!r}: no Dask scheduler answered within "
+                          f"{CONNECT_TIMEOUT_S} s ({exc}); start one (dask scheduler) and its "
+                          "workers, or leave --scheduler out to run local workers") from None
+
+
+def _killed(exc) -> DermisError:
+    """The message of a task whose worker process died every time it ran it."""
+    task = getattr(exc, "task", "?")
+    worker = getattr(getattr(exc, "last_worker", None), "address", None) or "?"
+    tries = getattr(exc, "allowed_failures", 0) + 1
+    return DermisError(f"node {str(task).rsplit('-', 1)[0]}: the worker process running it "
+                       f"died {tries} times (last on {worker}), killed from outside or out of "
+                       "memory; finished nodes stay cached: lower the scene's memory needs "
+                       "(camera size, bake.resolution, bssrdf.point_density) or use fewer "
+                       "--workers, and run again")
+
+
+@contextlib.contextmanager
+def _sigint_deferred():
+    """Hold Ctrl-C back while a local cluster starts: delivered (as KeyboardInterrupt) once
+    the cluster exists and can be closed.  Interrupted mid-start, a cluster was left half
+    made (its exit handler's traceback) and worker processes still importing printed theirs.
+    A signal blocked here stays blocked in the processes (and the event-loop thread)
+    started meanwhile, so the workers leave Ctrl-C to this process from their first
+    instruction (:func:`dask_setup` covers workers started later)."""
+    if not hasattr(signal, "pthread_sigmask"):     # not POSIX: nothing to hold back
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+@contextlib.contextmanager
+def _quiet_dask(quiet: bool):
+    """With ``quiet``, silence distributed's loggers in this process (its scheduler, nannies
+    and client) for the block, then restore them: closing a cluster whose tasks were
+    interrupted or lost logs the cancelled tasks' tracebacks over the message."""
+    log = logging.getLogger("distributed")
+    level = log.level
+    if quiet:
+        log.setLevel(logging.CRITICAL + 1)
+    try:
+        yield
+    finally:
+        log.setLevel(level)
+
+
+def _run_dask(tasks, cache_root, device, workers, scheduler, progress, warm) -> dict:
+    from dask.distributed import as_completed
+    from distributed.scheduler import KilledWorker
+
+    cluster = client = None
+    quiet = False       # closing after an interrupt or a lost worker: no log tracebacks
+    try:
+        if scheduler is None:
+            with _sigint_deferred():
+                cluster = local_cluster(workers)
+        client = connect(scheduler, cluster)
         futures = {}
         for name, (sub, nid, deps) in tasks.items():   # topological: deps submitted first
             futures[name] = client.submit(_run_task, sub, nid, cache_root, device, warm,
@@ -230,6 +314,10 @@ def _run_dask(tasks, cache_root, device, workers, scheduler, progress, warm) -> 
         for fut in as_completed(list(futures.values())):
             try:
                 results[fut.key] = fut.result()
+            except KilledWorker as exc:
+                failed += 1
+                quiet = True
+                raise _killed(exc) from None
             except Exception:
                 failed += 1
                 raise
@@ -238,7 +326,12 @@ def _run_dask(tasks, cache_root, device, workers, scheduler, progress, warm) -> 
                     progress(len(results), len(futures) - len(results) - failed, failed,
                              len(futures))
         return results
+    except KeyboardInterrupt:
+        quiet = True
+        raise
     finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+        with _quiet_dask(quiet):
+            if client is not None:
+                client.close()
+            if cluster is not None:
+                cluster.close()

@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 
-from dermis.rendering.color import linear_to_srgb
 
 from .errors import DermisError
 
@@ -128,10 +127,10 @@ def write_exr(path: str | Path, linear: np.ndarray) -> Path:
     return _write(path, stored, "float")
 
 
-def write_png(path: str | Path, img: np.ndarray, *, encode_srgb: bool = False) -> Path:
-    """Write a PNG from uint8, or from floats in [0, 1] (sRGB-encoded first if ``encode_srgb``)."""
+def write_png(path: str | Path, img: np.ndarray) -> Path:
+    """Write a PNG from uint8, or from already encoded floats in [0, 1] (the colour curves
+    are rendering/color.py's: the engine stores values, it does not encode them)."""
     img = np.asarray(img)
     if img.dtype != np.uint8:
-        img = linear_to_srgb(img) if encode_srgb else np.clip(img, 0.0, 1.0)
-        img = np.round(img * 255.0).astype(np.uint8)
+        img = np.round(np.clip(img, 0.0, 1.0) * 255.0).astype(np.uint8)
     return _write(Path(path), img, "uint8")

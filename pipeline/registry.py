@@ -8,7 +8,8 @@ from types import ModuleType
 
 from .errors import ConfigError
 
-__all__ = ["STAGE_NAMES", "stage", "MODEL_NAMES", "model", "model_module", "COMMANDS", "command"]
+__all__ = ["STAGE_NAMES", "stage", "MODEL_NAMES", "model_names", "default_models", "term_bases",
+           "model", "model_module", "section", "COMMANDS", "command"]
 
 
 def _stages() -> dict[str, str]:
@@ -43,6 +44,31 @@ def _models() -> dict[str, str]:
 
 
 MODEL_NAMES: tuple[str, ...] = tuple(_models())
+
+
+def model_names() -> tuple[str, ...]:
+    """The registered model names, read now (a plugin may register one after import)."""
+    return tuple(_models())
+
+
+def default_models() -> tuple[str, ...]:
+    """The models a scene renders unless it says otherwise (``dermis.THESIS_MODELS``)."""
+    import dermis
+    return tuple(dermis.THESIS_MODELS)
+
+
+def term_bases() -> tuple[str, ...]:
+    """Names of the models a term model (e.g. the asperity layer) may sit on."""
+    out = []
+    for name in model_names():
+        out += [b.name for b in model(name).bases if b.name not in out]
+    return tuple(out)
+
+
+def section(name: str) -> ModuleType:
+    """The module that parses and validates scene section ``name`` (``dermis.SECTIONS``)."""
+    import dermis
+    return importlib.import_module(dict(dermis.SECTIONS)[name])
 
 
 def model_module(name: str) -> str:

@@ -42,7 +42,9 @@ from pathlib import Path
 
 import numpy as np
 
-from dermis.pipeline.config import BSSRDF_MODELS, MODELS, THESIS_MODELS
+from dermis.models import catalog
+from dermis.models.catalog import THESIS_MODELS
+from dermis.pipeline.registry import MODEL_NAMES
 from dermis.rendering.color import LUMINANCE
 from dermis.geometry.regions import REGION_LABELS, REGIONS, block_mean, face_regions
 from dermis.groundtruth.noise import NOISE_FACTORS
@@ -56,7 +58,7 @@ GEOMETRY = "high"        # the references are rendered on the high mesh
 # Models are ranked on 4x4 blocks of reference pixels: at single pixels a CPU reference's
 # noise (~50 % at 128 spp) buries the differences between models (measured, docs/ground-truth.md)
 RANK_FACTOR = 4
-MODEL_ORDER = MODELS          # the tables; the ranking is of the thesis's four (THESIS_MODELS)
+MODEL_ORDER = MODEL_NAMES      # the tables; the ranking is of the thesis's four (THESIS_MODELS)
 # The thesis's qualitative conclusions (Arizpe 2006, ch. 5), checked with numbers.
 THESIS = {
     "lafortune": "the measured BRDF looks too shiny",
@@ -258,7 +260,7 @@ def ground_truth_metrics(images: dict, references: dict, *, mesh, camera,
                 rec["contrast"] = _contrast(D4[m4] @ LUMINANCE)
                 rec["ref_contrast"] = _contrast(M4[m4] @ LUMINANCE, nv)
             sec = float((getattr(im, "timings", {}) or {}).get("total", 0.0) or 0.0)
-            if model in BSSRDF_MODELS:   # every BSSRDF: with its irradiance pass
+            if catalog.is_bssrdf(model):   # every BSSRDF: with its irradiance pass
                 sec += float(extra_seconds.get((light, "mesh_high"), 0.0))
             rec["seconds"] = sec
             for f in ("1", "4", "8"):

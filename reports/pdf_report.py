@@ -24,7 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dermis.pipeline.config import BSSRDF_MODELS, MODELS, THESIS_MODELS, model_label
+from dermis.models import catalog
+from dermis.models.catalog import THESIS_MODELS
 from dermis.pipeline.errors import DermisError
 from dermis.reports.diff import (GEOMETRY_COMPARED, GEOMETRY_REFERENCE, difference, difference_image,
                           image_labels)
@@ -92,7 +93,7 @@ def _ordered_models(models) -> list[str]:
     """Thesis order first (Lafortune, asperity, HK, BSSRDF), then the BSSRDF with the Monte
     Carlo profile, then anything else."""
     models = set(models)
-    return [m for m in MODELS if m in models] + sorted(models - set(MODELS))
+    return catalog.ordered(models)
 
 
 def _ordered_geoms(geoms) -> list[str]:
@@ -118,7 +119,7 @@ def summary_text(images: dict, metrics: dict, *, timings_extra: dict | None = No
         for light in sorted({r["light"] for r in mvr.values()}):
             recs = sorted((r for r in mvr.values()   # the BSSRDF's own variants: below
                            if r["light"] == light and r["geometry"] == geom
-                           and r["model"] not in BSSRDF_MODELS),
+                           and not catalog.is_bssrdf(r["model"])),
                           key=lambda r: r["rel_rmse"])
             if not recs:
                 continue
@@ -135,7 +136,7 @@ def summary_text(images: dict, metrics: dict, *, timings_extra: dict | None = No
             for (m, l, g), im in idx.items():
                 if l == light and g == geom and _seconds(im) is not None:
                     t = _seconds(im)
-                    if m == ref or m in BSSRDF_MODELS:   # every BSSRDF: its irradiance pass
+                    if m == ref or catalog.is_bssrdf(m):   # every BSSRDF: its irradiance pass
                         t += _irradiance_seconds(timings_extra, l, g) or 0.0
                     times.append((t, m))
             times.sort()
@@ -150,10 +151,10 @@ def summary_text(images: dict, metrics: dict, *, timings_extra: dict | None = No
             if ref_t and times and times[0][1] != ref:
                 fast += f"; {ref} {ref_t[0]:.2f} s ({ref_t[0] / times[0][0]:.1f}x the fastest)"
             lines.append(f"{light}: {close}; {fast}.")
-        variants = sorted({r["model"] for r in mvr.values() if r["model"] in BSSRDF_MODELS})
+        variants = sorted({r["model"] for r in mvr.values() if catalog.is_bssrdf(r["model"])})
         for m in variants:   # the same BSSRDF with another layer profile (bssrdf_mc)
             vals = [r["rel_rmse"] for r in mvr.values() if r["model"] == m and r["geometry"] == geom]
-            lines.append(f"{model_label(m)} vs {ref}, {geom} geometry: relative RMSE "
+            lines.append(f"{catalog.label(m)} vs {ref}, {geom} geometry: relative RMSE "
                          f"{min(vals):.2g}-{max(vals):.2g} over {len(vals)} lights (what the "
                          "diffusion profile changes on the face; the profile page compares the "
                          "profiles themselves).")
@@ -337,12 +338,12 @@ def _timing_page(plt, images, metrics, *, device, timings_extra):
                 t = _seconds(im) if im is not None else None
                 cell = _fmt_s(t)
                 irr = (_irradiance_seconds(timings_extra, l, g)
-                       if m == ref or m in BSSRDF_MODELS else None)
+                       if m == ref or catalog.is_bssrdf(m) else None)
                 if t is not None and irr is not None:
                     cell = f"{t:.2f} + {irr:.2f} irr"
                 row.append(cell)
             if any(c != "-" for c in row):
-                rows.append(f"{model_label(m)} / {g}")
+                rows.append(f"{catalog.label(m)} / {g}")
                 cells.append(row)
     ax = fig.add_axes([0.02, 0.30, 0.62, 0.58])
     ax.axis("off")
@@ -394,7 +395,7 @@ def _scatter_page(plt, images, metrics, *, timings_extra):
         if rec.get("seconds"):
             t = rec["seconds"] + ((_irradiance_seconds(timings_extra, rec["light"],
                                                        rec["geometry"]) or 0.0)
-                                  if rec["model"] in BSSRDF_MODELS else 0.0)
+                                  if catalog.is_bssrdf(rec["model"]) else 0.0)
             pts.append((rec["model"], rec["light"], rec["geometry"], t, rec["rel_rmse"]))
     for (m, l, g), im in idx.items():  # the reference itself: zero error, its full cost
         if m == ref and l in colours and _seconds(im):
@@ -410,7 +411,7 @@ def _scatter_page(plt, images, metrics, *, timings_extra):
     ax.set_ylabel(f"relative RMSE vs {ref}", fontsize=9)
     ax.tick_params(labelsize=8)
     ax.grid(True, which="both", alpha=0.3)
-    handles = [Line2D([], [], marker=marks[m], ls="", color="0.2", label=model_label(m))
+    handles = [Line2D([], [], marker=marks[m], ls="", color="0.2", label=catalog.label(m))
                for m in models]
     handles += [Line2D([], [], marker="s", ls="", color=colours[l], label=l) for l in lights]
     handles += [Line2D([], [], marker="o", ls="", color="0.2", label=GEOMETRY_REFERENCE),

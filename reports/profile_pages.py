@@ -1,6 +1,6 @@
 """The report's profile page: the scene's layer-profile models against the Monte Carlo table.
 
-One page (issue 12; the models and the measurements behind them: docs/profiles.md):
+One page (the models and the measurements behind them: docs/profiles.md):
 
 * top row, per colour channel: r R(r) on log axes (the energy per unit log-radius, so the
   near-source peak and the far tail are both readable) for every profile model the scene

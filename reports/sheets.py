@@ -28,20 +28,20 @@ _PAD = 8
 
 
 def caption(model: str, light: str, *, px: int = 11, width: int = TILE_PX) -> str:
-    """A tile's caption: the model's display name (``config.model_label``: "BSSRDF (Monte
+    """A tile's caption: the model's display name (``models.catalog.label``: "BSSRDF (Monte
     Carlo profile)" for ``bssrdf_mc``) and the lighting condition, on one line if it fits
     ``width`` pixels at ``px`` (the grid's caption size), else the light on a line of its own."""
-    from dermis.pipeline.config import model_label
+    from dermis.models.catalog import label as model_label
     text = f"{model_label(model)} / {light}"
     return text if font(px).getlength(text) <= width else f"{model_label(model)}\n{light}"
 
 
 def ordered_models(models) -> list[str]:
-    """The scene vocabulary's order (``config.MODELS``: the thesis's four, then bssrdf_mc),
+    """The scene vocabulary's order (``dermis.MODELS``: the thesis's four, then bssrdf_mc),
     then anything else by name."""
-    from dermis.pipeline.config import MODELS
+    from dermis.models.catalog import ordered
     models = set(models)
-    return [m for m in MODELS if m in models] + sorted(models - set(MODELS))
+    return ordered(models)
 
 
 @functools.lru_cache(maxsize=16)

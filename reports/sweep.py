@@ -75,8 +75,8 @@ KNOBS = {k.path: k for k in (
     Knob("bake.resolution", "higher", integer=True, doc="baked map resolution"),
     Knob("mesh.low_triangles", "higher", "high_mesh", integer=True,
          doc="triangles of the simplified mesh"),
-    # the profile model the BSSRDF renders with (docs/profiles.md); the reference for
-    # the profile knobs is the Monte Carlo profile.  The multipole's pole count and FFT grid
+    # the profile model the BSSRDF renders with (docs/profiles.md); the reference for the
+    # profile knobs is the Monte Carlo profile.  The multipole's pole count and FFT grid
     # are not scene settings (stages/profiles.py node: model, photons, seed only), so not knobs.
     Knob("optics.profile", "choices", "monte_carlo", choices=("multipole", "monte_carlo"),
          doc="profile model of the BSSRDF (reference: the Monte Carlo table)"),

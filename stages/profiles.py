@@ -68,5 +68,5 @@ def plan(scene, plan) -> None:
     report's profile page and ``dermis profile`` read them)."""
     for name in scene.render.models:
         m = lookup_model(name)
-        if m.stage == "bssrdf":
+        if m.profiles:
             plan.add(node(scene, profile_of(scene, m)), target=True)

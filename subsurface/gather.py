@@ -4,7 +4,7 @@
 The host flattens the octree (``subsurface/octree.py``) over the irradiance points
 (``subsurface/points.py``, irradiance from ``lighting/irradiance.py``) into arrays; the device
 (``cl/bssrdf_gather.cl``) walks it for every query point (pixel surface point) and sums
-M_o(x) = sum R(|x - p|) E A with the layer file's radial profile R (``stages/profiles.py``),
+M_o(x) = sum R(|x - p|) E A with the layer file's radial profile R (``optics/layer_profiles.py``),
 tabulated and blurred by ``subsurface/profile_table.py``.  ``subsurface/exitance.py`` adds
 the near field; ``subsurface/radiance.py`` turns M_o into outgoing radiance.
 
@@ -140,7 +140,7 @@ def gather(octree: Octree, profile, query_positions: np.ndarray, *, epsilon: flo
     octree : Octree
         From :func:`build_octree`.
     profile : LayerProfile
-        r_mm (N,), R (N, 3) in 1/mm^2, Rd (3,), cutoff_mm (3,) (``stages/profiles.py``).
+        r_mm (N,), R (N, 3) in 1/mm^2, Rd (3,), cutoff_mm (3,) (stage ``profiles``).
     query_positions : (Q, 3) float ndarray, mm
         Surface points to shade (one per pixel).
     epsilon : float

@@ -157,7 +157,8 @@ def spacing_from_mfp(profile_or_stack, multiplier: float = 1.0) -> float:
     ----------
     profile_or_stack : LayerStack or LayerProfile
         A :class:`optics.layers.LayerStack`, or a LayerProfile whose ``info["layers"]``
-        holds the stack's ``to_dict()`` (as ``stages/profiles.py`` writes it).
+        holds the stack's ``to_dict()`` (as ``optics/layer_profiles.py`` and
+        ``optics/monte_carlo_table.py`` write it).
     multiplier : float
         Point density multiplier (scene key ``bssrdf.point_density``); 2 means twice as
         many points.

@@ -1,4 +1,4 @@
-"""Anti-aliasing, no black outlines, and visibility shared by the models (issue 11).
+"""Anti-aliasing, no black outlines, and visibility shared by the models.
 
 * a straight edge: the rendered coverage converges to the exact area coverage as spp grows;
 * the packaged scan under a light at the eye: no black pixel inside the silhouette, and every

@@ -1,4 +1,4 @@
-"""Energy of every model as rendered (docs/science.md §1, §2, §4, §5; issue 10).
+"""Energy of every model as rendered (docs/science.md §1, §2, §4, §5).
 
 * Directional albedo <= 1 over a grid of view angles (0 - 89.9 deg) and texture albedos
   (0 - 1) for each model as the renderer composes it (``cl/shade.cl``: Lafortune with its
@@ -219,7 +219,7 @@ def _flat_slab_exitance(cl_env, stack, prof, thetas, n_query=300):
     return out
 
 
-# The Monte Carlo table through the same gather (issue 12): M / (E cos T) = the table's own Rd
+# The Monte Carlo table through the same gather: M / (E cos T) = the table's own Rd
 # within 1 %.  Derivation: the gather normalises the table's energy to its Rd exactly, so what
 # is left is test05's quadrature error (the partition-of-unity deviation weighted by the
 # profile: <= 1.05 % at its worst, measured max 0.53 % on sample points at SLAB_EPS 0.2,

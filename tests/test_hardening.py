@@ -1,6 +1,6 @@
-"""Hardening (issue 16): bad input, file-system faults, malformed meshes, kill safety, output
-hygiene, a corrupted cache.  Every bad input or fault exits 2 with a message naming the file or
-key and the value, never a traceback; a scene that validates runs (or is refused at load,
+"""Hardening (docs/hardening.md): bad input, file-system faults, malformed meshes, kill safety,
+output hygiene, a corrupted cache.  Every bad input or fault exits 2 with a message naming the
+file or key and the value, never a traceback; a scene that validates runs (or is refused at load,
 before any work).  docs/hardening.md lists the cases and where each is handled.
 
 Pipeline-level cases run the quick scene (scenes/quick.toml) shrunk to a 2,000-triangle head,
@@ -225,7 +225,8 @@ def test04_bad_device_is_refused_before_the_mesh_stages(where, tmp_path, capsys,
 
 # --------------------------------------------------------------------------- scenes that run
 def test05_previews_with_no_low_mesh_run(warm, tmp_path, capsys):
-    """Item 1: render.geometries = ["high"] (or []) with previews on crashed in mesh_previews."""
+    """render.geometries = ["high"] (or []) with previews on: mesh_previews draws the high panel
+    alone (it crashed before)."""
     _, cache = warm
     for geoms in (["high"], []):
         scene = scene_file(tmp_path, {"render": {"geometries": geoms},
@@ -594,8 +595,8 @@ def _entry(cache: Path, node: str) -> Path:
 
 @pytest.mark.parametrize("damage", ["deleted", "truncated", "bit_flip", "nan_exr"])
 def test18_damaged_cache_entry_is_reported_and_rebuilt(damage, warm, tmp_path, capsys):
-    """Item 6 end to end through the CLI: status names the damage, run rebuilds with a notice
-    and exports a good image (checksums in meta.json, pipeline/store.py)."""
+    """A damaged cache entry end to end through the CLI: status names the damage, run rebuilds
+    with a notice and exports a good image (checksums in meta.json, pipeline/store.py)."""
     _, cache = warm
     c = _cached_copy(cache, tmp_path / "c")
     node = "render-lafortune-point-high"
@@ -689,7 +690,8 @@ def test20_ctrl_c_gives_exit_130_and_no_traceback(monkeypatch, tmp_path, capsys)
 
 def test21_shipped_scenes_fit_a_4_gib_machine_and_a_bad_memory_override_is_named(monkeypatch,
                                                                                  capsys):
-    from dermis.pipeline.config import estimate_memory, load_scene
+    from dermis.pipeline.config import load_scene
+    from dermis.pipeline.resources import estimate_memory
     monkeypatch.setenv("DERMIS_MEMORY_MB", "4096")
     for name in ("default.toml", "procedural.toml", "quick.toml"):
         scene = load_scene(REPO / "scenes" / name)            # not refused
@@ -700,7 +702,8 @@ def test21_shipped_scenes_fit_a_4_gib_machine_and_a_bad_memory_override_is_named
 
 
 def test22_the_same_mesh_by_another_path_spelling_is_cached(tmp_path, capsys):
-    """Item 7 (keys by content, pipeline/graph.py Node.locations): the lead's fix, end to end."""
+    """Keys follow file content, not path spelling (pipeline/graph.py Node.locations), end to
+    end."""
     mesh = _obj(tmp_path / "mesh")
     a = scene_file(tmp_path, {"mesh": {"source": str(mesh)}}, "a.toml")
     b = scene_file(tmp_path, {"mesh": {"source": str(tmp_path / "mesh" / ".." / "mesh" /
@@ -718,7 +721,7 @@ def _two_layer(g: float) -> dict:
 
 
 def test23_hk93_with_g_minus_0_99_under_the_sunset_has_no_fireflies(warm, tmp_path, capsys):
-    """Item 10: a valid extreme with visible trouble (max 20 vs 0.44 normally, measured).
+    """HK93 at g = -0.99: a valid extreme with visible trouble (max 20 vs 0.44 normally, measured).
     Fixed by the retro lobe (lighting/lobes.py RetroLobe, rendering/cast.py retro_lobe):
     at 128 x 128 max 20.0 -> 0.27, pixels above 5x their 3x3 median 2.2 % -> 0.09 % (0.07 %
     at g = 0.8)."""

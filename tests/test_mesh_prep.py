@@ -3,7 +3,7 @@ loading, validation, subdivision/displacement, normals, simplification and the t
 transfer (docs/science.md §6).
 
 Meshes are built here from closed forms (spheres, lat-long UVs) so each check has independent
-evidence; the LPS scan test skips when /work/shared/data is absent.
+evidence; the LPS scan test skips when the data folder beside the repository (DATA) is absent.
 """
 from __future__ import annotations
 

@@ -144,18 +144,14 @@ def test08_results_kept_across_runs_by_content():
     assert visibility.embree_scene(other, cache) is not first
 
 
-def test09_nodes_run_at_once_give_the_same_bytes_as_one_by_one(built, tmp_path):
-    """The default jobs (2 threads) and one node at a time, each into a fresh cache, must give every node the same key and every artifact the same bytes.  What prints the
+def _differing_artifacts(first, second) -> tuple[list[str], int]:
+    """(files whose bytes differ between two runs' nodes, files compared).  What prints the
     seconds a node took differs by those alone: JSON files are compared without their time
     measurements, and the contact sheets and the PDF (timings in the captions) are left out."""
     from dermis.pipeline.graph import _split
-    scene = built[0]
-    assert api.resolve_jobs() >= 2
-    first = api.run(scene, cache=tmp_path / "at_once", export=False)
-    serial = api.run(scene, cache=tmp_path / "one_by_one", export=False, jobs=1)
-    assert [n.id for n in serial.nodes] == [n.id for n in first.nodes]
+    assert [n.id for n in second.nodes] == [n.id for n in first.nodes]
     differ, compared = [], 0
-    for a, b in zip(first.nodes, serial.nodes):
+    for a, b in zip(first.nodes, second.nodes):
         assert a.key == b.key, a.id
         sums_a = json.loads((Path(a.path) / "meta.json").read_text())["checksums"]
         sums_b = json.loads((Path(b.path) / "meta.json").read_text())["checksums"]
@@ -171,7 +167,31 @@ def test09_nodes_run_at_once_give_the_same_bytes_as_one_by_one(built, tmp_path):
             compared += 1
             if not same:
                 differ.append(f"{a.id}/{name}")
+    return differ, compared
+
+
+def test09_nodes_run_at_once_give_the_same_bytes_as_one_by_one(built, tmp_path):
+    """The default jobs (2 threads) and one node at a time, each into a fresh cache, must
+    give every node the same key and every artifact the same bytes."""
+    scene = built[0]
+    assert api.resolve_jobs() >= 2
+    first = api.run(scene, cache=tmp_path / "at_once", export=False)
+    serial = api.run(scene, cache=tmp_path / "one_by_one", export=False, jobs=1)
+    differ, compared = _differing_artifacts(first, serial)
     assert compared > 200 and differ == [], differ
+
+
+@pytest.mark.slow
+def test09b_four_threads_again_and_again_give_the_same_bytes(built, tmp_path):
+    """Four nodes at once, three times into fresh caches: the run's shared intermediates
+    (pipeline/shared.py) are made once whoever asks first, so every artifact has the bytes of
+    the one-node-at-a-time run, whatever order the threads take."""
+    scene = built[0]
+    serial = api.run(scene, cache=tmp_path / "one_by_one", export=False, jobs=1)
+    for k in range(3):
+        again = api.run(scene, cache=tmp_path / f"four_{k}", export=False, jobs=4)
+        differ, compared = _differing_artifacts(serial, again)
+        assert compared > 200 and differ == [], (k, differ)
 
 
 def _ask_at_once(ask, askers: int = 4):

@@ -264,7 +264,7 @@ def test_write_report_without_geometry_comparison(tmp_path):
     assert _pdf_pages(pdf) == 1 + 1 + 1 + 3
 
 
-# ---- the BSSRDF with the Monte Carlo profile (issue 12) -----------------------------------
+# ---- the BSSRDF with the Monte Carlo profile -----------------------------------------------
 def _mc_like(prof, noise=0.01, seed=0):
     """A Monte Carlo-shaped LayerProfile from a multipole one: its ring energy on geometric
     rings, each ring scaled by 1 + noise x N(0, 1), with that noise as the stated error."""

@@ -1,5 +1,5 @@
-"""Numerical stability at the extremes (issue 16): property-based tests (hypothesis) over every
-model and stage that computes physics.
+"""Numerical stability at the extremes (docs/hardening.md "Property suite"): property-based
+tests (hypothesis) over every model and stage that computes physics.
 
 Domain (docs/hardening.md "Property suite"): albedo in {0, 1e-6, 0.5, 0.9999, 1} and in
 between (albedo 1 is sigma_a = 0, albedo 0 is sigma_s' = 0); extinction 1e-3 .. 1e3 /mm (mean
@@ -343,7 +343,7 @@ def test_monte_carlo_slab_is_finite_nonnegative_and_conserves_energy(cl_env, sta
     assert (np.abs(total - 1.0) <= 6 * sigma + 1e-3).all(), f"R + T + A = {total}"
 
 
-# sigma_a = 0 on both layers: a valid, physically meaningful extreme (issue 16 item 5)
+# sigma_a = 0 on both layers: a valid, physically meaningful extreme
 def _sigma_a_zero(stack: LayerStack) -> LayerStack:
     return LayerStack(tuple(Layer(l.thickness_mm, l.eta, (0.0, 0.0, 0.0), l.sigma_s_prime, l.g)
                             for l in stack.layers), stack.eta_above, stack.eta_below)

@@ -39,20 +39,42 @@ def _imports(path: Path) -> set[str]:
     return out
 
 
-def test01_engine_imports_no_stage_or_report():
+# the packages by concept: libraries that stages adapt into nodes
+LIBRARIES = ("geometry", "optics", "subsurface", "lighting", "rendering", "models",
+             "groundtruth", "reports")
+
+
+def test01_engine_imports_no_stage_report_or_physics():
+    """The engine reaches stages and models only by name (pipeline/registry.py)."""
     bad = {}
     for path in sorted((REPO / "pipeline").glob("*.py")):
-        up = sorted(m for m in _imports(path)
-                    if m.startswith(("dermis.stages", "dermis.reports", "stages", "reports")))
+        up = sorted(m for m in _imports(path) if m.startswith(
+            tuple(f"dermis.{p}" for p in ("stages",) + LIBRARIES)))
         if up:
             bad[path.name] = up
-    assert not bad, f"engine modules import stages/reports: {bad}"
+    assert not bad, f"engine modules import stages or libraries: {bad}"
 
 
-def test02_physics_imports_no_stage_or_report():
-    for path in sorted((REPO / "physics").glob("*.py")):
-        up = [m for m in _imports(path) if m.startswith(("dermis.stages", "dermis.reports"))]
-        assert not up, f"{path.name} imports {up}"
+def test02_libraries_import_no_stage():
+    bad = {}
+    for package in LIBRARIES:
+        assert (REPO / package / "__init__.py").is_file(), package
+        for path in sorted((REPO / package).glob("*.py")):
+            up = [m for m in _imports(path) if m.startswith("dermis.stages")]
+            if up:
+                bad[f"{package}/{path.name}"] = up
+    assert not bad, f"libraries import stages: {bad}"
+
+
+def test02b_package_modules_stay_small_and_stages_thin():
+    """No package module over ~800 lines; a stage module is an adapter (node, plan, run)."""
+    big = {str(p.relative_to(REPO)): n for package in ("pipeline",) + LIBRARIES
+           for p in (REPO / package).glob("*.py")
+           if (n := len(p.read_text().splitlines())) > 800}
+    assert not big, big
+    fat = {p.name: n for p in (REPO / "stages").glob("*.py")
+           if (n := len(p.read_text().splitlines())) > 200}
+    assert not fat, fat
 
 
 def test03_every_stage_is_one_module_owning_its_node():
@@ -136,6 +158,11 @@ PROBE = {
     "lighting/irradiance.py": {"irradiance", "bssrdf"},   # the gather's shadow edges use it
     "rendering/cast.py": {"visibility", "render", "bssrdf"},   # shared rays, hit attributes
     "pipeline/plan.py": set(),                         # decides which nodes exist, runs in none
+    # the scene schema: its dataclasses and defaults are what stages rebuild their config from
+    "pipeline/config.py": {"irradiance", "visibility", "render", "bssrdf", "report"},
+    "pipeline/scene_rules.py": set(),                  # accepts or refuses a scene, runs in none
+    "pipeline/shared.py": {"mesh_previews", "irradiance", "visibility", "render", "bssrdf",
+                           "report"},
     "reports/diff.py": {"report", "differences"},
     "reports/sheets.py": {"images", "report", "differences",   # grids drawn with Pillow
                           "mesh_previews"},                  # and its PNG writer

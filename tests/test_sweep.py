@@ -185,7 +185,7 @@ def test07_parse_accepts_ranges():
 
 
 def test08_profile_knobs_are_scored_against_the_monte_carlo_profile(tmp_path):
-    """optics.profile: the multipole is scored against the Monte Carlo table (the issue's
+    """optics.profile: the multipole is scored against the Monte Carlo table (the
     reference for the profile knobs), whose own point is that reference (error 0, same key);
     optics.photons points render with the Monte Carlo profile."""
     from dermis.reports.sweep import sweep_points
