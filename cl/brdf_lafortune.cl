@@ -32,7 +32,8 @@
  * A shading kernel may #include this file; define DERMIS_NO_EVAL_KERNELS to leave out the
  * test kernel.
  * Guarded by tests/test_brdf_lafortune.py (float64 reference, lobes-off closed form,
- * reciprocity, Monte Carlo directional albedo, grazing/back-facing finiteness).
+ * reciprocity, Monte Carlo directional albedo, grazing/back-facing finiteness, the lobes'
+ * edge against the exact sum) and tests/test_stability.py.
  */
 #ifndef DERMIS_BRDF_LAFORTUNE_CL
 #define DERMIS_BRDF_LAFORTUNE_CL
@@ -43,12 +44,40 @@
 #define LAFORTUNE_ALBEDO_NODES 64
 #define LAFORTUNE_NPARAMS 223   /* 27 + 4 + 3 * LAFORTUNE_ALBEDO_NODES */
 
-/* One generalised cosine lobe, RGB; a non-positive base gives 0 (pbrt-v1 skin.cpp). */
-inline float3 lafortune_lobe(float xy, float zz, __constant const float *lobe) {
+/* The lobes' shared arguments x = wo.x wi.x + wo.y wi.y and z = wo.z wi.z, each as an
+ * unevaluated float32 pair hi + lo: (x_hi, x_lo, z_hi, z_lo).  Both products of x and z are
+ * split exactly by fma (a b = fl(a b) + fma(a, b, -fl(a b))) and x_hi + x_lo by Knuth's
+ * TwoSum, so z is exact and x exact but for the roundings of x_lo: 3 2^-48 (|wo.x wi.x| +
+ * |wo.y wi.y|) at most.  No contraction here: it would break the splits. */
+inline float4 lafortune_args(float3 wo, float3 wi) {
+#pragma OPENCL FP_CONTRACT OFF
+    float p = wo.x * wi.x, q = wo.y * wi.y, z = wo.z * wi.z;
+    float s = p + q, v = s - p;
+    float t = (p - (s - v)) + (q - v);                  /* p + q = s + t exactly */
+    float lo = t + (fma(wo.x, wi.x, -p) + fma(wo.y, wi.y, -q));
+    return (float4)(s, lo, z, fma(wo.z, wi.z, -z));
+}
+
+/* One generalised cosine lobe, RGB; a non-positive base gives 0 (pbrt-v1 skin.cpp).
+ * base = Cxy x + Cz z is a sum of terms up to |C| that cancel at the lobe's edge: where the
+ * horizontal parts of wo and wi are at right angles (x = 0 from two products ~0.4) or a
+ * grazing z balances Cxy x.  Plain float32 errs there by ~2^-24 of the terms, which is all
+ * of a base of 1e-7, and base^n keeps n times the base's relative error: at n = 0.1 a base of
+ * 5e-7 came out 2.3 % low, f 0.23 % (float32 0.7012287 against 0.7028639 in float64).  Here
+ * the products are exact (args above, Kahan's fma pair for Cz z_hi) and the low parts are
+ * added last, so base is within 2^-23 of itself plus 2^-45 (|Cxy| (|wo.x wi.x| + |wo.y wi.y|)
+ * + |Cz z|): f_lobe within n 2^-23 plus the exp2/log2 error of the value for the given float32
+ * directions (tests/test_brdf_lafortune.py test06 against the exact sum).  Cost: the eval
+ * kernel 15 % slower (bench/bench_brdf.py's pairs, A/B medians of 100 on shared cores). */
+inline float3 lafortune_lobe(float4 a, __constant const float *lobe) {
+#pragma OPENCL FP_CONTRACT OFF
     float3 cxy = vload3(0, lobe);
     float3 cz = vload3(1, lobe);
     float3 n = vload3(2, lobe);
-    float3 base = cxy * xy + cz * zz;
+    float3 w = cz * a.z;
+    float3 e = fma(cz, (float3)(a.z), -w);                  /* Cz z_hi = w + e exactly */
+    float3 lo = fma(cxy, (float3)(a.y), fma(cz, (float3)(a.w), e));
+    float3 base = fma(cxy, (float3)(a.x), w) + lo;
     /* base^n as exp2(n log2 base): PoCL's powr is a scalar libm call (7x slower in
      * bench/bench_brdf.py); clamp before, select after, so no NaN or -inf is ever formed */
     float3 v = exp2(n * log2(fmax(base, (float3)(FLT_MIN))));
@@ -65,16 +94,15 @@ inline float3 lafortune_unreflected(float mu, __constant const float *p) {
 
 /* f(wo, wi) in 1/sr, RGB. albedo: linear RGB diffuse albedo replacing rho_d. */
 inline float3 lafortune_f(float3 wo, float3 wi, float3 albedo, __constant const float *p) {
-    float xy = wo.x * wi.x + wo.y * wi.y;
-    float zz = wo.z * wi.z;
+    float4 a = lafortune_args(wo, wi);
     float3 diffuse = albedo * DERMIS_INV_PI;
     if (p[27] != 0.0f)   /* coupled to the lobes (header comment) */
         diffuse *= lafortune_unreflected(wi.z, p) * lafortune_unreflected(wo.z, p)
                  * vload3(0, p + 28);
     float3 f = diffuse
-             + lafortune_lobe(xy, zz, p)
-             + lafortune_lobe(xy, zz, p + 9)
-             + lafortune_lobe(xy, zz, p + 18);
+             + lafortune_lobe(a, p)
+             + lafortune_lobe(a, p + 9)
+             + lafortune_lobe(a, p + 18);
     /* back-facing or horizon: no reflection */
     return (wo.z > 0.0f && wi.z > 0.0f) ? f : (float3)(0.0f);
 }

@@ -18,8 +18,8 @@ from dermis.pipeline.registry import model
 
 # float32 kernel vs float64 reference: the lobe base carries a few ulp (2^-24) of relative
 # error, which the exponent n <= 64.2 multiplies: 64 * 8 ulp ~ 3e-5.  Near a zero base the
-# relative error of the base is unbounded but its absolute error is ~2 ulp of |Cxy|+|Cz|
-# ~ 3e-7 and base^n with n >= 3.5 is then < 1e-7: ATOL covers it.
+# kernel's base is within 2^-23 of itself plus 2^-45 (|Cxy| + |Cz|) (test06), and base^n with
+# n >= 3.5 is then < 1e-7 wherever that second term dominates: ATOL covers it.
 RTOL_F32 = 64 * 8 * 2.0 ** -24
 ATOL_F32 = 1e-6
 # reciprocity: the kernel's arithmetic is symmetric in (wo, wi) up to operand order
@@ -183,3 +183,57 @@ def test05_grazing_and_backfacing_finite(cl_env, rng):
         on_or_below = (wo[:, 2] <= 0) | (wi[:, 2] <= 0)
         assert np.all(f[on_or_below] == 0)
         assert np.all(f[~on_or_below] > 0)
+
+
+# test06: float32 unit roundoff, and the OpenCL full-profile bounds of log2 and exp2 (OpenCL C
+# 1.2 section 7.4: 3 ulp each; one ulp is at most 2 U of the value)
+U = 2.0 ** -24
+POW_ULP = 3
+
+
+@pytest.mark.parametrize("c", [1.0, -1.0])
+@pytest.mark.parametrize("n_exp", [0.1, 0.5, 1.0, 4.0])
+def test06_lobe_edge_within_float32_bound(cl_env, rng, c, n_exp):
+    """At the edge of a lobe the base Cxy (wo.x wi.x + wo.y wi.y) + Cz wo.z wi.z is a sum of
+    terms up to |C| that cancel; base^n keeps n times the base's relative error, so a plain
+    float32 base (error ~2^-24 of the terms) is wrong by up to 100 % for a small n (the plain
+    form puts 1450-1560 of these 4096 pairs outside the bound, at every n here).  The kernel
+    forms the base from exact products (cl/brdf_lafortune.cl): |base - B| <= d = 2 U |B| +
+    8 U^2 S, S = |Cxy| (|wo.x wi.x| + |wo.y wi.y|) + |Cz wo.z wi.z|.  Checked against the
+    exact B of the float32 directions (C = +-1: every term is exact in float64, math.fsum
+    rounds their sum once): each lobe lies in [max(B - d, 0)^n, max(B + d, 0)^n] widened by
+    the pow bound (log2 and exp2 3 ulp each, the product n log2 one rounding:
+    ln2 |n log2 b| 7 U + 6 U) and the three lobes' float32 sum by 3 U."""
+    m = 4096
+    zo = np.where(rng.random(m) < 0.5, 10.0 ** rng.uniform(-7, 0, m), rng.random(m))
+    zi = rng.random(m)
+    so, si = np.sqrt(1 - zo ** 2), np.sqrt(1 - zi ** 2)
+    # the azimuth difference where -|c| so si cos(d) + c zo zi = 0, then moved by 1e-9 .. 1e-2
+    edge = np.arccos(np.clip(np.sign(c) * zo * zi / (so * si), -1.0, 1.0))
+    dphi = edge * (1 + 10.0 ** rng.uniform(-9, -2, m) * rng.choice([-1.0, 1.0], m))
+    po = 2 * np.pi * rng.random(m)
+    wo = np.stack([so * np.cos(po), so * np.sin(po), zo], 1).astype(np.float32)
+    wi = np.stack([si * np.cos(po + dphi), si * np.sin(po + dphi), zi], 1).astype(np.float32)
+    k = np.full((3, 3), c)
+    params = LafortuneParams(cxy=-np.abs(k), cz=k, n=np.full((3, 3), n_exp), rho_d=(0, 0, 0))
+    f = evaluate(lafortune.MODEL, wo, wi, params, env=cl_env).astype(np.float64)
+
+    o, i = wo.astype(np.float64), wi.astype(np.float64)
+    terms = np.stack([-o[:, 0] * i[:, 0], -o[:, 1] * i[:, 1], c * o[:, 2] * i[:, 2]], 1)
+    exact = np.array([math.fsum(t) for t in terms])
+    d = 2 * U * np.abs(exact) + 8 * U * U * np.abs(terms).sum(axis=1)
+
+    def lobe(b, widen):
+        v = np.maximum(b, 0.0) ** n_exp
+        y = n_exp * np.abs(np.log2(np.maximum(b, 1e-300)))
+        return v * (1 + widen * (math.log(2) * y * (2 * POW_ULP + 1) * U + 2 * POW_ULP * U))
+
+    low = 3 * lobe(exact - d, -1) * (1 - 3 * U)
+    high = 3 * lobe(exact + d, 1) * (1 + 3 * U)
+    assert (exact > 0).sum() > m // 4 and (exact < 1e-6).sum() > m // 8   # edge pairs hit
+    for ch in range(3):
+        bad = (f[:, ch] < low) | (f[:, ch] > high)
+        j = int(np.argmax(bad))
+        assert not bad.any(), (
+            f"{bad.sum()} of {m} outside the float32 bound; e.g. base {exact[j]:.4g}: "
+            f"f {f[j, ch]:.7g} not in [{low[j]:.7g}, {high[j]:.7g}]")
