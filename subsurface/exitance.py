@@ -152,6 +152,19 @@ def exitance(points, irradiance: np.ndarray, profile, shading: ShadingPoints, *,
                      gather(tree(name, e), profile, queries, part=part, **gkw)))
         return m, (st if made else {**st, "kernel_seconds": 0.0})
 
+    def lit_near(k, ed):
+        """The near part of the profile gathered over the points light ``k`` reaches (its
+        shadow edges' ``lit``), at the queries ``idx``: the near energy of the lit region
+        from the points' own shadow rays, where a shading point's shadow ray and the
+        located edges disagree (``shadow_edges.sharp_near_field``)."""
+        def near(idx):
+            t = tree(f"lit-{k}", lambda: np.repeat(ed.lit[:, None], 3, axis=1).astype(np.float32))
+            m, st = gather(t, profile, np.asarray(queries)[idx], part="near",
+                           **{**gkw, "progress": None})
+            stats["kernel_seconds"] += st["kernel_seconds"]
+            return m
+        return near
+
     stats: dict = {"near_field": bool(resolved)}
     if not resolved:
         m, st = gathered("all", lambda: E, "all")
@@ -184,9 +197,11 @@ def exitance(points, irradiance: np.ndarray, profile, shading: ShadingPoints, *,
     t1 = time.perf_counter()
     table = once(memo, ("near_table", id(profile), sigma, tuning.cutoff_mm), lambda: (
         profile, near_tables(split_profile(profile, sigma, cutoff_mm=tuning.cutoff_mm))))[1]
+    stats.update({"near_fallback": 0, "near_side_from_visibility": 0})
     for k, (light, ed) in enumerate(zip(sharp, edges)):
         M += sharp_near_field(queries, shading_normals, geo_normals, light, visibility, ed,
-                              table, transmittance=transmittance, env=env or get_env(),
+                              table, lit_near=lit_near(k, ed), transmittance=transmittance,
+                              env=env or get_env(), stats=stats,
                               visible=None if visible is None else visible[:, k])
     stats.update({"edges_seconds": t_edges, "near_seconds": time.perf_counter() - t1,
                   "rd_near": table.rd_near.tolist(), "near_radius_mm": table.r_out,
