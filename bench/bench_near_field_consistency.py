@@ -27,7 +27,7 @@ This benchmark counts, per near-field evaluation of a scene:
 
 It works with any version of dermis that imports (``sharp_near_field`` is wrapped where
 ``subsurface/exitance.py`` calls it; the counts use only ``edge_sum_cl``, ``sample_lights``
-and the arguments), so ``--label before`` on the old code and ``--label after`` on the new
+and the arguments: tests/near_field_scenes.py ``near_parts``, ``recording``), so ``--label before`` on the old code and ``--label after`` on the new
 measure the same things.
 
 Usage: python bench/bench_near_field_consistency.py [--label after] [--scenes quick,sphere]
@@ -37,7 +37,6 @@ Usage: python bench/bench_near_field_consistency.py [--label after] [--scenes qu
 from __future__ import annotations
 
 import argparse
-import contextlib
 import sys
 import time
 from pathlib import Path
@@ -47,38 +46,11 @@ import numpy as np
 from labelled import save_labelled
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "tests"))
+from near_field_scenes import near_parts, recording  # noqa: E402  (tests/: the scenes' helpers)
 
 
 # ------------------------------------------------------------------------ the counter
-def near_parts(call: dict, env) -> dict:
-    """C(x), V(x), s(x) and the bracket Rd_near V - s of one sharp_near_field call, computed
-    from its arguments the way subsurface/shadow_edges.py defines them."""
-    from dermis.lighting.emitters import sample_lights
-    from dermis.subsurface import shadow_edges as SE
-    x = np.asarray(call["queries"], np.float32)
-    ns = SE._unit(np.asarray(call["shading_normals"], np.float64))
-    ng = np.asarray(call["geo_normals"], np.float32)
-    light, ed, table = call["light"], call["edges"], call["table"]
-    ls = sample_lights(light, x, ng)
-    wi, wt, dist = ls.directions[:, 0], ls.weights[:, 0].astype(np.float64), ls.distance[:, 0]
-    cos = np.einsum("ij,ij->i", wi, ns)
-    live = (cos > 0) & (wt.sum(axis=1) > 0)
-    c = np.zeros((len(x), 3))
-    c[live] = wt[live] * cos[live, None]
-    if call.get("transmittance") is not None:
-        c[live] *= np.asarray(call["transmittance"](cos[live]))
-    if call.get("visible") is not None:
-        vis = np.asarray(call["visible"], bool).copy()
-    else:
-        vis = np.zeros(len(x), bool)
-        vis[live] = ~call["visibility"].occluded(x[live], ng[live], wi[live], dist[live])
-    s = SE.edge_sum_cl(x, ns, ed, table, env)
-    s = s[0] if isinstance(s, tuple) else s      # (sums, side) before the side left it
-    bracket = table.rd_near[None, :] * vis[:, None] - s
-    return {"c": c, "live": live, "visible": vis, "s": s, "bracket": bracket,
-            "rd_near": np.asarray(table.rd_near, np.float64)}
-
-
 def nearest_segment(x: np.ndarray, ns: np.ndarray, ed) -> np.ndarray:
     """Distance (mm) from each point to the nearest segment whose surface normal agrees with
     its own (dot > 0.5, as the edge sums count them); inf where none."""
@@ -138,35 +110,6 @@ def count(call: dict, returned: np.ndarray, env) -> dict:
             "negative_near_terms": int(neg.sum()),
             "min_near_over_c_rd_near": float(rel[live].min()) if live.any() else 0.0,
             "near_above_c_rd_near_1pct": int((live & (ret > 1.01 * c * rd).any(axis=1)).sum())}
-
-
-@contextlib.contextmanager
-def recording():
-    """Wrap ``sharp_near_field`` where exitance() calls it, and the bssrdf stage's ``run``;
-    yields (calls, images): the (arguments, returned near term) of every near-field call
-    and each rendered image (node label -> linear image)."""
-    import dermis.stages.bssrdf as B
-    import dermis.subsurface.exitance as X
-    calls, images = [], {}
-    orig, orig_run = X.sharp_near_field, B.run
-    names = ("queries", "shading_normals", "geo_normals", "light", "visibility", "edges",
-             "table")
-
-    def wrapped(*args, **kw):
-        out = orig(*args, **kw)
-        calls.append(({**dict(zip(names, args)), **kw}, out))
-        return out
-
-    def run(params, inputs, ctx):
-        res = orig_run(params, inputs, ctx)
-        images[f"{params.get('model', 'bssrdf')}-{params['label']}-{params['geometry']}"] = (
-            np.asarray(res.artifact.linear, np.float64))
-        return res
-    X.sharp_near_field, B.run = wrapped, run
-    try:
-        yield calls, images
-    finally:
-        X.sharp_near_field, B.run = orig, orig_run
 
 
 # ------------------------------------------------------------------------ scenes
@@ -285,7 +228,6 @@ def reference_errors(call: dict, returned, sc: dict, prof, env, *, per_group: in
 
 def sphere_scenes(env, density: float | None) -> dict:
     """tests/near_field_scenes.py's shadowed sphere in the configurations of SPHERES."""
-    sys.path.insert(0, str(REPO / "tests"))
     import near_field_scenes as NS
     from dermis.optics.layer_profiles import build_profiles
     from dermis.optics.layers import PRESETS

@@ -5,8 +5,13 @@ incidence down to grazing, and (with bumps) wiggles between the irradiance point
 
 Built with the same pieces as the knife edge (tests/test_knife_edge.py): the pipeline's own
 points, irradiance with entry transmittance, layer profile and :func:`exitance.exitance`.
+:func:`recording` captures the near-field terms exitance() computes, :func:`near_parts`
+recomputes their pieces C(x), V(x), s(x) from the arguments (shared with
+bench/bench_near_field_consistency.py).
 """
 from __future__ import annotations
+
+import contextlib
 
 import numpy as np
 
@@ -110,3 +115,61 @@ def scene_exitance(sc, prof, cl_env, *, memo=None):
                               leaf_size=cfg.leaf_size, env=cl_env)
     return exitance(sc["pts"], sc["E"], prof, ShadingPoints(sc["q"], sc["ns"], sc["ng"]),
                     lights=[sc["light"]], visibility=sc["vis"], options=options, memo=memo)
+
+
+def near_parts(call: dict, env) -> dict:
+    """C(x), V(x), s(x) and the bracket Rd_near V - s of one sharp_near_field call, computed
+    from its arguments the way subsurface/shadow_edges.py defines them."""
+    from dermis.lighting.emitters import sample_lights
+    from dermis.subsurface import shadow_edges as SE
+    x = np.asarray(call["queries"], np.float32)
+    ns = SE._unit(np.asarray(call["shading_normals"], np.float64))
+    ng = np.asarray(call["geo_normals"], np.float32)
+    light, ed, table = call["light"], call["edges"], call["table"]
+    ls = sample_lights(light, x, ng)
+    wi, wt, dist = ls.directions[:, 0], ls.weights[:, 0].astype(np.float64), ls.distance[:, 0]
+    cos = np.einsum("ij,ij->i", wi, ns)
+    live = (cos > 0) & (wt.sum(axis=1) > 0)
+    c = np.zeros((len(x), 3))
+    c[live] = wt[live] * cos[live, None]
+    if call.get("transmittance") is not None:
+        c[live] *= np.asarray(call["transmittance"](cos[live]))
+    if call.get("visible") is not None:
+        vis = np.asarray(call["visible"], bool).copy()
+    else:
+        vis = np.zeros(len(x), bool)
+        vis[live] = ~call["visibility"].occluded(x[live], ng[live], wi[live], dist[live])
+    s = SE.edge_sum_cl(x, ns, ed, table, env)
+    s = s[0] if isinstance(s, tuple) else s      # checkouts whose edge sums also return a side
+    bracket = table.rd_near[None, :] * vis[:, None] - s
+    return {"c": c, "live": live, "visible": vis, "s": s, "bracket": bracket,
+            "rd_near": np.asarray(table.rd_near, np.float64)}
+
+
+@contextlib.contextmanager
+def recording():
+    """Wrap ``sharp_near_field`` where exitance() calls it, and the bssrdf stage's ``run``;
+    yields (calls, images): the (arguments, returned near term) of every near-field call
+    and each rendered image (node label -> linear image)."""
+    import dermis.stages.bssrdf as B
+    import dermis.subsurface.exitance as X
+    calls, images = [], {}
+    orig, orig_run = X.sharp_near_field, B.run
+    names = ("queries", "shading_normals", "geo_normals", "light", "visibility", "edges",
+             "table")
+
+    def wrapped(*args, **kw):
+        out = orig(*args, **kw)
+        calls.append(({**dict(zip(names, args)), **kw}, out))
+        return out
+
+    def run(params, inputs, ctx):
+        res = orig_run(params, inputs, ctx)
+        images[f"{params.get('model', 'bssrdf')}-{params['label']}-{params['geometry']}"] = (
+            np.asarray(res.artifact.linear, np.float64))
+        return res
+    X.sharp_near_field, B.run = wrapped, run
+    try:
+        yield calls, images
+    finally:
+        X.sharp_near_field, B.run = orig, orig_run
