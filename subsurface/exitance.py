@@ -17,8 +17,9 @@ import numpy as np
 from dermis.pipeline.cl import get_env
 from dermis.pipeline.reuse import content_key, once, recent_in_run
 from dermis.subsurface.gather import GatherTuning, gather
-from dermis.subsurface.near_field import SHARP_LIGHTS, near_tables, split_profile
+from dermis.subsurface.near_field import NEAR_OUTER, SHARP_LIGHTS, near_tables, split_profile
 from dermis.subsurface.octree import build_octree, scene_default
+from dermis.subsurface.profile_table import BLUR_REACH
 from dermis.subsurface.shadow_edges import shadow_edges, sharp_near_field
 
 __all__ = ["ShadingPoints", "ExitanceOptions", "exitance", "SHARED_GATHERS"]
@@ -153,14 +154,24 @@ def exitance(points, irradiance: np.ndarray, profile, shading: ShadingPoints, *,
         return m, (st if made else {**st, "kernel_seconds": 0.0})
 
     def lit_near(k, ed):
-        """The near part of the profile gathered over the points light ``k`` reaches (its
-        shadow edges' ``lit``), at the queries ``idx``: the near energy of the lit region
-        from the points' own shadow rays, where a shading point's shadow ray and the
-        located edges disagree (``shadow_edges.sharp_near_field``)."""
+        """The near part of the profile summed over the points light ``k`` reaches (its
+        shadow edges' ``lit``) at the queries ``idx``: the near energy of the lit region from
+        the points' own shadow rays, where the located edges bound no region about a shading
+        point (``shadow_edges.sharp_near_field``).  A few points of an image: summed exactly
+        (brute force) over the points within the blurred near table's reach of them."""
         def near(idx):
-            t = tree(f"lit-{k}", lambda: np.repeat(ed.lit[:, None], 3, axis=1).astype(np.float32))
-            m, st = gather(t, profile, np.asarray(queries)[idx], part="near",
-                           **{**gkw, "progress": None})
+            from scipy.spatial import cKDTree
+            q = np.asarray(queries, np.float64)[idx]
+            pts = once(memo, ("points_kdtree",) + key, lambda: (
+                points, irradiance, cKDTree(np.asarray(points.positions, np.float64))))[2]
+            reach = (NEAR_OUTER + BLUR_REACH) * sigma + spacing
+            pick = np.unique(np.concatenate(
+                [np.asarray(i, np.int64) for i in pts.query_ball_point(q, reach)] + [[0]]))
+            lit = np.repeat(ed.lit[pick, None], 3, axis=1).astype(np.float32)
+            t = build_octree(np.asarray(points.positions)[pick], np.asarray(points.areas)[pick],
+                             lit, leaf_size=leaf_size, kernel_sigma_mm=sigma)
+            m, st = gather(t, profile, q, epsilon=None, normalisation=normalisation, env=env,
+                           brute_force=True, tuning=tuning, part="near")
             stats["kernel_seconds"] += st["kernel_seconds"]
             return m
         return near
