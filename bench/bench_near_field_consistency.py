@@ -25,10 +25,12 @@ This benchmark counts, per near-field evaluation of a scene:
   units of C Rd_near;
 * the minimum of each rendered image (pipeline scenes) or exitance (synthetic scenes).
 
-It works with any version of dermis that imports (``sharp_near_field`` is wrapped where
-``subsurface/exitance.py`` calls it; the counts use only ``edge_sum_cl``, ``sample_lights``
-and the arguments: tests/near_field_scenes.py ``near_parts``, ``recording``), so ``--label before`` on the old code and ``--label after`` on the new
-measure the same things.
+It works with any checkout of dermis that PYTHONPATH imports (``sharp_near_field`` is
+wrapped where ``subsurface/exitance.py`` calls it; the counts use only ``edge_sum_cl``,
+``sample_lights`` and the arguments: tests/near_field_scenes.py ``near_parts``,
+``recording``), so two checkouts under two labels measure the same things.  The results'
+"before" label is git 9b9797f (the bracket Rd_near V - s with the edges' side), "after"
+this code.
 
 Usage: python bench/bench_near_field_consistency.py [--label after] [--scenes quick,sphere]
        [--default] [--cache DIR] [--out bench/results/near_field_consistency.json]
@@ -47,7 +49,7 @@ from labelled import save_labelled
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tests"))
-from near_field_scenes import near_parts, recording  # noqa: E402  (tests/: the scenes' helpers)
+from near_field_scenes import near_parts, recording  # noqa: E402  (tests/: shared with the tests)
 
 
 # ------------------------------------------------------------------------ the counter

@@ -65,9 +65,9 @@ def test01_near_terms_keep_their_sign_where_a_shadow_grazes_a_sphere(cl_env, two
                                                                       config):
     """A plate's shadow across a 20 mm sphere (with 0.3 mm bumps, or smooth under a 15 deg
     point light): the near terms lie in [0, C Rd_near] although the shadow rays and the
-    located edges disagree at some points (measured on these scenes: 191, 139, 3 points, of
-    which 44, 33, 0 took a negative near term and 52, 44, 1 one above C Rd_near before the
-    side was taken from the shadow ray: bench/results/near_field_consistency.json)."""
+    located edges disagree at some points (191, 139, 3 points on these scenes; evaluated with
+    the edges' side, Rd_near V - s, 44, 33, 0 of them are negative and 52, 44, 1 above
+    C Rd_near: bench/results/near_field_consistency.json)."""
     sc = shadowed_sphere(two_layer, PRESETS["two_layer"], **config)
     with recording() as (calls, _):
         M, stats = scene_exitance(sc, two_layer, cl_env)
@@ -78,8 +78,8 @@ def test01_near_terms_keep_their_sign_where_a_shadow_grazes_a_sphere(cl_env, two
 @pytest.mark.slow
 def test02_quick_scene_point_light_renders_no_negative_pixel(cl_env, tmp_path):
     """The quick scene's BSSRDF under its point light, on the high mesh: no negative or
-    non-finite pixel, every near term in [0, C Rd_near] (before: 15 negative pixels down to
-    -0.9 % of the image's maximum, 345 negative near terms over its two sharp lightings)."""
+    non-finite pixel, every near term in [0, C Rd_near] (with the edges' side, Rd_near V - s,
+    15 pixels are negative, down to -0.9 % of the image's maximum)."""
     from dermis.pipeline import api
     from dermis.pipeline.config import load_scene
     scene = load_scene(QUICK, overrides={
