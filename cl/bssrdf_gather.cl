@@ -511,8 +511,7 @@ __kernel void gather_brute(__global const float4 *query,
  * can reach it; a segment counts where its centre lies within r_out + its half length of x
  * (3-D distance, as edge_sum's ball query: a fold of the surface within its tangent plane
  * but far along the normal does not) and the surface normals agree (> 0.5: the same side
- * of a thin part).  out[q] = (S rgb, side): side = +1 / -1 where x lies within
- * on_edge of a segment's line inside its extent (lit / shadowed side), else 0.
+ * of a thin part).  out[q] = (S rgb, 0).
  * Segments shorter than EDGE_MIDPOINT x their distance from x (most of them) are
  * integrated by the midpoint rule on the line integrand m_K(rho) w / (2 pi rho^2) instead
  * (one 1-D lookup of mktab, no atan2): at 0.15 the difference from the exact table is
@@ -551,7 +550,7 @@ __kernel void edge_near(__global const float4 *query,      /* (Q) x, y, z, - */
                         const int n_om, const int n_ph, const float inv_dom, const float inv_dph,
                         __global const float4 *mktab,      /* m_K(k dmk) rgb, k < n_mk */
                         const int n_mk, const float inv_dmk,
-                        const float r_out, const float on_edge,
+                        const float r_out,
                         const int n_query,
                         __global float4 *out)
 {
@@ -560,7 +559,6 @@ __kernel void edge_near(__global const float4 *query,      /* (Q) x, y, z, - */
     float3 x = query[q].xyz;
     float3 nq = qnormal[q].xyz;
     float3 s = (float3)(0.0f);
-    float side = 0.0f;
     float3 g = (x - grid_lo.xyz) * grid_lo.w;
     int cx = (int)floor(g.x), cy = (int)floor(g.y), cz = (int)floor(g.z);
     for (int iz = max(cz - 1, 0); iz <= min(cz + 1, nz - 1); ++iz)
@@ -597,8 +595,7 @@ __kernel void edge_near(__global const float4 *query,      /* (Q) x, y, z, - */
                 s += sg * (qtab_lookup(qtab, om, p2, n_om, n_ph, inv_dom, inv_dph)
                            - qtab_lookup(qtab, om, p1, n_om, n_ph, inv_dom, inv_dph));
             }
-            if (om <= on_edge && t0 >= o.w && t0 <= t.w) side = sg;
         }
     }
-    out[q] = (float4)(s, side);
+    out[q] = (float4)(s, 0.0f);
 }

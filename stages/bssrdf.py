@@ -27,7 +27,7 @@ from dermis.optics.transmittance import Transmittance
 from dermis.rendering.options import RenderOptions
 from dermis.rendering import shade
 from dermis.rendering.surface import SURFACES, pixel_surface
-from dermis.subsurface.exitance import (GATHERS, NEAR_TABLES, OCTREES, SHADOW_EDGES,
+from dermis.subsurface.exitance import (GATHERS, NEAR_TABLES, OCTREES, POINT_TREES, SHADOW_EDGES,
                                         ExitanceOptions, ShadingPoints, exitance)
 from dermis.subsurface.near_field import SHARP_LIGHTS
 from dermis.subsurface.radiance import exitance_to_radiance
@@ -38,7 +38,7 @@ from dermis.lighting.visibility import EMBREE_SCENES, embree_scene
 NAME = "bssrdf"
 VERSION = 2   # 2: optics-resolved near field, entry/exit transmittance
 KERNELS = ()
-SHARES = (EMBREE_SCENES, SURFACES, OCTREES, SHADOW_EDGES, NEAR_TABLES, GATHERS)
+SHARES = (EMBREE_SCENES, SURFACES, OCTREES, SHADOW_EDGES, NEAR_TABLES, GATHERS, POINT_TREES)
 OUTPUT_FOLDER = "render"   # exported beside the BRDF images: render/<model>-<light>-<geometry>.exr
 
 

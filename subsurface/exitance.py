@@ -18,12 +18,13 @@ from dermis.pipeline.cl import get_env
 from dermis.pipeline.reuse import content_key
 from dermis.pipeline.shared import RunCache, Shared
 from dermis.subsurface.gather import GatherTuning, gather
-from dermis.subsurface.near_field import SHARP_LIGHTS, near_tables, split_profile
+from dermis.subsurface.near_field import NEAR_OUTER, SHARP_LIGHTS, near_tables, split_profile
 from dermis.subsurface.octree import build_octree, scene_default
+from dermis.subsurface.profile_table import BLUR_REACH
 from dermis.subsurface.shadow_edges import shadow_edges, sharp_near_field
 
 __all__ = ["ShadingPoints", "ExitanceOptions", "exitance", "SHARED_GATHERS", "OCTREES",
-           "SHADOW_EDGES", "NEAR_TABLES", "GATHERS"]
+           "SHADOW_EDGES", "NEAR_TABLES", "GATHERS", "POINT_TREES"]
 
 # Gathers kept per run by :func:`exitance` for reuse: the same points, irradiance, profile and
 # query positions give the same exitance, and the low mesh's two bump variants of a lighting
@@ -38,6 +39,7 @@ OCTREES = Shared("octree")
 SHADOW_EDGES = Shared("shadow_edges")
 NEAR_TABLES = Shared("near_table")
 GATHERS = Shared("gather", keep=SHARED_GATHERS)
+POINT_TREES = Shared("points_kdtree")   # for the exact near sums where edges bound no region
 
 
 @dataclass(frozen=True)
@@ -167,6 +169,29 @@ def exitance(points, irradiance: np.ndarray, profile, shading: ShadingPoints, *,
             tree(name, e), profile, queries, part=part, **gkw))
         return m, (st if made else {**st, "kernel_seconds": 0.0})
 
+    def lit_near(k, ed):
+        """The near part of the profile summed over the points light ``k`` reaches (its
+        shadow edges' ``lit``) at the queries ``idx``: the near energy of the lit region from
+        the points' own shadow rays, where the located edges bound no region about a shading
+        point (``shadow_edges.sharp_near_field``).  A few points of an image: summed exactly
+        (brute force) over the points within the blurred near table's reach of them."""
+        def near(idx):
+            from scipy.spatial import cKDTree
+            q = np.asarray(queries, np.float64)[idx]
+            pts = cache.get(POINT_TREES, key, lambda: cKDTree(
+                np.asarray(points.positions, np.float64)))
+            reach = (NEAR_OUTER + BLUR_REACH) * sigma + spacing
+            pick = np.unique(np.concatenate(
+                [np.asarray(i, np.int64) for i in pts.query_ball_point(q, reach)] + [[0]]))
+            lit = np.repeat(ed.lit[pick, None], 3, axis=1).astype(np.float32)
+            t = build_octree(np.asarray(points.positions)[pick], np.asarray(points.areas)[pick],
+                             lit, leaf_size=leaf_size, kernel_sigma_mm=sigma)
+            m, st = gather(t, profile, q, epsilon=None, normalisation=normalisation, env=env,
+                           brute_force=True, tuning=tuning, part="near")
+            stats["kernel_seconds"] += st["kernel_seconds"]
+            return m
+        return near
+
     stats: dict = {"near_field": bool(resolved)}
     if not resolved:
         m, st = gathered("all", lambda: E, "all")
@@ -200,9 +225,11 @@ def exitance(points, irradiance: np.ndarray, profile, shading: ShadingPoints, *,
     t1 = time.perf_counter()
     table = cache.get(NEAR_TABLES, (profile_key, sigma, tuning.cutoff_mm), lambda: near_tables(
         split_profile(profile, sigma, cutoff_mm=tuning.cutoff_mm)))
+    stats.update({"near_fallback": 0, "near_side_from_visibility": 0})
     for k, (light, ed) in enumerate(zip(sharp, edges)):
         M += sharp_near_field(queries, shading_normals, geo_normals, light, visibility, ed,
-                              table, transmittance=transmittance, env=env or get_env(),
+                              table, lit_near=lit_near(k, ed), transmittance=transmittance,
+                              env=env or get_env(), stats=stats,
                               visible=None if visible is None else visible[:, k])
     stats.update({"edges_seconds": t_edges, "near_seconds": time.perf_counter() - t1,
                   "rd_near": table.rd_near.tolist(), "near_radius_mm": table.r_out,

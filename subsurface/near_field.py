@@ -12,7 +12,9 @@ For point and directional lights (one sample per point: every point and pixel se
 shadow curve) the near part is exact: M_near(x) = C(x) [Rd_near V(x) - sum over the shadow
 edges within NEAR_OUTER sigma of a boundary integral], with C(x) the light's entering
 irradiance at the shading point unshadowed, V(x) its shadow ray, and the edges located
-between the points by bisection (``subsurface/shadow_edges.py``).  Disc and environment
+between the points by bisection (``subsurface/shadow_edges.py``; which side of the shadow
+curve x lies on comes from V(x) alone, its distance to the curve from the edges:
+``shadow_edges.near_bracket``).  Disc and environment
 lights (per-point random samples: no common shadow curve) keep the points' reconstruction
 for the near part too.  ``subsurface/exitance.py`` puts the parts together.
 """

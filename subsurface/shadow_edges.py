@@ -5,9 +5,11 @@ near part of the exitance they bound (docs/science.md §4 "Near field";
 For a point or directional light every point and pixel sees the same shadow curve.  The
 curve is located between the irradiance points by bisection along the chords of neighbour
 pairs whose shadow rays disagree, cut into straight segments (:func:`shadow_edges`), and the
-near part at a shading point is C(x) [Rd_near V(x) - the boundary integral over the segments
-within the window] (:func:`sharp_near_field`; the sums in numpy, :func:`edge_sum`, or on the
-device, :func:`edge_sum_cl`).
+near part at a shading point is C(x) [Rd_near V(x) - the boundary integral s(x) over the
+segments within the window] (:func:`sharp_near_field`; the sums in numpy, :func:`edge_sum`, or
+on the device, :func:`edge_sum_cl`).  Which side of the curve a shading point lies on comes
+from its own shadow ray V(x) alone, and from the segments only how far from the curve it
+lies, |s(x)| (:func:`near_bracket`).
 """
 from __future__ import annotations
 
@@ -26,7 +28,7 @@ from dermis.subsurface.near_field import SHARP_LIGHTS, EdgeTable
 # to build the graph needs neither
 
 __all__ = ["KERNELS", "ShadowEdges", "shadow_edges", "edge_sum", "edge_sum_cl",
-           "sharp_visibility", "sharp_near_field"]
+           "sharp_visibility", "near_bracket", "sharp_near_field"]
 
 KERNELS = ("bssrdf_gather.cl",)
 
@@ -44,9 +46,6 @@ EDGE_BISECTIONS = 12
 # at EDGE_END_CAP x spacing where no neighbour follows (the end of an edge).
 EDGE_NEIGHBOURS = 16
 EDGE_END_CAP = 0.5
-# Shading points closer than EDGE_ON_LINE x the bisection's precision to a located edge take
-# their side of it from the edge, not from their own shadow ray (:func:`edge_sum`).
-EDGE_ON_LINE = 8.0
 
 
 @dataclass
@@ -61,6 +60,7 @@ class ShadowEdges:
     irradiance : (N, 3) float32 the light's entering irradiance at the points (what
         :func:`lighting.irradiance.irradiance` gives for this light alone)
     info : dict (pairs tested, crossings, seconds)
+    lit : (N,) bool, which points the light reaches (its irradiance there > 0), or None
     """
 
     origin: np.ndarray
@@ -71,6 +71,7 @@ class ShadowEdges:
     hi: np.ndarray
     irradiance: np.ndarray
     info: dict = field(default_factory=dict)
+    lit: np.ndarray | None = None
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -164,7 +165,7 @@ def shadow_edges(positions, normals, light, visibility, spacing_mm: float, *,
     if k == 0:
         return ShadowEdges(empty, empty, empty, empty, np.zeros(0), np.zeros(0), e,
                            {"pairs": n_pairs, "crossings": 0, "precision_mm": 0.0,
-                            "seconds": time.perf_counter() - t0})
+                            "seconds": time.perf_counter() - t0}, lit)
     d0 = d0 - np.einsum("ij,ij->i", d0, normal)[:, None] * normal   # in the tangent plane
     kk = min(EDGE_NEIGHBOURS, k)
     _, idx = cKDTree(origin).query(origin, k=kk)
@@ -195,7 +196,7 @@ def shadow_edges(positions, normals, light, visibility, spacing_mm: float, *,
             "edge_length_mm": float((hi - lo).sum()),
             "precision_mm": PAIR_RADIUS * s / 2 ** EDGE_BISECTIONS,
             "seconds": time.perf_counter() - t0}
-    return ShadowEdges(origin, tangent, outward, normal, lo, hi, e, info)
+    return ShadowEdges(origin, tangent, outward, normal, lo, hi, e, info, lit)
 
 
 def _principal(off: np.ndarray, mask: np.ndarray, normal: np.ndarray,
@@ -218,29 +219,22 @@ def _principal(off: np.ndarray, mask: np.ndarray, normal: np.ndarray,
 
 
 def edge_sum(queries: np.ndarray, normals: np.ndarray, edges: ShadowEdges,
-             table: EdgeTable, *, on_edge_mm: float = 0.0,
-             tree=None) -> tuple[np.ndarray, np.ndarray]:
+             table: EdgeTable, *, tree=None) -> np.ndarray:
     """Sum over the segments within r_out of each query of the boundary integral
-    sign(w) [Q(|w|, phi_2) - Q(|w|, phi_1)] (:func:`near_tables`), and which side of an
-    edge each query lies on where it is within ``on_edge_mm`` of a segment's line (inside
-    its extent): +1 lit, -1 shadowed, 0 farther.  The shadow ray of such a query cannot be
-    trusted to agree with the located edge (its position is known to ~spacing / 2048), and
-    the near field jumps by Rd_near there unless the two agree.
-    ``tree``: a scipy cKDTree of ``queries`` to reuse.
-    Returns ((Q, 3) float64, (Q,) int8)."""
+    sign(w) [Q(|w|, phi_2) - Q(|w|, phi_1)] (:func:`near_tables`), (Q, 3) float64.
+    ``tree``: a scipy cKDTree of ``queries`` to reuse."""
     from scipy.spatial import cKDTree
     x = np.asarray(queries, np.float64)
     out = np.zeros((len(x), 3))
-    side = np.zeros(len(x), np.int8)
     if len(edges.origin) == 0 or len(x) == 0:
-        return out, side
+        return out
     half = 0.5 * (edges.hi - edges.lo)
     centre = edges.origin + (0.5 * (edges.hi + edges.lo))[:, None] * edges.tangent
     tree = cKDTree(x) if tree is None else tree
     lists = tree.query_ball_point(centre, table.r_out + half, return_sorted=False)
     cnt = np.fromiter((len(l) for l in lists), np.int64, len(lists))
     if cnt.sum() == 0:
-        return out, side
+        return out
     seg = np.repeat(np.arange(len(lists), dtype=np.int32), cnt)
     px = np.concatenate([np.asarray(l, np.int32) for l in lists])
     # float32 per pair: w and t0 are differences of ~100 mm coordinates, exact to ~1e-5 mm
@@ -264,10 +258,7 @@ def edge_sum(queries: np.ndarray, normals: np.ndarray, edges: ShadowEdges,
     val *= sgn[:, None]
     for c in range(3):
         out[:, c] = np.bincount(px, weights=val[:, c], minlength=len(x))
-    close = (om <= on_edge_mm) & (t0 >= lo) & (t0 <= hi)
-    if close.any():
-        side[px[close]] = sgn[close].astype(np.int8)
-    return out, side
+    return out
 
 
 # Most cells per axis of the device grid of edge segments (edge_sum_cl): the cell grows
@@ -276,7 +267,7 @@ EDGE_GRID_MAX = 128
 
 
 def edge_sum_cl(queries: np.ndarray, normals: np.ndarray, edges: ShadowEdges,
-                table: EdgeTable, env, *, on_edge_mm: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+                table: EdgeTable, env) -> np.ndarray:
     """:func:`edge_sum` on the OpenCL device (``cl/bssrdf_gather.cl`` edge_near): the same
     sums in float32, the segments binned in a uniform grid instead of a kd-tree, and
     segments shorter than 0.15 x their distance integrated by the midpoint rule
@@ -287,7 +278,7 @@ def edge_sum_cl(queries: np.ndarray, normals: np.ndarray, edges: ShadowEdges,
     x = np.asarray(queries, np.float32)
     nq = len(x)
     if len(edges.origin) == 0 or nq == 0:
-        return np.zeros((nq, 3)), np.zeros(nq, np.int8)
+        return np.zeros((nq, 3))
     k = len(edges.origin)
     reach = float(np.maximum(np.abs(edges.lo), np.abs(edges.hi)).max())
     lo = edges.origin.min(axis=0)
@@ -309,9 +300,8 @@ def edge_sum_cl(queries: np.ndarray, normals: np.ndarray, edges: ShadowEdges,
     gi = np.clip(g, 0, dims + 1)
     sel = np.flatnonzero(inside & near[gi[:, 2], gi[:, 1], gi[:, 0]])
     s_out = np.zeros((nq, 3))
-    side_out = np.zeros(nq, np.int8)
     if len(sel) == 0:
-        return s_out, side_out
+        return s_out
     x = x[sel]
     normals = np.asarray(normals, np.float32)[sel]
     nq = len(sel)
@@ -343,12 +333,11 @@ def edge_sum_cl(queries: np.ndarray, normals: np.ndarray, edges: ShadowEdges,
              np.int32(table.q.shape[0] - 1), np.int32(table.q.shape[1] - 1),
              np.float32(1.0 / table.d_omega), np.float32(1.0 / table.d_phi),
              to_device(env, mk), np.int32(len(mk)), np.float32(1.0 / table.d_omega),
-             np.float32(table.r_out), np.float32(on_edge_mm), np.int32(nq), d_out)
+             np.float32(table.r_out), np.int32(nq), d_out)
     cl.enqueue_copy(env.queue, out, d_out, wait_for=[ev])
     edges.info["kernel_seconds"] = edges.info.get("kernel_seconds", 0.0) + event_seconds([ev])
     s_out[sel] = out[:, :3]
-    side_out[sel] = np.rint(out[:, 3]).astype(np.int8)
-    return s_out, side_out
+    return s_out
 
 
 def sharp_visibility(samples, hits: np.ndarray, positions: np.ndarray, lights) -> np.ndarray:
@@ -382,19 +371,51 @@ def sharp_visibility(samples, hits: np.ndarray, positions: np.ndarray, lights) -
     return out
 
 
+def near_bracket(visible: np.ndarray, s: np.ndarray, rd_near: np.ndarray):
+    """The bracket of the near part, the near energy of the lit region about each shading
+    point, from its shadow ray ``visible`` (Q,) and the edge sums ``s`` (Q, 3): Rd_near - |s|
+    where the point is lit, |s| where it is shadowed.  Also (Q,) bool, where that holds:
+    |s| <= Rd_near in every channel.
+
+    For a region bounded by the segments, s = Rd_near - (the near energy of the region) at a
+    point inside and s = -(that energy) outside: |s| is the near energy beyond the curve (a
+    function of the point's distance to it) and its sign the side of the curve the segments
+    put the point on, so Rd_near V - s is Rd_near - |s| or |s| whenever V(x) and the
+    segments agree.  The segments trace the curve at the points' resolution, the shadow ray
+    at the pixel's; where they put x on opposite sides (the curve bends or wiggles between
+    crossings), the side is taken from V(x) alone: x is treated as lying at the same
+    distance from the curve on its own shadow ray's side, which is continuous across each
+    segment (|s| = Rd_near / 2 on both sides of a straight edge) and lies in [0, Rd_near].
+    |s| > Rd_near cannot come from a curve bounding one region (the segments seen from x
+    subtend more than a full turn: pieces of two surface sheets, overlapping ends)."""
+    mag = np.abs(np.asarray(s, np.float64))
+    rd = np.asarray(rd_near, np.float64)[None, :]
+    bracket = np.where(np.asarray(visible, bool)[:, None], rd - mag, mag)
+    return bracket, (mag <= rd).all(axis=1)
+
+
 def sharp_near_field(queries, shading_normals, geo_normals, light, visibility,
-                     edges: ShadowEdges, table: EdgeTable, *,
+                     edges: ShadowEdges, table: EdgeTable, *, lit_near,
                      transmittance=None, tree=None, env=None,
-                     visible: np.ndarray | None = None) -> np.ndarray:
+                     visible: np.ndarray | None = None, stats: dict | None = None) -> np.ndarray:
     """The near part of the exitance from one point or directional light at shading points,
-    (Q, 3) float64: C(x) [Rd_near V(x) - edge_sum(x)] (``subsurface/near_field.py``).
+    (Q, 3) float64: C(x) [Rd_near V(x) - s(x)] (``subsurface/near_field.py``), s the edge
+    sums, with the side of the curve from V(x) alone (:func:`near_bracket`): C(x) times
+    Rd_near - |s| where lit, |s| where shadowed; C(x) ``lit_near(idx)`` where |s| exceeds
+    Rd_near (no region the segments could bound).
 
     C(x) is the light's entering irradiance at x with the shading normal (0 below the
     geometric or the shading horizon, as the BRDF renderer culls), V(x) its shadow ray
     (offset along the geometric normal).  With ``env`` (an OpenCL environment) the edge
     sums run on the device (:func:`edge_sum_cl`), else in numpy (``tree``: a scipy
     cKDTree of ``queries`` to reuse).  ``visible`` (Q,) bool: V(x) already known (the shared
-    visibility, :func:`sharp_visibility`); else a shadow ray per shading point."""
+    visibility, :func:`sharp_visibility`); else a shadow ray per shading point.
+    ``lit_near(idx)``: (len(idx), 3) the near energy of the lit region at the queries
+    ``idx`` reconstructed from the points' own shadow rays (the near part of the profile
+    gathered over ``edges.lit``; ``subsurface/exitance.py``).
+    ``stats``: if given, its "near_fallback" counts the queries that took it, and
+    "near_side_from_visibility" those whose shadow ray and segments put them on opposite
+    sides of the curve (s > 0 shadowed, s < 0 lit)."""
     x = np.asarray(queries, np.float32)
     ns = _unit(np.asarray(shading_normals, np.float64))
     ng = np.asarray(geo_normals, np.float32)
@@ -414,12 +435,16 @@ def sharp_near_field(queries, shading_normals, geo_normals, light, visibility,
         vis = np.asarray(visible, bool)[live]
     else:
         vis = ~visibility.occluded(x[live], ng[live], wi[live], dist[live])
-    on_edge = EDGE_ON_LINE * edges.info.get("precision_mm", 0.0)
     if env is not None:
-        s, side = edge_sum_cl(x[live], ns[live], edges, table, env, on_edge_mm=on_edge)
+        s = edge_sum_cl(x[live], ns[live], edges, table, env)
     else:
-        s, side = edge_sum(x, ns, edges, table, tree=tree, on_edge_mm=on_edge)
-        s, side = s[live], side[live]
-    vis = np.where(side != 0, side > 0, vis)
-    out[live] = c * (table.rd_near[None, :] * vis[:, None] - s)
+        s = edge_sum(x, ns, edges, table, tree=tree)[live]
+    bracket, region = near_bracket(vis, s, table.rd_near)
+    if not region.all():
+        bracket[~region] = lit_near(np.flatnonzero(live)[~region])
+    if stats is not None:
+        other = np.where(vis[:, None], s < 0, s > 0).any(axis=1) & region
+        for k, n in (("near_fallback", (~region).sum()), ("near_side_from_visibility", other.sum())):
+            stats[k] = stats.get(k, 0) + int(n)
+    out[live] = c * bracket
     return out

@@ -247,6 +247,82 @@ def test05b_flat_slab_with_the_monte_carlo_profile(cl_env, preset):
         assert np.abs(plain / mc.Rd - 1).max() > 0.015, (theta, plain.mean(0), mc.Rd)
 
 
+# A flat plate under a uniform environment at the quick scene's low point density (spacing
+# 2.5 mm, reconstruction width sigma = spacing): the mean exitance over queries beyond the
+# profile's reach from the border, over Rd E (E = pi L T_mean, the entering irradiance), is
+# 1 + p + n.  p, the partition of unity weighted by the profile, is what the same gather gives
+# for the exact irradiance (deterministic; bounded by the flat slab's 1 %, SLAB_RTOL of
+# tests/test_gather.py; measured +0.07 %).  n = sum_p w_p e_p is the irradiance points' Monte
+# Carlo error e_p = E_p / E - 1 (independent per point, mean 0, standard deviation s_e: 3.2 %
+# at 64 samples) weighted by each point's share of the queries' mean, w_p = A_p mean_q
+# K(|x_q - p|) / Rd (K the gather's table; sum w = 1 + p): its standard deviation is
+# s_e sqrt(sum w_p^2), 0.26 % on this plate's 634 points and 0.6 % on one of 172 (8 seeds
+# each: 0.26 % and 0.60 % measured), so a plate's brightness at this density scatters by
+# several tenths of a percent from seed to seed with no bias (here +0.06 % with p = +0.07 %,
+# s.d. 0.27 %): 4 standard deviations plus |p| bound it (1.1 %).  Without the entry
+# transmittance the plate is 1 / T_mean - 1 = 8.5 - 8.8 % off, outside the bound.
+ENV_PLATE_DENSITY = 0.005
+ENV_PLATE_SIGMAS = 4.0
+
+
+def test05c_flat_plate_under_a_uniform_environment(cl_env):
+    """The plate's mean exitance under a uniform environment is Rd pi L T_mean within the
+    partition of unity's part p and 4 standard deviations of the irradiance points' Monte
+    Carlo error (the derivation above); the bound is also tight enough to catch a missing
+    entry transmittance."""
+    from dermis.lighting.emitters import SamplingOptions
+    from dermis.lighting.environment import EnvironmentMap
+    from dermis.lighting.irradiance import irradiance
+    from dermis.lighting.visibility import Visibility
+    from dermis.optics.layer_profiles import build_profiles
+    from dermis.subsurface import points as S
+    from dermis.subsurface.gather import gather
+    from dermis.subsurface.octree import build_octree
+    stack = PRESETS["two_layer"]
+    prof = build_profiles(stack)
+    cfg = BssrdfConfig()
+    spacing = S.spacing_from_mfp(stack, ENV_PLATE_DENSITY)
+    reach = float(prof.cutoff_mm.max()) + BLUR_REACH * spacing
+    half = reach + 2 * spacing + S.POU_RADIUS * spacing
+    v = np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0.0]])
+    f = np.array([[0, 1, 2], [0, 2, 3]])
+    sp = S.sample_points(v, f, spacing_mm=spacing, seed=4)
+    sigma = sp.info["kernel_sigma_mm"]
+    vis = Visibility(v, f)
+    t = Transmittance(stack.layers[0].eta / stack.eta_above, cfg.surface_reflection)
+    light = LightConfig(name="sky", type="environment", map="procedural_sunset",
+                        samples=cfg.irradiance_samples)
+    uniform = EnvironmentMap(np.full((8, 16, 3), 1.0, np.float32))
+    E = irradiance(sp.positions, sp.normals, [light], vis.occluded, transmittance=t, seed=1,
+                   options=SamplingOptions(samples=cfg.irradiance_samples, env=uniform))
+    e_exact = math.pi * 1.0 * np.asarray(t.mean, np.float64)
+    inner = half - reach - 1.0
+    q = np.zeros((400, 3))
+    q[:, :2] = np.random.default_rng(5).uniform(-inner, inner, (400, 2))
+    nrm = np.tile([0.0, 0.0, 1.0], (len(q), 1))
+
+    def mean_ratio(irr):
+        m, _ = exitance(sp, irr, prof, ShadingPoints(q, nrm, nrm), lights=[light],
+                        visibility=vis, options=ExitanceOptions(
+                            epsilon=None, brute_force=True, transmittance=t, env=cl_env))
+        return m.mean(axis=0) / (prof.Rd * e_exact)
+    got = mean_ratio(E)
+    p = mean_ratio(np.broadcast_to(e_exact, E.shape).astype(np.float32)) - 1
+    # w_p: the queries gathered at the points (the table depends on the distance only)
+    qt = build_octree(q, np.full(len(q), 1.0 / len(q)), np.ones((len(q), 3)),
+                      kernel_sigma_mm=sigma)
+    k, _ = gather(qt, prof, sp.positions, epsilon=None, brute_force=True, env=cl_env)
+    w = k * sp.areas[:, None] / prof.Rd
+    np.testing.assert_allclose(w.sum(axis=0), 1 + p, rtol=1e-4)    # the same weights
+    s_e = (E / e_exact).std(axis=0, ddof=1)
+    sd = s_e * np.sqrt((w ** 2).sum(axis=0))
+    assert np.all(np.abs(p) < 0.01), p
+    bound = np.abs(p) + 4 * sd
+    assert np.all(np.abs(got - 1) <= bound), (got - 1, p, sd)
+    plain = got / np.asarray(t.mean)     # irradiance without the entry loss: M / T_mean
+    assert np.all(np.abs(plain - 1) > bound), (plain - 1, bound)
+
+
 @pytest.mark.parametrize("preset", ["two_layer", "skin1", "skin2"])
 def test06_hk93_matches_the_profile_under_uniform_light(cl_env, preset):
     """HK93's constant term is derived from the BSSRDF's own layer file: under uniform light

@@ -22,7 +22,8 @@ from dermis.subsurface.near_field import near_tables, split_profile
 from dermis.subsurface.octree import build_octree
 from dermis.subsurface.profile_table import BLUR_REACH
 from dermis.subsurface.radiance import exitance_to_radiance
-from dermis.subsurface.shadow_edges import ShadowEdges, edge_sum, edge_sum_cl, sharp_visibility
+from dermis.subsurface.shadow_edges import (ShadowEdges, edge_sum, edge_sum_cl, near_bracket,
+                                            sharp_visibility)
 
 # The shipped settings: the scene schema's [bssrdf] defaults (the library has no others).
 SHIPPED = BssrdfConfig()
@@ -531,16 +532,18 @@ def test13_edge_sums_device_matches_numpy(cl_env, rng):
     q[:, :2] = rng.uniform(-25, 25, (20000, 2))
     q[:50, 1] = 3 * np.sin(q[:50, 0] / 4) + rng.normal(scale=1e-4, size=50)   # on the edge
     nrm = np.tile([0.0, 0.0, 1.0], (len(q), 1))
-    a, sa = edge_sum(q, nrm, edges, table, on_edge_mm=1e-3)
-    b, sb = edge_sum_cl(q, nrm, edges, table, cl_env, on_edge_mm=1e-3)
-    # compare what the near field uses: Rd_near V - S, V from the side where on the edge
-    # (there float32 rounding may put a point on either side; the result is continuous)
+    a = edge_sum(q, nrm, edges, table)
+    b = edge_sum_cl(q, nrm, edges, table, cl_env)
+    # compare what the near field uses: the bracket with the side from the geometry (on the
+    # edge float32 rounding may put a point on either side of a segment: |s| is continuous)
     lit = q[:, 1] < 3 * np.sin(q[:, 0] / 4)          # outward = z x tangent points to +y
-    near_a = table.rd_near * np.where(sa != 0, sa > 0, lit)[:, None] - a
-    near_b = table.rd_near * np.where(sb != 0, sb > 0, lit)[:, None] - b
+    near_a, ok_a = near_bracket(lit, a, table.rd_near)
+    near_b, ok_b = near_bracket(lit, b, table.rd_near)
+    assert ok_a.all() and ok_b.all()
     assert np.abs(near_a - near_b).max() < 2e-3 * table.rd_near.max(), np.abs(near_a - near_b).max()
     assert np.abs(a).max() > 0.3 * table.rd_near.max()      # the edge is in range
-    assert (sa != 0).sum() > 10 and (sb != 0).sum() > 10
+    # off the edge the geometry's side and the sums' agree: Rd_near V - s is the bracket
+    np.testing.assert_allclose((table.rd_near * lit[:, None] - a)[50:], near_a[50:], atol=1e-6)
 
 
 def test14_shared_visibility_of_point_and_directional_lights():
