@@ -120,10 +120,12 @@ def brute_force_error(cache: Path, n_queries: int) -> dict:
     no clustering, no expansion) on random front-facing pixels, per lighting condition
     (the high mesh).  The near field is exact either way; the difference is the far part's
     clustering."""
+    from dermis.geometry.normals import vertex_normals
     from dermis.pipeline import artifacts
     from dermis.pipeline.cl import get_env
     from dermis.pipeline.config import BssrdfConfig, load_scene
-    from dermis.lighting.visibility import Visibility, camera_rays
+    from dermis.lighting.visibility import Visibility
+    from dermis.rendering.camera import camera_rays
     from dermis.optics.transmittance import Transmittance
     from dermis.subsurface.exitance import ExitanceOptions, ShadingPoints, exitance
     ld = lambda n: artifacts.load(glob.glob(str(cache / n / "*"))[0])  # noqa: E731
@@ -138,7 +140,7 @@ def brute_force_error(cache: Path, n_queries: int) -> dict:
     pos = (V[F] * w[..., None]).sum(1)
     ng = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
     ng /= np.linalg.norm(ng, axis=1, keepdims=True)
-    ns = (mesh.vertex_normals()[F] * w[..., None]).sum(1)
+    ns = (vertex_normals(mesh)[F] * w[..., None]).sum(1)
     ns /= np.linalg.norm(ns, axis=1, keepdims=True)
     wo = -d[h.hit]
     front = ((ng * wo).sum(1) > 0) & ((ns * wo).sum(1) > 0)
@@ -213,7 +215,8 @@ def shadow_edge_colour(cache: Path, exr: Path, light_name: str = "point") -> dic
     from dermis.pipeline import artifacts
     from dermis.pipeline.config import load_scene
     from dermis.pipeline.imageio import read_image
-    from dermis.lighting.visibility import Visibility, camera_rays
+    from dermis.lighting.visibility import Visibility
+    from dermis.rendering.camera import camera_rays
     mesh = artifacts.load(glob.glob(str(cache / "mesh_high" / "*"))[0])
     scene = load_scene(str(cache.parent / "scene.toml"))
     light = next(l for l in scene.lights if l.name == light_name)

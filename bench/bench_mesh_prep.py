@@ -84,7 +84,7 @@ def main() -> int:
     if not DATA.is_dir():
         print(f"skip: {DATA} not found")
         return 0
-    from dermis.pipeline.artifacts import angle_weighted_normals
+    from dermis.geometry.normals import angle_weighted_normals
     from dermis.geometry.scan import load_scan, read_grey_image
     from dermis.geometry.simplification import simplify
     from dermis.geometry.subdivision import LPS_DISPLACEMENT_MID, LPS_DISPLACEMENT_SCALE_MM, make_high

@@ -52,9 +52,10 @@ from dermis.geometry.texture_fill import (blur_weights, masked_blur, nearest_fil
                                           nearest_within)
 from dermis.geometry.texture_lookup import SRGB8_TO_LINEAR
 from dermis.geometry.uv_raster import rasterise
-from dermis.pipeline.artifacts import BakedMaps, Mesh, renormalise_f64
+from dermis.pipeline.artifacts import BakedMaps, Mesh
 from dermis.pipeline.errors import ConfigError, DermisError
 from dermis.rendering.color import linear_to_srgb8
+from dermis.geometry.normals import renormalise_f64, vertex_normals
 
 __all__ = ["bake_maps", "DEFAULT_MAX_DISTANCE_EDGE_FRACTION", "MAX_RESOLUTION"]
 
@@ -379,7 +380,7 @@ def bake_maps(low: Mesh, high: Mesh, *, resolution: int = 4096, max_distance_mm:
         scene = _raycasting_scene(high)
         timings["scene_build_s"] = time.perf_counter() - t0
         texture = HighTexture.of(high)
-        frames = TriangleFrames.of(vertices, faces, renormalise_f64(low.vertex_normals()), coef,
+        frames = TriangleFrames.of(vertices, faces, renormalise_f64(vertex_normals(low)), coef,
                                    low.uv, np.asarray(low.uv_faces), resolution)
         height, hit, albedo_cov, rejected_backfacing = _cast_texels(
             scene, frames, flat, tri, resolution, reference, max_distance, texture, timings,

@@ -11,8 +11,9 @@ from __future__ import annotations
 import numpy as np
 
 from dermis.geometry.texture_lookup import bilinear
-from dermis.pipeline.artifacts import BakedMaps, Mesh, renormalise_f64
+from dermis.pipeline.artifacts import BakedMaps, Mesh
 from dermis.pipeline.errors import DermisError
+from dermis.geometry.normals import renormalise_f64, vertex_normals
 
 __all__ = ["triangle_tangent_frames", "bump_shading_normals", "bump_shading_normals_at_hits"]
 
@@ -142,7 +143,7 @@ def bump_shading_normals_at_hits(low: Mesh, maps: BakedMaps, tri_ids: np.ndarray
     w = np.stack([1.0 - b[:, 0] - b[:, 1], b[:, 0], b[:, 1]], axis=1)
     faces = np.asarray(low.faces)
     uvf = np.asarray(low.uv_faces)
-    normals = renormalise_f64(low.vertex_normals())
+    normals = renormalise_f64(vertex_normals(low))
     n = np.einsum("nk,nkd->nd", w, normals[faces[tri_ids]])
     uv = np.einsum("nk,nkd->nd", w, np.asarray(low.uv, dtype=np.float64)[uvf[tri_ids]])
     dpdu, dpdv = triangle_tangent_frames(low.vertices, faces, low.uv, uvf)

@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from dermis.pipeline.artifacts import Mesh, angle_weighted_normals
+from dermis.pipeline.artifacts import Mesh
+from dermis.geometry.normals import angle_weighted_normals
 from dermis.pipeline.errors import DermisError
 
 __all__ = ["validate", "check_extent", "MAX_COORDINATE_MM", "MIN_EXTENT_MM"]

@@ -12,7 +12,7 @@ are :mod:`dermis.groundtruth.passes`):
   bottom-left (docs/science.md conventions), Mitsuba's bitmap origin the top-left (measured).
   The mesh is written as a binary PLY into a temporary folder.
 * **Camera**: ``perspective`` with ``fov_axis = "smaller"`` (pbrt's and dermis's
-  convention), ``look_at`` as in :func:`lighting.visibility.camera_rays`; box pixel filter, so a
+  convention), ``look_at`` as in :func:`rendering.camera.camera_rays`; box pixel filter, so a
   reference pixel is the average over its footprint.  Its pixel-centre rays are the same
   rays as dermis's (:func:`dermis.groundtruth.passes.pixel_hits`;
   tests/test_reference.py).
@@ -61,6 +61,7 @@ import numpy as np
 from dermis.lighting.environment import environment_map
 from dermis.pipeline.errors import ConfigError
 from dermis.rendering.color import srgb_to_linear
+from dermis.geometry.normals import vertex_normals
 
 __all__ = ["unweld", "write_ply", "offset_surface", "camera_dict", "light_dicts",
            "environment_radiance", "medium_dict", "boundary_bsdf", "rgb_spectrum",
@@ -289,7 +290,7 @@ def head_scene(mi, mesh, stack, camera, lights, *, width: int, height: int,
     integrator, max_depth, rr_depth = options.integrator, options.max_depth, options.rr_depth
     material, lambert_albedo = options.material, options.lambert_albedo
     folder = tempfile.mkdtemp(prefix="dermis-mitsuba-")
-    normals = mesh.vertex_normals()
+    normals = vertex_normals(mesh)
     v, f, n, uv = unweld(mesh.vertices, mesh.faces, normals, mesh.uv, mesh.uv_faces)
     outer = write_ply(Path(folder) / "outer.ply", v, f, n, uv)
     tex = mesh.texture_srgb if (mesh.texture_srgb is not None and uv is not None) else None

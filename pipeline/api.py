@@ -6,6 +6,7 @@
 """
 from __future__ import annotations
 
+import json
 import os
 import threading
 import warnings
@@ -234,10 +235,13 @@ def dark_renders(scene: Scene, summary: RunSummary) -> list[str]:
     """Warnings for renders that came out entirely black, naming the likely cause."""
     out = []
     cam = scene.camera
-    for rep in summary.nodes:
-        if rep.stage not in ("render", "bssrdf") or rep.status not in ("ran", "cached"):
+    for rep in summary.nodes:     # every node whose artifact is an image, whatever its stage
+        if rep.status not in ("ran", "cached"):
             continue
         try:
+            meta = json.loads((Path(rep.path) / "meta.json").read_text())
+            if not isinstance(meta, dict) or meta.get("artifact") != "RenderedImage":
+                continue
             with np.load(Path(rep.path) / "data.npz", allow_pickle=False) as data:
                 mask, linear = data["mask"], data["linear"]
         except (OSError, KeyError, ValueError):

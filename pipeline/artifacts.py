@@ -23,7 +23,7 @@ import numpy as np
 from dermis.pipeline.errors import ConfigError, DermisError
 
 __all__ = ["Mesh", "BakedMaps", "LayerProfile", "RenderedImage", "SurfacePoints",
-           "PointIrradiance", "PixelSamples", "angle_weighted_normals", "renormalise_f64", "save",
+           "PointIrradiance", "PixelSamples", "save",
            "load", "ARTIFACT_TYPES"]
 
 
@@ -51,15 +51,6 @@ class Mesh:
     @property
     def n_triangles(self) -> int:
         return int(len(self.faces))
-
-    def vertex_normals(self) -> np.ndarray:
-        """(V, 3) float32 unit normals: ``normals`` if set, else angle-weighted ones."""
-        if self.normals is None:
-            return angle_weighted_normals(self.vertices, self.faces)
-        n = np.asarray(self.normals, dtype=np.float32)
-        if n.shape != np.shape(self.vertices):
-            raise DermisError(f"mesh.normals has shape {n.shape}; need {np.shape(self.vertices)}")
-        return n
 
     def check(self, what: str, *, need_uv: bool = False) -> None:
         """Raise DermisError naming ``what`` (e.g. ``"bake: low"``) if an array is malformed.
@@ -94,27 +85,6 @@ class Mesh:
                               "(one UV index per face corner)")
         if uvf.min() < 0 or uvf.max() >= len(uv):
             raise DermisError(f"{what}.uv_faces indexes uv outside [0, {len(uv) - 1}]")
-
-
-def angle_weighted_normals(vertices, faces) -> np.ndarray:
-    """Angle-weighted unit vertex normals, (V, 3) float32; unused vertices get (0, 0, 0).
-
-    docs/science.md §6 "Vertex normals" (Thuermer & Wuethrich, JGT 3(1), 1998), computed by
-    ``igl.per_vertex_normals`` (weighting ANGLE).
-    """
-    import igl
-
-    n = igl.per_vertex_normals(np.ascontiguousarray(vertices, dtype=np.float64),
-                               np.ascontiguousarray(faces, dtype=np.int64),
-                               igl.PerVertexNormalsWeightingType.PER_VERTEX_NORMALS_WEIGHTING_TYPE_ANGLE)
-    return np.nan_to_num(n, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
-
-
-def renormalise_f64(normals) -> np.ndarray:
-    """``normals`` as float64, NaN set to 0 and each non-zero row rescaled to unit length."""
-    n = np.nan_to_num(np.asarray(normals).astype(np.float64))
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    return n / np.where(length > 0, length, 1.0)
 
 
 @dataclass

@@ -38,7 +38,8 @@ from dermis.lighting.emitters import SamplingOptions, sample_lights
 from dermis.lighting.environment import environment_map
 from dermis.lighting.lobes import RETRO_FRACTION, RETRO_G_MAX, GlossyLobe, RetroLobe
 from dermis.lighting.strata import PixelStrata
-from dermis.lighting.visibility import Visibility, camera_rays, subpixel_offsets
+from dermis.lighting.visibility import Visibility
+from dermis.rendering.camera import camera_rays, subpixel_offsets
 from dermis.pipeline.artifacts import PixelSamples
 from dermis.pipeline.cl import get_env
 from dermis.pipeline.errors import ConfigError

@@ -22,6 +22,7 @@ from dermis.pipeline.reuse import content_key
 from dermis.pipeline.shared import RunCache, Shared
 from dermis.rendering.color import srgb_to_linear
 from dermis.rendering.options import RenderOptions
+from dermis.geometry.normals import vertex_normals
 
 __all__ = ["KERNELS", "PixelSurface", "pixel_surface", "surface_attributes", "global_size",
            "SURFACE_CACHE_SIZE"]
@@ -58,7 +59,7 @@ def surface_attributes(env, mesh, hits_tri, hits_bary, camera_pos, *, texture=No
         np.int32(m),
         to_device(env, np.asarray(mesh.vertices, dtype=np.float32)),
         to_device(env, np.asarray(mesh.faces, dtype=np.int32)),
-        to_device(env, mesh.vertex_normals()),
+        to_device(env, vertex_normals(mesh)),
         to_device(env, np.asarray(mesh.uv if has_uv else np.zeros((1, 2)), dtype=np.float32)),
         to_device(env, np.asarray(mesh.uv_faces if has_uv else np.zeros((1, 3)), dtype=np.int32)),
         to_device(env, np.ascontiguousarray(tex, dtype=np.uint8)),

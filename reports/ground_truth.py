@@ -73,7 +73,7 @@ def region_labels_for(mesh, camera, *, width: int, height: int, with_faces: bool
     through dermis's own camera rays and Embree (and the (H, W) face index, -1 = miss)."""
     from dataclasses import replace
     from dermis.lighting.visibility import Visibility
-    from dermis.lighting.visibility import camera_rays
+    from dermis.rendering.camera import camera_rays
     cam = replace(camera, width=int(width), height=int(height))
     o, d = camera_rays(cam)
     hits = Visibility(mesh.vertices, mesh.faces).intersect(o, d)

@@ -11,9 +11,10 @@ import numpy as np
 
 from dermis.geometry.bump import bump_shading_normals_at_hits
 from dermis.lighting.visibility import embree_scene
-from dermis.pipeline.artifacts import BakedMaps, Mesh, renormalise_f64
+from dermis.pipeline.artifacts import BakedMaps, Mesh
 from dermis.rendering.color import linear_to_srgb8
 from dermis.reports.sheets import save_png
+from dermis.geometry.normals import renormalise_f64, vertex_normals
 
 __all__ = ["save_map_previews", "save_shaded_comparison", "lambert_render"]
 
@@ -111,7 +112,7 @@ def lambert_render(mesh: Mesh, *, size: int = 800, maps: BakedMaps | None = None
         n = bump_shading_normals_at_hits(mesh, maps, tri, bary, blurred=blurred)
     else:
         w = np.stack([1 - bary[:, 0] - bary[:, 1], bary[:, 0], bary[:, 1]], 1)
-        n = np.einsum("nk,nkd->nd", w, renormalise_f64(mesh.vertex_normals())[mesh.faces[tri]])
+        n = np.einsum("nk,nkd->nd", w, renormalise_f64(vertex_normals(mesh))[mesh.faces[tri]])
     n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
     return _shade(mask, n)
 

@@ -3,7 +3,7 @@ angle-weighted vertex normals (:func:`dermis.geometry.subdivision.make_high`).""
 from __future__ import annotations
 
 from dermis.geometry.subdivision import make_high
-from dermis.pipeline.artifacts import angle_weighted_normals
+from dermis.geometry.normals import angle_weighted_normals
 from dermis.pipeline.graph import Node, StageResult
 from dermis.pipeline.imageio import read_image
 from dermis.pipeline.registry import stage

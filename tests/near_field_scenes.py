@@ -32,7 +32,7 @@ def bumpy_sphere(radius: float, subdivisions: int, bump_mm: float, seed: int):
     """Icosphere with radial bumps: the sum of 12 random plane waves of wavelength 2-6 mm
     scaled so the displacement's largest magnitude is ``bump_mm`` (0: the plain sphere).
     Returns (vertices, faces, unit angle-weighted vertex normals)."""
-    from dermis.pipeline.artifacts import angle_weighted_normals
+    from dermis.geometry.normals import angle_weighted_normals
     m = icosphere(radius, subdivisions)
     v = np.asarray(m.vertices, np.float64)
     f = np.asarray(m.faces, np.int64)

@@ -18,7 +18,7 @@ import pytest
 
 from dermis.pipeline.artifacts import Mesh
 from dermis.pipeline.config import CameraConfig, LightConfig
-from dermis.lighting.visibility import camera_rays, subpixel_offsets
+from dermis.rendering.camera import camera_rays, subpixel_offsets
 from dermis.models import lambert
 from dermis.models.lambert import LambertParams
 from dermis.rendering.cast import cast

@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dermis.pipeline.artifacts import Mesh, angle_weighted_normals
+from dermis.pipeline.artifacts import Mesh
+from dermis.geometry.normals import angle_weighted_normals
 from dermis.pipeline.errors import DermisError
 from dermis.geometry import scan
 from dermis.geometry.simplification import simplify

@@ -19,7 +19,8 @@ from dermis.pipeline.artifacts import BakedMaps
 from dermis.pipeline.config import CameraConfig, LightConfig
 from dermis.pipeline.errors import ConfigError, DermisError
 from dermis.rendering.color import srgb_to_linear
-from dermis.lighting.visibility import Visibility, camera_rays
+from dermis.lighting.visibility import Visibility
+from dermis.rendering.camera import camera_rays
 from dermis.models import asperity, hk93, lafortune, lambert
 from dermis.models.lambert import LambertParams
 from dermis.pipeline import registry

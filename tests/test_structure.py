@@ -147,10 +147,13 @@ PROBE = {
     # the BSSRDF's surface lobes and the entry transmittance they cap; a term's bases
     "models/lafortune.py": {"render/lafortune", "render/asperity", "bssrdf", "irradiance"},
     "models/hk93.py": {"render/hk93", "render/asperity"},   # only the images of its model
-    # the previews cast their rays on the renders' shared Embree scenes (lighting/visibility.py,
-    # which imports lighting/strata.py for the sub-pixel offsets)
-    "lighting/visibility.py": {"render", "bssrdf", "irradiance", "visibility", "mesh_previews"},
-    "lighting/strata.py": {"render", "bssrdf", "irradiance", "visibility", "mesh_previews"},
+    # the previews cast their rays on the renders' shared Embree scenes (lighting/visibility.py)
+    "lighting/visibility.py": {"render", "bssrdf", "irradiance", "visibility", "mesh_previews",
+                               "report"},             # the report's regions cast camera rays
+    "lighting/strata.py": {"render", "bssrdf", "irradiance", "visibility", "report"},
+    "rendering/camera.py": {"render", "bssrdf", "visibility", "report"},
+    "geometry/normals.py": {"mesh_source", "mesh_high", "mesh_low", "bake", "mesh_previews",
+                            "visibility", "render", "bssrdf"},
     "lighting/warps.py": {"render", "bssrdf", "irradiance", "visibility"},
     "lighting/emitters.py": {"render", "bssrdf", "irradiance", "visibility"},
     "lighting/environment.py": {"render", "bssrdf", "irradiance", "visibility"},
