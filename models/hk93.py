@@ -130,7 +130,7 @@ _SS_COS_GRID = np.array([1.0, 0.9, 0.75, 0.5, 0.3, 0.15, 0.07, 0.03, 0.01, 0.003
 # n = 5 / (1 - |g|) per axis, at least 96 (skin g = 0.8: 96 and 384 agree to 2e-3, the
 # 1/(mu_i + mu_o) peak at grazing the worst case, which SS_ALBEDO_TOL absorbs) and at most
 # 512 (|g| = 0.99: 512 and 1024 agree to < 3e-3 at every cosine of the grid,
-# tests/test_brdf_hk93.py test06_single_scattering_quadrature_converges).
+# tests/test_brdf_hk93.py test13_single_scattering_quadrature_converges).
 _SS_QUAD_MIN, _SS_QUAD_MAX = 96, 512
 SS_ALBEDO_TOL = 5e-3
 

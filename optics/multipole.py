@@ -62,7 +62,7 @@ __all__ = ["multipole_profiles", "multipole_totals", "DiffusionConstants",
 
 DIFFUSION_MODELS = ("pbd", "dj2005")
 
-# Pole pairs i = -n..n.  Measured (tests/test_profiles.py::test03_pole_convergence): for the
+# Pole pairs i = -n..n.  Measured (tests/test_profiles.py::test10_pole_convergence): for the
 # 0.25 mm epidermis of the two_layer preset Rd changes by 7e-6 from n = 2 to 5 and < 1e-12
 # beyond; Donner-Jensen's public code used n = 5 (11 pairs).  A fixed n fails for thick,
 # weakly absorbing slabs (a 5 mm slab with albedo 0.9999 gave negative tails at n = 10), so
@@ -88,7 +88,7 @@ POLE_DAMPING = 20.0
 POLE_REACH = 30.0
 POLE_FAR = 10.0
 # Gauss-Legendre nodes along the beam (u = 1 - e^{-sigma_t t}, split where the displaced
-# sources leave the layer).  Measured (tests/test_profiles.py::test03_beam_convergence):
+# sources leave the layer).  Measured (tests/test_profiles.py::test11_beam_convergence):
 # 16 -> 64 nodes changes the epidermis R(r) by < 1e-6 and the semi-infinite dermis by
 # < 0.05 % at r >= 0.05 mm.
 NQ_BEAM = 16

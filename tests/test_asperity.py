@@ -39,7 +39,7 @@ def test01_params_rejected(kwargs, match):
         AsperityParams(**kwargs)
 
 
-def test01_pack_and_evaluate_contract(cl_env):
+def test02_pack_and_evaluate_contract(cl_env):
     src = (CL_DIR / "asperity.cl").read_text()
     assert int(re.search(r"#define ASPERITY_NPARAMS (\d+)", src).group(1)) == ASPERITY_NPARAMS
     p = AsperityParams(delta_mm=0.5, lambda_mm=10.0, albedo=(0.9, 0.8, 0.7), f_max=2.0)
@@ -55,14 +55,14 @@ def test01_pack_and_evaluate_contract(cl_env):
 
 @pytest.mark.parametrize("kwargs", [{}, dict(delta_mm=0.3, lambda_mm=2.0, f_max=0.5,
                                              albedo=(0.9, 0.5, 0.2))])
-def test02_matches_reference(cl_env, rng, kwargs):
+def test03_matches_reference(cl_env, rng, kwargs):
     params = AsperityParams(**kwargs)
     wo, wi = sample_pairs(rng)
     got = evaluate(asperity.MODEL, wo, wi, params, env=cl_env)
     np.testing.assert_allclose(got, asperity_f_np(wo, wi, params), rtol=RTOL_F32)
 
 
-def test02_closed_forms(cl_env):
+def test04_closed_forms(cl_env):
     """Normal/normal: albedo tau/(4 pi); both grazing: albedo/(4 pi tau) (clamped cosines);
     one grazing: albedo/(4 pi cos); f_max caps all of it."""
     p = AsperityParams(delta_mm=1.0, lambda_mm=20.0, albedo=(1.0, 0.5, 0.25))
@@ -77,7 +77,7 @@ def test02_closed_forms(cl_env):
     assert capped.max() == np.float32(0.1)
 
 
-def test03_reciprocity(cl_env, rng):
+def test05_reciprocity(cl_env, rng):
     wo, wi = sample_pairs(rng)
     p = AsperityParams(albedo=(0.9, 0.5, 0.2))
     np.testing.assert_allclose(evaluate(asperity.MODEL, wo, wi, p, env=cl_env),
@@ -86,7 +86,7 @@ def test03_reciprocity(cl_env, rng):
 
 
 @pytest.mark.parametrize("delta, lam", [(1.0, 20.0), (0.5, 1.0)])
-def test04_energy_exact(cl_env, rng, delta, lam):
+def test06_energy_exact(cl_env, rng, delta, lam):
     """Directional albedo = albedo tau (1 - tau/2) / (2 max(cos_o, tau)) < 1/2 (clamp form)."""
     p = AsperityParams(delta_mm=delta, lambda_mm=lam)
     tau = delta / lam
@@ -97,7 +97,7 @@ def test04_energy_exact(cl_env, rng, delta, lam):
     assert np.all(mean - N_SIGMA * err <= 0.5)
 
 
-def test05_grazing_and_backfacing_finite(cl_env, rng):
+def test07_grazing_and_backfacing_finite(cl_env, rng):
     n = 400
     graze = with_cos(np.repeat([0.0, 1e-8, 1e-30, 1e-3], n // 4), 2 * np.pi * rng.random(n))
     other = hemisphere(rng, n)

@@ -73,7 +73,7 @@ def test01_params_rejected(layers, ms, match):
         HK93Params(layers, ms)
 
 
-def test01_pack_layout_and_duck_typing():
+def test02_pack_layout_and_duck_typing():
     src = (CL_DIR / "brdf_hk93.cl").read_text()
     assert int(re.search(r"#define HK93_NPARAMS (\d+)", src).group(1)) == HK93_NPARAMS
     stack = PRESETS["two_layer"]
@@ -97,7 +97,7 @@ def test01_pack_layout_and_duck_typing():
 
 
 @pytest.mark.parametrize("layers", ["default", "odd", "single_finite", "thin"])
-def test02_matches_reference(cl_env, rng, layers):
+def test03_matches_reference(cl_env, rng, layers):
     """Single scattering alone (rho_ms = 0: the constant would hide its grazing errors).
     "thin" (tau ~ 0.02) puts tau (1/mu_i + 1/mu_o) on both sides of the kernel's switch from
     the Taylor series to 1 - exp(-x) at x = 0.1."""
@@ -112,7 +112,7 @@ def test02_matches_reference(cl_env, rng, layers):
     np.testing.assert_allclose(got, want, rtol=RTOL_F32, atol=ATOL_F32)
 
 
-def test02_closed_form_chandrasekhar(cl_env, rng):
+def test04_closed_form_chandrasekhar(cl_env, rng):
     """Index-matched, non-absorbing, isotropic, semi-infinite: f = 1/(4 pi (mu_i + mu_o))
     (Chandrasekhar's first-order term; docs/science.md §2 BRDF form)."""
     params = HK93Params([_layer(eta=1.0, g=0.0, sigma_a=(0, 0, 0))], (0, 0, 0))
@@ -124,7 +124,7 @@ def test02_closed_form_chandrasekhar(cl_env, rng):
     np.testing.assert_allclose(got, np.repeat(want[:, None], 3, 1), rtol=RTOL_F32)
 
 
-def test02_closed_form_thin_layer(cl_env, rng):
+def test05_closed_form_thin_layer(cl_env, rng):
     """tau -> 0: f -> T_in T_out W p tau / (eta^2 mu_1i mu_1o) (optically thin limit)."""
     d, eta, g = 1e-4, 1.4, 0.5
     sa, ssp = np.array([0.5, 1.0, 2.0]), np.array([5.0, 4.0, 3.0])
@@ -152,7 +152,7 @@ def test02_closed_form_thin_layer(cl_env, rng):
     np.testing.assert_allclose(got, want, rtol=x_max / 2 + RTOL_F32)
 
 
-def test02_closed_form_normal_incidence(cl_env):
+def test06_closed_form_normal_incidence(cl_env):
     """wo = wi = normal, one slab: f = (1 - R0)^2 W HG(-1) (1 - e^{-2 tau}) / (2 eta^2) + rho/pi,
     R0 = ((eta - 1)/(eta + 1))^2."""
     eta, g, d = 1.33, 0.7, 0.2
@@ -168,7 +168,7 @@ def test02_closed_form_normal_incidence(cl_env):
     np.testing.assert_allclose(got, want, rtol=RTOL_F32)
 
 
-def test02_layer_split_invariance(cl_env, rng):
+def test07_layer_split_invariance(cl_env, rng):
     """A semi-infinite medium cut into a 0.3 mm slab over the same medium reflects exactly as
     the uncut medium: layer 2's light must be attenuated by layer 1 on the way in AND out."""
     whole = HK93Params([_layer()], (0, 0, 0))
@@ -179,7 +179,7 @@ def test02_layer_split_invariance(cl_env, rng):
                                rtol=RTOL_F32, atol=ATOL_F32)
 
 
-def test02_default_multiple_scattering():
+def test08_default_multiple_scattering():
     """rho_ms = (1 - Fdr_ext(eta)) Rd - int rho_ss 2 mu dmu with Rd the layer profile's
     (the BSSRDF's own layer file): HK93 then reflects what the BSSRDF does under uniform
     light (tests/test_energy.py checks the whole BRDF's reflectance)."""
@@ -203,7 +203,7 @@ def test02_default_multiple_scattering():
 
 
 @pytest.mark.parametrize("layers", ["default", "odd"])
-def test03_reciprocity(cl_env, rng, layers):
+def test09_reciprocity(cl_env, rng, layers):
     params = HK93Params() if layers == "default" else HK93Params(ODD)
     wo, wi = sample_pairs(rng)
     a = evaluate(hk93.MODEL, wo, wi, params, env=cl_env)
@@ -211,7 +211,7 @@ def test03_reciprocity(cl_env, rng, layers):
     np.testing.assert_allclose(a, b, rtol=RTOL_RECIPROCITY, atol=0)
 
 
-def test04_energy_chandrasekhar_exact(cl_env, rng):
+def test10_energy_chandrasekhar_exact(cl_env, rng):
     """White isotropic index-matched half-space: a(mu) = (1 - mu ln((1 + mu)/mu))/2 exactly."""
     params = HK93Params([_layer(eta=1.0, g=0.0, sigma_a=(0, 0, 0))], (0, 0, 0))
     mean, err = mc_albedo(_f(params), THETA_GRID, rng, N_MC)
@@ -221,7 +221,7 @@ def test04_energy_chandrasekhar_exact(cl_env, rng):
 
 
 @pytest.mark.parametrize("case", ["default", "odd", "white_backscatter"])
-def test04_energy_albedo_at_most_one(cl_env, rng, case):
+def test11_energy_albedo_at_most_one(cl_env, rng, case):
     """Directional albedo <= 1 (+5 sigma) to 89 deg, derived rho_ms included; the white,
     index-matched, backward-scattering half-space is the hardest case (Rd = 1)."""
     params = {"default": HK93Params(), "odd": HK93Params(ODD),
@@ -234,7 +234,7 @@ def test04_energy_albedo_at_most_one(cl_env, rng, case):
         assert mean.max() > 0.95
 
 
-def test05_grazing_and_backfacing_finite(cl_env, rng):
+def test12_grazing_and_backfacing_finite(cl_env, rng):
     n = 400
     phi = 2 * np.pi * rng.random(n)
     graze = with_cos(np.repeat([0.0, 1e-8, 1e-30, 1e-3], n // 4), phi)
@@ -252,7 +252,7 @@ def test05_grazing_and_backfacing_finite(cl_env, rng):
 
 @pytest.mark.parametrize("g", [-0.99, 0.99])
 @pytest.mark.parametrize("eta", [1.0, 1.4])
-def test06_single_scattering_quadrature_converges(g, eta):
+def test13_single_scattering_quadrature_converges(g, eta):
     """HK93Params' maximum single-scattering albedo (which caps rho_ms) is converged for the
     sharpest Henyey-Greenstein lobes: its own grid against 1024 cells per axis within
     SS_ALBEDO_TOL; for eta = 1 the grazing limit alpha / 2 (for a horizontal view direction

@@ -41,7 +41,7 @@ def test02_matched_semi_infinite_published(env):
     assert np.all(np.abs(r.Rd - 0.41495) < 5 * r.Rd_err + 1e-4)
 
 
-def test02_mcml_slab_van_de_hulst(env):
+def test03_mcml_slab_van_de_hulst(env):
     # Wang & Jacques 1995 (MCML) validation slab: n = 1, mu_a = 10/cm, mu_s = 90/cm,
     # g = 0.75, d = 0.02 cm.  van de Hulst: Rd = 0.09739, Tt = 0.66096.  5 sigma.
     st = LayerStack((Layer(0.2, 1.0, (1.0,) * 3, (9.0 * 0.25,) * 3, 0.75),))
@@ -50,7 +50,7 @@ def test02_mcml_slab_van_de_hulst(env):
     assert np.all(np.abs(r.Tt - 0.66096) < 5 * r.Tt_err + 2e-4)
 
 
-def test03_multipole_agrees_beyond_two_mfp(env):
+def test04_multipole_agrees_beyond_two_mfp(env):
     # Skin2 (semi-infinite, eta 1.3, g = 0).  Measured (bench/bench_profiles.py, 4e5
     # photons): multipole/MC ratio of R(r) 1.09-1.26 at 2 mfp, 0.91-0.98 at 4 mfp,
     # 0.92-0.97 at 8 mfp; Rd within 2 %.  Tolerance: ratio in 0.75..1.35, Rd within 5 %
@@ -73,13 +73,13 @@ def test03_multipole_agrees_beyond_two_mfp(env):
     Layer(1e-4, 1.0, (0.1,) * 3, (1.0,) * 3, 0.99),             # thin, g -> 1
     Layer(3.0, 1.4, (0.1,) * 3, (2.0,) * 3, -0.99),             # g -> -1
 ])
-def test04_extremes_finite(env, lay):
+def test05_extremes_finite(env, lay):
     r = M.simulate(LayerStack((lay,)), photons=6000, r_max_mm=5, bins=10, env=env)
     for a in (r.R, r.T, r.Rd, r.Tt, r.absorbed):
         assert np.all(np.isfinite(a)) and np.all(a >= 0)
 
 
-def test05_philox_known_answers_and_cheap_math(env):
+def test06_philox_known_answers_and_cheap_math(env):
     # Philox4x32 known-answer vectors (Random123 kat_vectors; Salmon et al. 2011) from
     # the scalar form (10 rounds) and the vector (uint8/uint16 lanes) form in cl/rng.h with
     # the tracer's rounds (7 and 10 both checked).
@@ -123,7 +123,7 @@ def _check_philox_and_cheap_math(env, cl, rounds):
     np.testing.assert_allclose(m[2 * n:], np.sin(phi), rtol=0, atol=1e-6)
 
 
-def test06_split_layer_is_identity(env):
+def test07_split_layer_is_identity(env):
     # Splitting a layer into two identical layers must not change R or T: exercises the
     # boundary hit, the carried-over free path and the transmission between layers of the
     # SIMD kernel.  Different seeds -> independent estimates; 5 combined standard errors.
@@ -136,7 +136,7 @@ def test06_split_layer_is_identity(env):
     assert np.all(np.abs(a.Tt - b.Tt) < 5 * np.hypot(a.Tt_err, b.Tt_err))
 
 
-def test07_ballistic_two_layer_absorber(env):
+def test08_ballistic_two_layer_absorber(env):
     # Pure absorbers (sigma_s = 0): photons fly along the normal, a free path that
     # reaches the inner boundary carries its optical depth into the second layer, so the
     # survival per pass is exp(-tau), tau = sum sigma_a d, and Fresnel at normal incidence
@@ -155,7 +155,7 @@ def test07_ballistic_two_layer_absorber(env):
     assert np.all(np.abs(r.Rd - Rd) < 5 * r.Rd_err + 1e-4), (r.Rd, Rd)
 
 
-def test10_combine_pools_runs_and_per_channel_budgets(env):
+def test09_combine_pools_runs_and_per_channel_budgets(env):
     # per-channel photon budgets are honoured; pooling a run with itself keeps the means and
     # divides the standard errors by sqrt(2) (equal weights); pooling unequal runs weights by
     # photons per channel

@@ -40,7 +40,7 @@ def test01_validation_messages(patch, match):
         parse_layer_stack({"layers": [lay]}, where="x.toml")
 
 
-def test01_only_last_layer_infinite_and_eta_above():
+def test02_only_last_layer_infinite_and_eta_above():
     lay = {"thickness_mm": "inf", "eta": 1.3, "sigma_a": [0.1] * 3, "sigma_s_prime": [1.0] * 3}
     with pytest.raises(ConfigError, match=r"layers\[0\]\.thickness_mm = inf: only the last"):
         parse_layer_stack({"layers": [lay, lay]}, where="x.toml")
@@ -52,7 +52,7 @@ def test01_only_last_layer_infinite_and_eta_above():
     assert s.layers[0].sigma_s_prime == pytest.approx((1.0, 1.0, 1.0))
 
 
-def test01_model_arguments_rejected():
+def test03_model_arguments_rejected():
     with pytest.raises(DermisError, match=r"model = 'mc': must be one of 'multipole', 'monte_carlo'"):
         build_profiles(PRESETS["skin1"], model="mc")
     with pytest.raises(DermisError, match=r"diffusion = 'pdb': must be one of 'pbd', 'dj2005'"):
@@ -68,7 +68,7 @@ def test01_model_arguments_rejected():
 # ones (checked against the Monte Carlo in test_profile_mc.py).
 @pytest.mark.parametrize("name, published", [("skin1", (0.44, 0.22, 0.13)),
                                              ("skin2", (0.63, 0.44, 0.34))])
-def test02_jensen_skin_Rd(name, published):
+def test04_jensen_skin_Rd(name, published):
     lay = PRESETS[name].layers[0]
     assert dipole_Rd(lay.sigma_a, lay.sigma_s_prime, 1.3) == pytest.approx(published, abs=0.01)
     prof = build_profiles(PRESETS[name], options=MultipoleOptions(diffusion="dj2005"))
@@ -76,7 +76,7 @@ def test02_jensen_skin_Rd(name, published):
                                rtol=1e-12)
 
 
-def test02_fresnel_moments():
+def test05_fresnel_moments():
     # eta = 1: no reflection; 2 C1 is the diffuse reflectance Fdr, which the Egan-Hilgeman
     # fit approximates (within 0.01 at eta 1.3, 1.4); A at eta = 1.4 (d'Eon 2012: ~2.95).
     assert fresnel_moments(1.0) == (0.0, 0.0)
@@ -90,7 +90,7 @@ def test02_fresnel_moments():
 
 
 @pytest.mark.parametrize("diffusion", ["pbd", "dj2005"])
-def test02_thick_slab_is_semi_infinite(diffusion):
+def test06_thick_slab_is_semi_infinite(diffusion):
     r = np.linspace(0, 10, 101)
     Rinf, _ = multipole_profiles(SKIN1, r, eta_above=1.0, eta_below=1.0, diffusion=diffusion)
     thick = Layer(400.0, SKIN1.eta, SKIN1.sigma_a, SKIN1.sigma_s_prime)
@@ -100,7 +100,7 @@ def test02_thick_slab_is_semi_infinite(diffusion):
     assert np.all(T < 1e-30)
 
 
-def test02_ring_table_integrates_to_Rd():
+def test07_ring_table_integrates_to_Rd():
     prof = build_profiles(PRESETS["skin2"])
     h = prof.r_mm[1]
     edges = np.concatenate([[0.0], (np.arange(len(prof.r_mm)) + 0.5) * h])
@@ -111,7 +111,7 @@ def test02_ring_table_integrates_to_Rd():
 
 
 # Exact plane-parallel totals (adding-doubling): published transport solutions.
-def test02_adding_doubling_published():
+def test08_adding_doubling_published():
     # van de Hulst's slab (MCML's validation case): a = 0.9, tau = 2, g = 0.75, n = 1:
     # Rd = 0.09739, Tt = 0.66096; Chandrasekhar's semi-infinite isotropic a = 0.9 plane
     # albedo at normal incidence 0.41495.  5 digits.
@@ -123,7 +123,7 @@ def test02_adding_doubling_published():
     assert exact_totals([semi], 0, 1.0, 1.0).Rc == pytest.approx(0.41495, abs=1e-5)
 
 
-def test02_adding_doubling_conserves_energy():
+def test09_adding_doubling_conserves_energy():
     # no absorption: everything that enters leaves (R + T = 1), Fresnel faces included, up
     # to the round-off of ~2^33 doublings from the 1e-6 mu_min first layer (~4e-7)
     for g in (0.8, -0.5):      # g < 0: delta-M's peak points backwards (kept as scattering)
@@ -139,7 +139,7 @@ def _conserves(lay):
 
 
 # ---- 03 convergence --------------------------------------------------------------------
-def test03_pole_convergence():
+def test10_pole_convergence():
     r = np.array([0.0, 0.1, 0.5, 2.0])
     prev = None
     diffs = []
@@ -151,7 +151,7 @@ def test03_pole_convergence():
     assert diffs[-1] < 1e-9 and diffs[0] > diffs[-1]  # monotone approach to a limit
 
 
-def test03_beam_convergence():
+def test11_beam_convergence():
     # the beam integral: 16 nodes (the default) against 64, R(r) at r >= 0.05 mm: the
     # epidermis lit from above (measured < 1e-6) and the semi-infinite dermis (5e-4)
     r = np.linspace(0.05, 3.0, 60)
@@ -164,7 +164,7 @@ def test03_beam_convergence():
     assert np.abs(a / b - 1).max() < 2e-3
 
 
-def test03_grid_convergence():
+def test12_grid_convergence():
     # FFT path of a single layer against its closed form: error must shrink ~h^2.
     st = PRESETS["skin2"]
     errs = []
@@ -204,7 +204,7 @@ def _adding_on_totals(st, totals):
 
 
 @pytest.mark.parametrize("totals", ["diffusion", "transport"])
-def test04_dc_equals_adding_on_totals(totals):
+def test13_dc_equals_adding_on_totals(totals):
     # different eta per layer: no whole-stack transport solution, so the transport totals
     # are the adding of the exact layer totals too
     top = Layer(0.3, 1.4, (0.3, 0.4, 0.9), (4.0, 6.0, 9.0), 0.8)
@@ -217,7 +217,7 @@ def test04_dc_equals_adding_on_totals(totals):
     np.testing.assert_allclose(prof.Tt, T, rtol=1e-10)
 
 
-def test04_equal_eta_stack_takes_the_whole_stack_solution():
+def test14_equal_eta_stack_takes_the_whole_stack_solution():
     st = PRESETS["two_layer"]
     prof = build_profiles(st, options=MultipoleOptions(grid=(0.05, 8.0)))
     eta = st.layers[0].eta
@@ -227,14 +227,14 @@ def test04_equal_eta_stack_takes_the_whole_stack_solution():
 
 
 @pytest.mark.parametrize("name", ["two_layer"])
-def test04_nonnegative_after_combination(name):
+def test15_nonnegative_after_combination(name):
     prof = build_profiles(PRESETS[name])
     assert np.all(prof.R >= 0) and np.all(prof.T >= 0)
     # with the partial-current exitance nothing but round-off goes negative here
     assert prof.info["min_clipped_rel"] > -1e-12 and prof.info["negative_lobes"] == []
 
 
-def test04_negative_lobes_reported_and_energy_kept():
+def test16_negative_lobes_reported_and_energy_kept():
     # dermis <= 1's flux-only exitance goes negative far out in the epidermis (its top z_b
     # exceeds half the slab): the lobe is reported (where, how much) and the profile keeps
     # the closed-form energy instead of losing it to clipping
@@ -251,7 +251,7 @@ def test04_negative_lobes_reported_and_energy_kept():
                                Rd, rtol=1e-9)
 
 
-def test04_zero_thickness_top_is_identity():
+def test17_zero_thickness_top_is_identity():
     a = build_profiles(PRESETS["two_layer"], options=MultipoleOptions(grid=(0.05, 8.0)))
     zero = Layer(0.0, 1.7, (5.0, 5.0, 5.0), (1.0, 1.0, 1.0))
     b = build_profiles(LayerStack((zero,) + PRESETS["two_layer"].layers),
@@ -261,14 +261,14 @@ def test04_zero_thickness_top_is_identity():
 
 
 @pytest.mark.parametrize("totals", ["diffusion", "transport"])
-def test04_thin_slab_tends_to_identity(totals):
+def test18_thin_slab_tends_to_identity(totals):
     for d in (1e-3, 1e-6):
         lay = Layer(d, 1.4, (0.3, 0.4, 0.9), (4.0, 6.0, 9.0))
         Rd, Td, tau = multipole_totals(lay, eta_above=1.4, eta_below=1.4, totals=totals)
         assert np.all(Rd < 20 * d) and np.all(np.abs(Td + tau - 1) < 20 * d)
 
 
-def test04_ballistic_is_the_real_extinction():
+def test19_ballistic_is_the_real_extinction():
     # the unscattered transmission of a layer is e^{-sigma_t d} with sigma_t = sigma_a +
     # sigma_s (not sigma_t'), times the normal-incidence Fresnel transmission at the bottom
     lay = Layer(0.25, 1.4, (0.27,) * 3, (2.03,) * 3, 0.8)
@@ -287,7 +287,7 @@ def test04_ballistic_is_the_real_extinction():
     Layer(1e3, 1.4, (1e-3, 0.01, 0.1), (0.1, 1.0, 10.0), 0.99),  # thickness >> mfp, g ~ 1
     Layer(5.0, 1.4, (2e-4, 1.0, 3.0), (2.0, 1.0, 0.0), -0.99),  # albedo 0.9999, g ~ -1
 ])
-def test05_extremes_are_finite_and_nonnegative(lay):
+def test20_extremes_are_finite_and_nonnegative(lay):
     prof = build_profiles(LayerStack((lay,)))
     for a in (prof.R, prof.T, prof.Rd, prof.Tt, prof.cutoff_mm):
         assert np.all(np.isfinite(a)) and np.all(a >= 0)
