@@ -170,27 +170,63 @@ def _check_indices(path: Path, idx, count: int, what: str, ext: str) -> None:
         f"(allowed: {'1' if one else '0'}..{count if one else count - 1}); fix the export")
 
 
+def _decode(path: Path, label: str, fmt):
+    """(spec, pixels) of the first subimage of an image file, read whole with OpenImageIO in
+    ``fmt`` (a type, or a function of the file's spec giving one); refuses (DermisError
+    starting with ``label``, which names the file) a file the reader met an error in.
+
+    Read through ``ImageInput``, whose error state reports what the decoder met: a JPEG cut
+    to a third of its bytes decodes with no error through an ``ImageBuf`` (the rows past the
+    cut come back as grey 128) while its ``ImageInput`` reports "Premature end of JPEG file";
+    an ``ImageBuf`` of a truncated PNG, TIFF, EXR or HDR sets its error only when its
+    pixels are read, not when it is opened.  For an intact file the pixels are those of an
+    ``ImageBuf`` (the same reader and conversion)."""
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise DermisError(f"{label} could not be read: "
+                          f"{oiio.geterror().strip() or 'not an image format OpenImageIO reads'}")
+    try:
+        spec = inp.spec()
+        if spec.width < 1 or spec.height < 1:
+            raise DermisError(f"{label} could not be read: no pixel data")
+        pixels = inp.read_image(fmt(spec) if callable(fmt) else fmt)
+        reason = "; ".join(dict.fromkeys(inp.geterror().strip().splitlines()))
+    finally:
+        inp.close()
+    if reason or not isinstance(pixels, np.ndarray):
+        raise DermisError(
+            f"{label} could not be decoded: {reason or 'no pixels'} (the header declares "
+            f"{spec.width} x {spec.height} pixels, the file has {path.stat().st_size} bytes: "
+            "it is truncated or damaged, and what a reader returns for it is partly made "
+            "up); export or copy the image again")
+    return spec, pixels
+
+
+def _linear(spec) -> bool:
+    """Whether an image file holds linear values (float formats tagged linear, e.g. EXR)."""
+    import OpenImageIO as oiio
+    return spec.format.basetype in (oiio.FLOAT, oiio.HALF, oiio.DOUBLE) and \
+        "linear" in spec.get_string_attribute("oiio:ColorSpace", "linear").lower()
+
+
 def _read_texture(path: Path, what: str = "scene key mesh.texture") -> np.ndarray:
     """Read an albedo image as (H, W, 3) uint8 sRGB with OpenImageIO (``what``: where the
-    path came from, for messages)."""
+    path came from, for messages); a truncated or damaged file is refused (:func:`_decode`)."""
     import OpenImageIO as oiio
 
     if not path.is_file():
         hint = "" if what.startswith("scene key") else (
             "; fix the material file or set scene key mesh.texture")
         raise DermisError(f"texture file not found: {path} ({what}){hint}")
-    buf = oiio.ImageBuf(str(path))
-    if buf.has_error or buf.spec().width < 1:
-        raise DermisError(f"texture file {path} ({what}) could not be read: "
-                          f"{buf.geterror() or 'no pixel data'}")
-    spec = buf.spec()
-    linear = spec.format.basetype in (oiio.FLOAT, oiio.HALF, oiio.DOUBLE) and \
-        "linear" in spec.get_string_attribute("oiio:ColorSpace", "linear").lower()
-    if linear:
+    spec, img = _decode(path, f"texture file {path} ({what})",
+                        lambda spec: oiio.FLOAT if _linear(spec) else oiio.UINT8)
+    if _linear(spec):
         # Float images (EXR) hold linear values: encode with the sRGB curve before quantising.
-        img = linear_to_srgb8(buf.get_pixels(oiio.FLOAT), np.float64)
+        img = linear_to_srgb8(img, np.float64)
     else:
-        img = np.asarray(buf.get_pixels(oiio.UINT8))
+        img = np.asarray(img)
     if img.ndim == 2:
         img = img[:, :, None]
     if img.shape[2] == 1:
@@ -224,11 +260,7 @@ def read_grey_image(path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise DermisError(f"image file not found: {path}")
-    buf = oiio.ImageBuf(str(path))
-    if buf.has_error:
-        raise DermisError(f"image file {path} could not be read: {buf.geterror()}")
-    px = np.asarray(buf.get_pixels(oiio.FLOAT), dtype=np.float32)
+    px = np.asarray(_decode(path, f"image file {path}", oiio.FLOAT)[1], dtype=np.float32)
     if px.ndim == 3:
         px = px[:, :, 0]
     return np.ascontiguousarray(px)
-

@@ -2,7 +2,8 @@
 
 Refused (with the source named): NaN/Inf coordinates or UVs, bad shapes or indices, non-manifold
 edges, missing UVs or albedo texture (:func:`validate`); coordinates beyond what float32 ray
-casting holds, a sub-micron extent, or no triangle of non-zero area (:func:`check_extent`).
+casting holds, a sub-micron extent, no triangle of non-zero area, or a size no human subject
+has, which is a unit mistake (:func:`check_extent`).
 Repaired and reported: degenerate and duplicate faces, unreferenced vertices.  The scan readers
 (:mod:`dermis.geometry.scan`) hand their meshes here.
 
@@ -15,9 +16,11 @@ import numpy as np
 
 from dermis.pipeline.artifacts import Mesh
 from dermis.geometry.normals import angle_weighted_normals
+from dermis.geometry.scan import UNITS_MM
 from dermis.pipeline.errors import DermisError
 
-__all__ = ["validate", "check_extent", "MAX_COORDINATE_MM", "MIN_EXTENT_MM"]
+__all__ = ["validate", "check_extent", "MAX_COORDINATE_MM", "MIN_EXTENT_MM",
+           "SUBJECT_SIZE_MM"]
 
 # validate: a face counts as zero-area when twice its area is below this fraction of the squared
 # bounding-box diagonal.  1e-14 is ~100x float64 round-off for a cross product of coordinates of
@@ -29,6 +32,17 @@ _DEGENERATE_REL_AREA = 1e-14
 # 1e7 mm (10 km) or smaller than 1e-3 mm (1 um) across is a unit mistake, not a face.
 MAX_COORDINATE_MM = 1e7
 MIN_EXTENT_MM = 1e-3
+
+# The sizes a scanned subject can have (mm, the largest side of its bounding box): a skin
+# patch of 1 cm up to a whole body with room to spare.  The shipped head scan is 431 x 400 x
+# 261 mm (scenes/assets/lps_head, head and shoulders), the procedural head 149 x 300 x 221
+# mm.  A file in mm declared as m (or in m declared as mm) is 1000 times off: that head at
+# 431,000 mm or 0.43 mm.  Rendered with the quick scene's camera and point light (Lafortune,
+# 64 x 64), the first gives an image of mean 1.7e-6 against 0.0147 at the right scale
+# (near-black), the second one that no camera ray hits.
+SUBJECT_SIZE_MM = (10.0, 5000.0)
+# where the likely unit puts the subject: closest to this size (a head) on a log scale
+_TYPICAL_SIZE_MM = 300.0
 
 
 def validate(mesh: Mesh, *, source: str) -> tuple[Mesh, dict]:
@@ -149,9 +163,11 @@ def validate(mesh: Mesh, *, source: str) -> tuple[Mesh, dict]:
 
 
 def check_extent(mesh, *, source: str, units: str) -> None:
-    """Refuse a mesh whose size the pipeline cannot render, or which has no surface: finite
-    coordinates beyond MAX_COORDINATE_MM, an extent below MIN_EXTENT_MM, or no triangle of
-    non-zero area (every face degenerate: repeated indices or collinear corners)."""
+    """Refuse a mesh whose size the pipeline cannot render, which has no surface, or whose
+    size no human subject has: finite coordinates beyond MAX_COORDINATE_MM, an extent below
+    MIN_EXTENT_MM, no triangle of non-zero area (every face degenerate: repeated indices or
+    collinear corners), or a largest bounding-box side outside SUBJECT_SIZE_MM (a unit
+    mistake: the message names the measured size, ``units`` and the likely unit)."""
     v = np.asarray(mesh.vertices, dtype=np.float64)
     f = np.asarray(mesh.faces)
     finite = np.isfinite(v).all(axis=1)
@@ -174,3 +190,27 @@ def check_extent(mesh, *, source: str, units: str) -> None:
     if not good.any():
         raise DermisError(f"{source}: all {len(f)} triangles are degenerate (repeated vertex "
                           "indices or zero area): the mesh has no surface to render")
+    _check_subject_size(used.max(axis=0) - used.min(axis=0), source=source, units=units)
+
+
+def _check_subject_size(sides, *, source: str, units: str) -> None:
+    """Refuse bounding-box ``sides`` (mm) whose largest lies outside SUBJECT_SIZE_MM, naming
+    the unit of :data:`dermis.geometry.scan.UNITS_MM` that would bring it inside (the one
+    nearest a head's size), if any."""
+    lo, hi = SUBJECT_SIZE_MM
+    size = float(np.max(sides))
+    if lo <= size <= hi:
+        return
+    declared = UNITS_MM.get(units, 1.0)
+    fits = {u: size / declared * mm for u, mm in UNITS_MM.items()
+            if u != units and lo <= size / declared * mm <= hi}
+    dims = " x ".join(f"{float(x):.3g}" for x in sides)
+    if fits:
+        unit = min(fits, key=lambda u: abs(np.log(fits[u] / _TYPICAL_SIZE_MM)))
+        fix = (f"the file is likely in {unit} (largest side {fits[unit]:.3g} mm): set "
+               f"mesh.units = \"{unit}\"")
+    else:
+        fix = "no unit of mesh.units brings it there: scale the scan in the export"
+    raise DermisError(f"{source}: the mesh is {dims} mm (largest side {size:.3g} mm) with "
+                      f"mesh.units = \"{units}\"; a human subject's largest side is {lo:g} to "
+                      f"{hi:g} mm (a head about 200-450 mm): {fix}")

@@ -51,6 +51,9 @@ def read_image(path: str | Path, *, channels: int | None = None, what: str = "im
             f" (the header declares {spec.width} x {spec.height} pixels; the pixel data is "
             f"missing or truncated: the file has {path.stat().st_size} bytes)")
         raise DermisError(f"{what} {path} cannot be decoded: {reason}")
+    if reason:   # pixels, but the decoder met an error: a truncated JPEG's missing rows are grey
+        raise DermisError(f"{what} {path} cannot be decoded: {reason} (the file has "
+                          f"{path.stat().st_size} bytes: it is truncated or damaged)")
     img = np.asarray(pixels, dtype=np.float32)
     if img.ndim == 2:
         img = img[..., None]

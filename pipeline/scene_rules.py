@@ -27,7 +27,7 @@ def fmt(value) -> str:
 
 
 # Directions (camera.up, lights[].direction) are normalised in double precision
-# (lighting/visibility.py camera_vectors, lighting/emitters.py): a length outside these
+# (rendering/camera.py camera_vectors, lighting/emitters.py): a length outside these
 # bounds squares to below the smallest normal double (2.2e-308) or beyond the largest.
 DIRECTION_LENGTH = (1e-150, 1e150)
 

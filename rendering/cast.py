@@ -4,7 +4,7 @@
 Per (mesh, lighting condition, camera, ``[render] spp``, seed) :func:`cast`
 
 1. casts ``spp`` stratified camera rays per pixel through Embree
-   (:func:`dermis.lighting.visibility.subpixel_offsets`; one ray through the pixel centre
+   (:func:`dermis.rendering.camera.subpixel_offsets`; one ray through the pixel centre
    when spp = 1);
 2. evaluates the model-independent surface attributes at the hits with ``cl/surface.cl``
    (:func:`dermis.rendering.surface.surface_attributes`: position, two-sided geometric

@@ -34,9 +34,11 @@ import numpy as np
 
 from dermis.pipeline.config import scene_from_dict
 from dermis.pipeline.errors import ConfigError, DermisError
+from dermis.pipeline.graph import key_parts, node_key, plan_order
+from dermis.pipeline.plan import build_graph
 
 __all__ = ["KNOBS", "Knob", "SweepSpec", "parse_sweep", "run_sweep", "pareto_front",
-           "recommend", "add_parser", "run"]
+           "recommend", "idle_knobs", "add_parser", "run"]
 
 
 @dataclass(frozen=True)
@@ -263,6 +265,47 @@ def sweep_points(table: dict, where: str, spec: SweepSpec) -> list[Point]:
 IMAGE_STAGES = ("render", "bssrdf")   # the nodes whose images a sweep point is scored on
 
 
+def _keys(scene) -> dict[str, str]:
+    """Cache keys of the nodes a sweep point of ``scene`` runs (its images and everything
+    they read), computed without running anything."""
+    nodes, _ = build_graph(scene)
+    keys: dict[str, str] = {}
+    for nid in plan_order(nodes, [nid for nid, n in nodes.items() if n.stage in IMAGE_STAGES]):
+        keys[nid] = node_key(key_parts(nodes[nid], keys))
+    return keys
+
+
+def idle_knobs(table: dict, where: str, spec: SweepSpec) -> dict[str, str]:
+    """Knobs that change no node of the scene: name -> why, for the refusal.
+
+    A knob's values are set one at a time on the scene as written (in either mode); when
+    they give every node the sweep runs the same cache key, its points are one and the
+    same set of images, and their errors (all 0) would recommend its cheapest value for a
+    setting that does nothing (``lights.samples`` on a scene lit by point lights only).  A
+    knob with one value is compared with the scene as written where the value differs from
+    the scene's own; with one value equal to it there is nothing to compare."""
+    base = _scene(table, where, "(scene as written)")
+    out = {}
+    for name, vals in spec.knobs.items():
+        keys = [_keys(_scene(_set(table, name, v), where, f"{name}={v}")) for v in vals]
+        if len(vals) == 1:
+            if _current(table, base, name) == vals[0]:
+                continue
+            keys.append(_keys(base))
+        if any(k != keys[0] for k in keys[1:]):
+            continue
+        why = (f"its values {', '.join(map(_fmt, vals))}"
+               + (" and the scene's own" if len(vals) == 1 else "")
+               + " give every node the sweep runs the same cache key, so the same images")
+        if name == "lights.samples":
+            rendered = {l.name: l.type for _, group in base.light_groups() for l in group}
+            why += (" (lights.samples sets the samples of disc and environment lights; the "
+                    "lights rendered are " + (", ".join(f"{t} '{n}'" for n, t in
+                                                         rendered.items()) or "none") + ")")
+        out[name] = why
+    return out
+
+
 def _images(store, summary) -> dict:
     """(model, light, geometry) -> (cache key, RenderedImage) of the image nodes of a summary."""
     from dermis.pipeline import artifacts
@@ -404,7 +447,6 @@ def run_sweep(scene_path, *, cache, out_dir=None, workers: int = 1, scheduler: s
               device: str | None = None, progress=None) -> dict:
     """Run every point of the scene's ``[sweep]``; write and return the results."""
     from dermis.pipeline.distributed import run_graphs
-    from dermis.pipeline.plan import build_graph
     from dermis.pipeline.store import Store
 
     path = Path(scene_path)
@@ -420,6 +462,11 @@ def run_sweep(scene_path, *, cache, out_dir=None, workers: int = 1, scheduler: s
                           '[sweep.knobs] "bssrdf.epsilon" = [1.0, 0.5, 0.2]')
     spec = parse_sweep(table.pop("sweep"), where)
     points = sweep_points(table, where, spec)
+    idle = idle_knobs(table, where, spec)
+    if idle:   # refused before any node runs
+        raise ConfigError("\n".join(f"{where}: sweep.knobs.{name}: has no effect on this "
+                                     f"scene: {why}; remove it from [sweep.knobs]"
+                                     for name, why in idle.items()))
     # only the images are scored: the images / differences / report nodes of every point
     # would be work (and failure modes) the sweep never reads
     graphs = []

@@ -1,8 +1,10 @@
 """Stage ``mesh_source``: the procedural head or a scan, in mm, validated (repairs reported).
 
 The procedural head (:mod:`dermis.geometry.procedural_head`) is a synthetic watertight head of
-any size; a scan is read by :mod:`dermis.geometry.scan` and checked by
-:func:`dermis.geometry.validation.check_extent` and :func:`dermis.geometry.validation.validate`.
+any size; a scan is read by :mod:`dermis.geometry.scan` (a truncated or damaged texture is
+refused) and checked by :func:`dermis.geometry.validation.check_extent` (coordinate range, a
+surface, a human subject's size: a file in mm declared as m is refused, naming the likely unit)
+and :func:`dermis.geometry.validation.validate`.
 """
 from __future__ import annotations
 
@@ -14,7 +16,9 @@ from dermis.pipeline.graph import Node, StageResult
 from dermis.pipeline.store import file_digest
 
 NAME = "mesh_source"
-VERSION = 2   # 2: meshes out of the coordinate range, or with no triangle of non-zero area, refused
+# 2: meshes out of the coordinate range, or with no triangle of non-zero area, refused;
+# 3: sizes no human subject has (a unit mistake) and truncated or damaged textures refused
+VERSION = 3
 KERNELS = ()
 
 

@@ -63,3 +63,33 @@ else:
                                    phases=[Phase.explicit, Phase.generate], **_common)
     _hyp_settings.register_profile("thorough", max_examples=200, **_common)
     _hyp_settings.load_profile("ci")
+
+
+# Tests longer than ~5 s on 2 cores (measured with `pytest --durations=60`), marked ``slow``
+# so that `pytest -m "not slow"` is the edit-test loop; CI and the README's command run all.
+# A module name marks the whole module (its fixtures run a whole scene); module::prefix marks
+# the tests whose names start with prefix.
+SLOW = (
+    "test_pipeline.py",            # the quick scene built, rebuilt and compared across jobs
+    "test_sweep.py",               # sweeps of the quick scene, serial and on Dask
+    "test_reference.py::test08", "test_reference.py::test09",   # Mitsuba renders
+    "test_hardening_config.py::test12",  # peak memory of a render measured in a subprocess
+    "test_hardening.py::test15", "test_hardening.py::test16", "test_hardening.py::test19",
+    "test_hardening.py::test23",
+    "test_brdf_hk93.py::test13",   # single-scattering quadrature converging at |g| = 0.99
+    "test_energy.py::test05c", "test_antialias.py::test04",
+    "test_assets.py::test05",      # a wheel installed into a fresh environment
+    "test_stability.py::test_hk93_directional_albedo_at_most_one",
+    "test_stability.py::test12c",  # energy through non-scattering layers, adding-doubling
+    "test_hardening_inputs.py::test08",   # every model's images over a grid of sharp shadows
+    "test_profiles.py::test13", "test_profiles.py::test15",   # whole profile builds per stack
+)
+
+
+def pytest_collection_modifyitems(config, items):
+    slow = pytest.mark.slow
+    for item in items:
+        module = Path(str(item.fspath)).name
+        if any(s == module or s == f"{module}::{item.name[:len(s) - len(module) - 2]}"
+               for s in SLOW):
+            item.add_marker(slow)

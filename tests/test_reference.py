@@ -51,12 +51,12 @@ def _camera(width, height, position=(0.0, -15.0, 1000.0)):
 
 # ------------------------------------------------------------------------ without Mitsuba
 def test01_without_mitsuba_the_stage_is_skipped_with_one_message(monkeypatch, capsys):
-    from dermis.pipeline import plan
     from dermis.pipeline.plan import build_graph
     from dermis.groundtruth import mitsuba
+    from dermis.stages import reference
     monkeypatch.setattr(mitsuba, "mitsuba_missing_reason",
                         lambda: "Mitsuba 3 is not installed: pip install 'dermis[reference]'")
-    monkeypatch.setattr(plan, "_SKIP_NOTICES", set())
+    monkeypatch.setattr(reference, "_SKIP_NOTICES", set())
     scene = load_scene(QUICK, overrides={"reference": {"enabled": True}})
     for _ in range(2):  # planning twice (run + status) still says it once
         nodes, targets = build_graph(scene)
@@ -271,7 +271,7 @@ def test09_report_gains_the_ground_truth_section(mi, tmp_path, monkeypatch):
     has the section; without Mitsuba the same report still builds and says why."""
     import json
     import subprocess
-    from dermis.pipeline import plan
+    from dermis.stages import reference
     from dermis.pipeline.api import run
     from dermis.groundtruth import mitsuba
     over = {"camera": {"width": 80, "height": 80}, "mesh": {"high_triangles": 20_000},
@@ -298,7 +298,7 @@ def test09_report_gains_the_ground_truth_section(mi, tmp_path, monkeypatch):
 
     monkeypatch.setattr(mitsuba, "mitsuba_missing_reason",
                         lambda: "Mitsuba 3 is not installed: pip install 'dermis[reference]'")
-    monkeypatch.setattr(plan, "_SKIP_NOTICES", set())
+    monkeypatch.setattr(reference, "_SKIP_NOTICES", set())
     out = report_of(run(load_scene(QUICK, overrides=over), cache=cache, export=False))
     assert not (out / "ground_truth.json").exists()
     text = subprocess.run(["pdftotext", str(out / "report.pdf"), "-"], capture_output=True,
