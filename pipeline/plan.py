@@ -13,7 +13,7 @@ from __future__ import annotations
 from .config import Scene
 from .errors import DermisError
 from .graph import Node
-from .registry import STAGE_NAMES, stage
+from .registry import STAGE_NAMES, model, stage
 
 __all__ = ["build_graph", "Plan", "STAGE_NAMES"]
 
@@ -52,6 +52,16 @@ class Plan:
     def of_stage(self, name: str) -> list[Node]:
         """The nodes of stage ``name`` planned so far, in the order they were added."""
         return [n for n in self.nodes.values() if n.stage == name]
+
+    def images_of(self, stage_name: str):
+        """(model, lighting label, lights, geometry) of every image the scene asks for whose
+        model is rendered by stage ``stage_name`` (``Model.stage``), models outermost."""
+        for name in self.scene.render.models:
+            if model(name).stage != stage_name:
+                continue
+            for label, lights in self.scene.light_groups():
+                for geometry in self.scene.render.geometries:
+                    yield name, label, lights, geometry
 
     def provided(self, what: str) -> list[Node]:
         """The nodes added with ``provides=what``, in the order they were added."""

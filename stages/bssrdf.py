@@ -150,13 +150,9 @@ def plan(scene, plan) -> None:
     render = registry.stage("render")
     visibility, samples = registry.stage("visibility"), registry.stage("samples")
     irradiance = registry.stage("irradiance")
-    for model in scene.render.models:
-        if registry.model(model).stage != NAME:
-            continue
-        for label, lights in scene.light_groups():
-            for geometry in scene.render.geometries:
-                mesh_node = render.GEOMETRY[geometry][0]
-                plan.add(visibility.node(scene, mesh_node, label, lights))
-                plan.add(samples.node(scene, mesh_node))
-                plan.add(irradiance.node(scene, mesh_node, label, lights))
-                plan.add(node(scene, label, lights, geometry, model), provides="image")
+    for model, label, lights, geometry in plan.images_of(NAME):
+        mesh_node = render.GEOMETRY[geometry][0]
+        plan.add(visibility.node(scene, mesh_node, label, lights))
+        plan.add(samples.node(scene, mesh_node))
+        plan.add(irradiance.node(scene, mesh_node, label, lights))
+        plan.add(node(scene, label, lights, geometry, model), provides="image")

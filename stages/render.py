@@ -70,13 +70,9 @@ def plan(scene, plan) -> None:
     """Every BRDF model x lighting condition x geometry, each with its mesh and lighting's
     shared visibility (one node however many models read it)."""
     visibility = registry.stage("visibility")
-    for model in scene.render.models:
-        if registry.model(model).stage != NAME:
-            continue
-        for label, lights in scene.light_groups():
-            for geometry in scene.render.geometries:
-                plan.add(visibility.node(scene, GEOMETRY[geometry][0], label, lights))
-                plan.add(node(scene, model, label, lights, geometry), provides="image")
+    for model, label, lights, geometry in plan.images_of(NAME):
+        plan.add(visibility.node(scene, GEOMETRY[geometry][0], label, lights))
+        plan.add(node(scene, model, label, lights, geometry), provides="image")
 
 
 def run(params: dict, inputs: dict, ctx) -> StageResult:

@@ -11,7 +11,6 @@ dermis.pipeline.cli``.
 """
 from __future__ import annotations
 
-import copy
 import errno
 import json
 import os
@@ -29,6 +28,9 @@ import pytest
 
 from dermis.pipeline.cli import main
 
+sys.path.insert(0, str(Path(__file__).parent))
+from scene_toml import merge, to_toml  # noqa: E402
+
 REPO = Path(__file__).resolve().parents[1]
 QUICK = REPO / "scenes" / "quick.toml"
 TINY = {"mesh": {"high_triangles": 2000, "low_triangles": 400, "procedural_texture_size": 64,
@@ -39,53 +41,15 @@ TINY = {"mesh": {"high_triangles": 2000, "low_triangles": 400, "procedural_textu
 
 
 # --------------------------------------------------------------------------- scene files
-def _toml_value(x) -> str:
-    if isinstance(x, bool):
-        return "true" if x else "false"
-    if isinstance(x, str):
-        return json.dumps(x)
-    if isinstance(x, (list, tuple)):
-        return "[" + ", ".join(_toml_value(v) for v in x) + "]"
-    return repr(x)
-
-
-def _toml(d: dict) -> str:
-    """A scene dict as TOML (tables, arrays of tables, scalars and arrays)."""
-    tables = lambda v: isinstance(v, list) and v and isinstance(v[0], dict)  # noqa: E731
-    out = [f"{k} = {_toml_value(v)}" for k, v in d.items()
-           if not isinstance(v, dict) and not tables(v)]
-    for k, v in d.items():
-        if isinstance(v, dict):
-            out.append(f"[{k}]")
-            out += [f"{a} = {_toml_value(b)}" for a, b in v.items() if not tables(b)]
-            for a, b in v.items():
-                if tables(b):
-                    for item in b:
-                        out.append(f"[[{k}.{a}]]")
-                        out += [f"{x} = {_toml_value(y)}" for x, y in item.items()]
-        elif tables(v):
-            for item in v:
-                out.append(f"[[{k}]]")
-                out += [f"{a} = {_toml_value(b)}" for a, b in item.items()]
-    return "\n".join(out) + "\n"
-
-
-def _merge(a: dict, b: dict) -> dict:
-    a = copy.deepcopy(a)
-    for k, v in b.items():
-        a[k] = _merge(a[k], v) if isinstance(v, dict) and isinstance(a.get(k), dict) else v
-    return a
-
-
 def scene_file(folder: Path, over: dict | None = None, name: str = "scene.toml") -> Path:
     """The quick scene with the TINY overrides and ``over``, outputs under ``folder/out``."""
-    d = _merge(_merge(tomllib.loads(QUICK.read_text()), TINY), over or {})
+    d = merge(merge(tomllib.loads(QUICK.read_text()), TINY), over or {})
     if "layers" in (over or {}).get("optics", {}):
         d["optics"] = over["optics"]          # an explicit stack replaces the preset
     if "output_dir" not in (over or {}).get("output", {}):
         d["output"]["output_dir"] = str(folder / "out")
     path = folder / name
-    path.write_text(_toml(d))
+    path.write_text(to_toml(d))
     return path
 
 

@@ -9,7 +9,6 @@ time it runs a task, Ctrl-C) run against a stand-in client, so they need no clus
 """
 from __future__ import annotations
 
-import copy
 import importlib.metadata
 import json
 import logging
@@ -31,6 +30,9 @@ from dermis.pipeline.config import load_scene
 from dermis.pipeline.resources import estimate_memory
 from dermis.pipeline.errors import ConfigError, DermisError
 
+sys.path.insert(0, str(Path(__file__).parent))
+from scene_toml import merge, to_toml  # noqa: E402
+
 REPO = Path(__file__).resolve().parents[1]
 QUICK = REPO / "scenes" / "quick.toml"
 TINY = {"mesh": {"high_triangles": 2000, "low_triangles": 400, "procedural_texture_size": 64,
@@ -44,49 +46,15 @@ LAYER = {"thickness_mm": "inf", "eta": 1.4, "sigma_a": [0.1, 0.1, 0.1],
          "sigma_s_prime": [1.0, 1.0, 1.0]}
 
 
-def _toml_value(x) -> str:
-    if isinstance(x, bool):
-        return "true" if x else "false"
-    if isinstance(x, str):
-        return json.dumps(x)
-    if isinstance(x, (list, tuple)):
-        return "[" + ", ".join(_toml_value(v) for v in x) + "]"
-    return repr(x)
-
-
-def _toml(d: dict) -> str:
-    """A scene dict as TOML: top-level tables, arrays of tables ([[lights]], [[optics.layers]])."""
-    out = []
-    for k, v in d.items():
-        if isinstance(v, dict):
-            out.append(f"[{k}]")
-            out += [f"{a} = {_toml_value(b)}" for a, b in v.items() if a != "layers"]
-            for layer in v.get("layers", []):
-                out.append(f"[[{k}.layers]]")
-                out += [f"{a} = {_toml_value(b)}" for a, b in layer.items()]
-        else:
-            for item in v:
-                out.append(f"[[{k}]]")
-                out += [f"{a} = {_toml_value(b)}" for a, b in item.items()]
-    return "\n".join(out) + "\n"
-
-
-def _merge(a: dict, b: dict) -> dict:
-    a = copy.deepcopy(a)
-    for k, v in b.items():
-        a[k] = _merge(a[k], v) if isinstance(v, dict) and isinstance(a.get(k), dict) else v
-    return a
-
-
 def scene_file(folder: Path, over: dict | None = None) -> Path:
     """The tiny quick scene with ``over`` merged in (an explicit optics stack replaces the
     preset), outputs under ``folder/out``."""
-    d = _merge(_merge(tomllib.loads(QUICK.read_text()), TINY), over or {})
+    d = merge(merge(tomllib.loads(QUICK.read_text()), TINY), over or {})
     if "layers" in (over or {}).get("optics", {}):
         d["optics"] = over["optics"]
     d["output"]["output_dir"] = str(folder / "out")
     path = folder / "scene.toml"
-    path.write_text(_toml(d))
+    path.write_text(to_toml(d))
     return path
 
 

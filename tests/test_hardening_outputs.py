@@ -30,6 +30,9 @@ from dermis.pipeline.errors import DermisError
 from dermis.pipeline.imageio import ImageRangeWarning, read_image, write_exr
 from dermis.pipeline.store import Store
 
+sys.path.insert(0, str(Path(__file__).parent))
+from scene_toml import merge, to_toml  # noqa: E402
+
 REPO = Path(__file__).resolve().parents[1]
 QUICK = REPO / "scenes" / "quick.toml"
 RENDER = "render-lafortune-point-high"
@@ -43,36 +46,12 @@ TINY = {"mesh": {"high_triangles": 2000, "low_triangles": 400, "procedural_textu
         "output": {"previews": False}}
 
 
-def _merge(a: dict, b: dict) -> dict:
-    a = dict(a)
-    for k, v in b.items():
-        a[k] = _merge(a[k], v) if isinstance(v, dict) and isinstance(a.get(k), dict) else v
-    return a
-
-
-def _toml(d: dict) -> str:
-    """Tables of scalars and arrays, and arrays of tables: all a scene uses."""
-    val = json.dumps                       # strings, numbers, lists of them: valid TOML
-    out = []
-    for k, v in d.items():
-        if isinstance(v, dict):
-            out.append(f"[{k}]")
-            out += [f"{a} = {val(b)}" for a, b in v.items()]
-        elif isinstance(v, list) and v and isinstance(v[0], dict):
-            for item in v:
-                out.append(f"[[{k}]]")
-                out += [f"{a} = {val(b)}" for a, b in item.items()]
-        else:
-            out.insert(0, f"{k} = {val(v)}")
-    return "\n".join(out) + "\n"
-
-
 def scene_file(folder: Path, over: dict | None = None, name: str = "scene.toml") -> Path:
     """The quick scene with the TINY overrides and ``over``, outputs under ``folder/out``."""
-    d = _merge(_merge(tomllib.loads(QUICK.read_text()), TINY), over or {})
+    d = merge(merge(tomllib.loads(QUICK.read_text()), TINY), over or {})
     d["output"]["output_dir"] = str(folder / "out")
     path = folder / name
-    path.write_text(_toml(d))
+    path.write_text(to_toml(d))
     return path
 
 

@@ -1,0 +1,47 @@
+"""Scene dicts written as TOML files for the tests that feed dermis hostile or edited scenes
+(tests/test_hardening*.py): TOML has no writer in the standard library, and a scene uses only
+tables, arrays of tables, scalars and arrays."""
+from __future__ import annotations
+
+import copy
+import json
+
+
+def toml_value(x) -> str:
+    if isinstance(x, bool):
+        return "true" if x else "false"
+    if isinstance(x, str):
+        return json.dumps(x)
+    if isinstance(x, (list, tuple)):
+        return "[" + ", ".join(toml_value(v) for v in x) + "]"
+    return repr(x)
+
+
+def to_toml(d: dict) -> str:
+    """A scene dict as TOML (tables, arrays of tables such as [[lights]] and
+    [[optics.layers]], scalars and arrays)."""
+    tables = lambda v: isinstance(v, list) and v and isinstance(v[0], dict)  # noqa: E731
+    out = [f"{k} = {toml_value(v)}" for k, v in d.items()
+           if not isinstance(v, dict) and not tables(v)]
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.append(f"[{k}]")
+            out += [f"{a} = {toml_value(b)}" for a, b in v.items() if not tables(b)]
+            for a, b in v.items():
+                if tables(b):
+                    for item in b:
+                        out.append(f"[[{k}.{a}]]")
+                        out += [f"{x} = {toml_value(y)}" for x, y in item.items()]
+        elif tables(v):
+            for item in v:
+                out.append(f"[[{k}]]")
+                out += [f"{a} = {toml_value(b)}" for a, b in item.items()]
+    return "\n".join(out) + "\n"
+
+
+def merge(a: dict, b: dict) -> dict:
+    """``a`` with ``b`` merged in, table by table (a copy)."""
+    a = copy.deepcopy(a)
+    for k, v in b.items():
+        a[k] = merge(a[k], v) if isinstance(v, dict) and isinstance(a.get(k), dict) else v
+    return a
