@@ -229,7 +229,7 @@ MEASUREMENT_KEYS = frozenset({"timings", "seconds", "kernel_seconds", "wall_seco
 def _is_measurement(key: str, value) -> bool:
     # "seconds_sampling" (samples stage steps) and rates such as "photons_per_second" (the
     # Monte Carlo profile) are timings too: left in the artifact they made its bytes differ
-    # between runs (issue 15, the serial vs Dask byte-identity test)
+    # between runs (tests/test_sweep.py: serial and Dask runs give the same bytes)
     return key in MEASUREMENT_KEYS or key.endswith("_seconds") or key.startswith("seconds_") \
         or key.endswith("_per_second") or (
             key.endswith("_s") and isinstance(value, float) and not key.startswith("sigma"))
@@ -320,7 +320,7 @@ def _one_blas_thread():
     OpenBLAS splits a product over its threads and sums the parts in a thread-count-dependent
     order, so the same node gave different last bits in a process with 2 BLAS threads (dermis
     run) and in a Dask worker (which starts with OMP_NUM_THREADS=1): the profiles' adding-
-    doubling differed by 1 ulp and everything downstream with it (issue 15).  One thread on
+    doubling differed by 1 ulp and everything downstream with it.  One thread on
     every machine and in every process makes the bytes independent of where a node runs; the
     stages' matrices are small (tens of quadrature nodes), so nothing measurable is lost."""
     try:

@@ -157,7 +157,8 @@ class PixelSurface:
 # the BSSRDF and its surface term) share one camera cast (rendering/cast.py), so without
 # it they computed the same attributes ~20 times over (0.3-1.3 s per image; 0.06 s shared):
 # the 36 BRDF images of the 48-image matrix went from 29.3 to 14.7 s of node time with the
-# session's other changes (bench/results/pipeline_default_48.json, per_stage and before).
+# bake, samples and light-sampling speed-ups (bench/results/pipeline_default_48.json, per_stage
+# and before).
 SURFACE_CACHE_SIZE = 3
 SURFACES = Shared("pixel_surface", keep=SURFACE_CACHE_SIZE)
 

@@ -246,3 +246,16 @@ def test02_the_checks_catch_what_they_are_for():
         assert len(_broken("x.py", f"see {text} here", path_re, tops)) == n, text
     fenced = "see stages/nowhere.py\n```python\n# models/grey.py\n```\n"
     assert len(_broken("x.md", fenced, path_re, tops)) == 1
+
+
+# What a reader of the repository cannot look up: the tracker's numbers and the history of
+# the work (git log holds it).  Spelled in pieces so that this file does not match itself.
+JOURNAL = re.compile(r"\b(?:" + "iss" + r"ue ?#?\d+|ses" + r"sion \d+|the le" + r"ad\b|the bri"
+                     + r"ef\b)", re.IGNORECASE)
+
+
+def test03_the_repository_speaks_of_the_product():
+    found = [f"{name}:{_line(text, m.start())}: {m.group(0)!r}"
+             for name, text in _texts().items() for m in JOURNAL.finditer(text)]
+    assert not found, "\n".join(found)
+    assert JOURNAL.search("as " + "iss" + "ue 12 asked") and not JOURNAL.search("tissue 12")
