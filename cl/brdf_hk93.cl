@@ -13,7 +13,10 @@
  *                                                / (eta_1^2 (mu_1i + mu_1o))
  *   f_2 = T_01(i) T_01(o) T_12(i) T_12(o) exp(-tau_1 (1/mu_1i + 1/mu_1o))
  *         * W_2 HG(cosT_2, g_2) (1 - exp(-tau_2 (1/mu_2i + 1/mu_2o))) / (eta_2^2 (mu_2i + mu_2o))
- *   cosT_k = -(wo.xy . wi.xy) / eta_k^2 - mu_ki mu_ko   (refracted propagation directions)
+ *   cosT_k = -(wo.xy . wi.xy) / eta_k^2 - mu_ki mu_ko   (refracted propagation directions),
+ *   evaluated as 1 - cosT_k = (|wo.xy + wi.xy|^2 / eta_k^2 + (mu_ko + mu_ki)^2) / 2 and
+ *   1 + cosT_k = (|wo.xy - wi.xy|^2 / eta_k^2 + (mu_ko - mu_ki)^2) / 2 (no cancellation at
+ *   the Henyey-Greenstein peaks; optics.h henyey_greenstein_split)
  * Variant decisions (the "check" items of docs/science.md §2):
  *  - BRDF, not radiance ratio: the cos_i in HK93's numerator is the incident projected-area
  *    factor, so f = L_r / (L_i cos_i dw_i) has (mu_i + mu_o) alone in the denominator.
@@ -64,9 +67,9 @@
 #define HK93_TAU_MAX 1e30f
 
 /* Single-scattering radiance factor of one slab: W HG (1 - e^{-tau(1/mi + 1/mo)}) /
- * (eta^2 (mi + mo)). */
-inline float3 hk93_slab(float3 W, float3 tau, float g, float eta, float cos_scatter,
-                        float mi, float mo) {
+ * (eta^2 (mi + mo)).  The scattering angle enters as 1 -/+ cosT (see hk93_f). */
+inline float3 hk93_slab(float3 W, float3 tau, float g, float eta, float one_minus_cos,
+                        float one_plus_cos, float mi, float mo) {
     float path = 1.0f / mi + 1.0f / mo;
     /* 1 - e^{-x}: PoCL's expm1 is a scalar libm call (2x slower in bench/bench_brdf.py), so
      * below x = 0.1 a 4-term Taylor series (truncation x^4/120 < 1e-6 relative) replaces the
@@ -74,7 +77,7 @@ inline float3 hk93_slab(float3 W, float3 tau, float g, float eta, float cos_scat
     float3 x = tau * path;
     float3 series = x * (1.0f - 0.5f * x * (1.0f - x * (1.0f / 3.0f) * (1.0f - 0.25f * x)));
     float3 depth = select(1.0f - exp(-x), series, isless(x, (float3)(0.1f)));
-    return W * depth * (henyey_greenstein(cos_scatter, g) / (eta * eta * (mi + mo)));
+    return W * depth * (henyey_greenstein_split(one_minus_cos, one_plus_cos, g) / (eta * eta * (mi + mo)));
 }
 
 /* f(wo, wi) in 1/sr, RGB. */
@@ -86,21 +89,29 @@ inline float3 hk93_f(float3 wo, float3 wi, __constant const float *p) {
 
     float mo = fmax(wo.z, HK93_COS_MIN);
     float mi = fmax(wi.z, HK93_COS_MIN);
-    float xy = wo.x * wi.x + wo.y * wi.y;
+    /* 1 -/+ cosT_k from the refracted propagation directions a = (-wi.xy / eta_k, -mu_ki),
+     * b = (wo.xy / eta_k, mu_ko): 1 - a.b = |a - b|^2 / 2 and 1 + a.b = |a + b|^2 / 2.  At
+     * retro-reflection (wo = wi) 1 + cosT is exactly 0 here, where -xy/eta^2 - mu mu rounds a
+     * few ulp from -1 and the Henyey-Greenstein peak of g -> -1 amplifies that by
+     * 2 |g| / (1 + g)^2 (0.7 % at g = -0.99, tests/test_stability.py) */
+    float sx = wo.x + wi.x, sy = wo.y + wi.y, dx = wo.x - wi.x, dy = wo.y - wi.y;
+    float sxy = sx * sx + sy * sy, dxy = dx * dx + dy * dy;
 
     /* Layer 1: refraction and Fresnel transmittance at the top surface, in and out */
     float m1o = refract_cos(mo, eta1), m1i = refract_cos(mi, eta1);
     float t01 = fresnel_transmit(mi, m1i, eta1) * fresnel_transmit(mo, m1o, eta1);
-    float cos1 = -xy / (eta1 * eta1) - m1i * m1o;
-    float3 f1 = hk93_slab(W1, tau1, g1, eta1, cos1, m1i, m1o);
+    float s1 = m1o + m1i, d1 = m1o - m1i, ie1 = 1.0f / (eta1 * eta1);
+    float3 f1 = hk93_slab(W1, tau1, g1, eta1, 0.5f * (sxy * ie1 + s1 * s1),
+                          0.5f * (dxy * ie1 + d1 * d1), m1i, m1o);
 
     /* Layer 2: Snell depends only on the outside angle; attenuated through layer 1 both ways */
     float m2o = refract_cos(mo, eta2), m2i = refract_cos(mi, eta2);
     float eta12 = eta2 / eta1;
     float t12 = fresnel_transmit(m1i, m2i, eta12) * fresnel_transmit(m1o, m2o, eta12);
     float3 atten = exp(-tau1 * (1.0f / m1i + 1.0f / m1o));
-    float cos2 = -xy / (eta2 * eta2) - m2i * m2o;
-    float3 f2 = (t12 * atten) * hk93_slab(W2, tau2, g2, eta2, cos2, m2i, m2o);
+    float s2 = m2o + m2i, d2 = m2o - m2i, ie2 = 1.0f / (eta2 * eta2);
+    float3 f2 = (t12 * atten) * hk93_slab(W2, tau2, g2, eta2, 0.5f * (sxy * ie2 + s2 * s2),
+                                          0.5f * (dxy * ie2 + d2 * d2), m2i, m2o);
 
     float3 f = t01 * (f1 + f2) + rho_ms * DERMIS_INV_PI;
     /* back-facing or horizon: no reflection */

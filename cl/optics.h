@@ -60,4 +60,16 @@ inline float henyey_greenstein(float cos_theta, float g) {
     return DERMIS_INV_4PI * (1.0f - g * g) / (denom * sqrt(denom));
 }
 
+/* The same phase function from 1 - cos and 1 + cos of the scattering angle, for callers that
+ * have them without cancellation (|a - b|^2 / 2 and |a + b|^2 / 2 of the unit propagation
+ * directions a, b).  1 + g^2 - 2 g cos = (1 - g)^2 + 2 g (1 - cos) = (1 + g)^2 - 2 g (1 + cos):
+ * the form picked by the sign of g adds two non-negative terms, so the peak of |g| -> 1,
+ * where the plain form cancels to (1 - |g|)^2, keeps full float32 accuracy; (1 - g)(1 + g)
+ * likewise replaces 1 - g^2. */
+inline float henyey_greenstein_split(float one_minus_cos, float one_plus_cos, float g) {
+    float a = 1.0f - g, b = 1.0f + g;
+    float denom = g >= 0.0f ? a * a + 2.0f * g * one_minus_cos : b * b - 2.0f * g * one_plus_cos;
+    return DERMIS_INV_4PI * (a * b) / (denom * sqrt(denom));
+}
+
 #endif
