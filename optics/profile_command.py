@@ -118,13 +118,16 @@ def _rebin(prof, edges: np.ndarray, key: str) -> np.ndarray:
     return np.diff(cum[idx], axis=0) / (np.pi * np.diff(edges**2))[:, None]
 
 
-def profile_errors(prof, ref, band=ERROR_BAND_MM, rings: int = ERROR_RINGS) -> dict:
-    """Rd, Tt and R(r) errors of layer file ``prof`` against the Monte Carlo ``ref``.
+def profile_errors(prof, ref, band=ERROR_BAND_MM, rings: int = ERROR_RINGS,
+                   field: str = "R") -> dict:
+    """Rd, Tt and R(r) (``field="T"``: T(r)) errors of layer file ``prof`` against the Monte
+    Carlo ``ref``.
 
     Returns per channel: dRd, dTt (relative; None where the reference is 0), their reference
     standard errors (relative), and over ``rings`` log-spaced rings in ``band``: the rms and
     the largest relative R(r) error, the radius of the largest, the misplaced energy
-    (sum |E - E_ref| / sum E_ref over the rings) and the reference's median relative noise.
+    (sum |E - E_ref| / sum E_ref over the rings) and the reference's median relative noise;
+    their keys start with ``field`` (``R_misplaced``, ``T_misplaced``, ...).
     The ring edges are moved to the nearest edges of ``prof``'s own rings, and ``ref``
     should hold those edges too (the CLI's reference runs on the union of all rings).
     """
@@ -135,9 +138,9 @@ def profile_errors(prof, ref, band=ERROR_BAND_MM, rings: int = ERROR_RINGS) -> d
     edges = np.unique(own_p[np.abs(own_p[None, :] - edges[:, None]).argmin(axis=1)])
     edges = edges[edges > 0] if np.sum(edges > 0) > 1 else edges
     mid = np.sqrt(edges[1:] * np.maximum(edges[:-1], 1e-12))
-    ep, er = ring_energy(prof, edges), ring_energy(ref, edges)
+    ep, er = ring_energy(prof, edges, field), ring_energy(ref, edges, field)
     own = ring_edges(ref)
-    var = np.vstack([np.zeros(3), np.cumsum((np.asarray(ref.info["R_err"])
+    var = np.vstack([np.zeros(3), np.cumsum((np.asarray(ref.info[f"{field}_err"])
                                              * (np.pi * np.diff(own**2))[:, None]) ** 2, axis=0)])
     ev = np.diff(np.stack([np.interp(edges, own, var[:, c]) for c in range(3)], axis=1), axis=0)
     out = []
@@ -150,14 +153,15 @@ def profile_errors(prof, ref, band=ERROR_BAND_MM, rings: int = ERROR_RINGS) -> d
         tot = float(np.nansum(er[:, c]))
         out.append({
             # energy on the rings put where the reference has none: sum |E - E_ref| / sum E_ref
-            "R_misplaced": float(np.nansum(np.abs(ep[:, c] - er[:, c])) / tot) if tot > 0 else None,
+            f"{field}_misplaced": float(np.nansum(np.abs(ep[:, c] - er[:, c])) / tot)
+            if tot > 0 else None,
             "dRd": float(prof.Rd[c] / rd - 1) if rd > 0 else None,
             "dTt": float(prof.Tt[c] / tt - 1) if tt > 0 else None,
             "Rd_se": float(ref.info["Rd_err"][c] / rd) if rd > 0 else None,
             "Tt_se": float(ref.info["Tt_err"][c] / tt) if tt > 0 else None,
-            "R_rms": float(np.sqrt(np.nanmean(rel**2))) if np.any(ok) else None,
-            "R_max": float(rel[k]) if np.any(ok) else None,
-            "R_max_at_mm": float(mid[k]),
+            f"{field}_rms": float(np.sqrt(np.nanmean(rel**2))) if np.any(ok) else None,
+            f"{field}_max": float(rel[k]) if np.any(ok) else None,
+            f"{field}_max_at_mm": float(mid[k]),
             "ref_noise_median": float(np.nanmedian(noise)) if np.any(ok) else None,
         })
     return {"channels": out, "rings_mm": edges.tolist()}
