@@ -251,6 +251,25 @@ def test04_negative_lobes_reported_and_energy_kept():
                                Rd, rtol=1e-9)
 
 
+def test04_negative_lobe_fraction_is_scale_free():
+    # a lobe's energy fraction is a property of the profile's shape: the same profile at
+    # 1e-303 of the light (a 660 mm layer's transmittance) has ring energies below the float64
+    # range, which read 0 and hid a 0.65 % lobe (tests/test_stability.py test11's example)
+    from dermis.optics.layer_file import NegativeLobes
+    h = 0.0079
+    r = np.arange(500) * h
+    area = np.pi * np.diff(np.concatenate([[0.0], (np.arange(500) + 0.5) * h]) ** 2)
+    vals = np.exp(-r / 0.1) - 0.05 * np.exp(-((r - 1.0) / 0.3) ** 2)
+    fractions = []
+    for scale in (1.0, 1e-303):
+        lobes = NegativeLobes()
+        out = lobes.fix(vals * scale, area, r, {"field": "T"}, total=2.0 * scale)
+        assert len(lobes.items) == 1 and np.all(out >= 0)
+        assert float(np.sum(out * area)) == pytest.approx(2.0 * scale, rel=1e-12)
+        fractions.append(lobes.items[0]["energy_fraction"])
+    assert fractions[1] == pytest.approx(fractions[0], rel=1e-12) and fractions[0] > 1e-3
+
+
 def test04_zero_thickness_top_is_identity():
     a = build_profiles(PRESETS["two_layer"], options=MultipoleOptions(grid=(0.05, 8.0)))
     zero = Layer(0.0, 1.7, (5.0, 5.0, 5.0), (1.0, 1.0, 1.0))
