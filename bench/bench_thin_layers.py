@@ -2,6 +2,12 @@
 
 Usage: python bench/bench_thin_layers.py --label NAME [--out bench/results/thin_layers.json]
        [--photons N] [--cases a,b,...]
+       python bench/bench_thin_layers.py --images BEFORE_CACHE AFTER_CACHE --label NAME
+
+The second form compares the BSSRDF images of two runs of a scene (``dermis run SCENE
+--cache DIR`` before and after a change): per render node, the relative RMSE, the change of
+the mean per channel, the largest |difference| over the image's peak and whether the bytes
+are equal; every other data array is checked for equality.
 
 For each case (scenes/layers/<case>.toml) and channel, the multipole layer file (the
 BSSRDF's default) against a Monte Carlo table (seed 1, ``--photons`` per channel on average,
@@ -81,15 +87,49 @@ def field_report(prof, ref, field: str) -> dict:
                                           "mc_se": fr_se.tolist()}}
 
 
+def compare_images(before: Path, after: Path) -> dict:
+    """BSSRDF image changes between two caches of the same scene (module notes)."""
+    out: dict = {"render": {}, "other_arrays_equal": [], "other_arrays_changed": []}
+    for node in sorted(p for p in after.iterdir() if p.is_dir()):
+        fa = sorted(node.glob("*/data.npz"))
+        fb = sorted((before / node.name).glob("*/data.npz"))
+        if not fa or not fb:
+            continue
+        a, b = np.load(fa[0]), np.load(fb[0])
+        if node.name.startswith("render-bssrdf"):
+            la, lb = a["linear"].astype(np.float64), b["linear"].astype(np.float64)
+            m = a["mask"] & b["mask"]
+            d, ref = (la - lb)[m], lb[m]
+            out["render"][node.name] = {
+                "rel_rmse": float(np.sqrt(np.mean(d**2)) / np.sqrt(np.mean(ref**2))),
+                "mean_rel": (la[m].mean(axis=0) / lb[m].mean(axis=0) - 1.0).tolist(),
+                "max_abs_over_peak": float(np.abs(d).max() / ref.max()),
+                "bytes_equal": bool(np.array_equal(a["linear"], b["linear"]))}
+            continue
+        same = a.files == b.files and all(np.array_equal(a[k], b[k]) for k in a.files)
+        out["other_arrays_equal" if same else "other_arrays_changed"].append(node.name)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--label", required=True)
+    ap.add_argument("--images", nargs=2, metavar=("BEFORE_CACHE", "AFTER_CACHE"))
     ap.add_argument("--out", default=str(ROOT / "bench/results/thin_layers.json"))
     ap.add_argument("--photons", type=int, default=2_000_000, help="MC photons per channel")
     ap.add_argument("--cases", default=",".join(CASES))
     args = ap.parse_args()
     path = Path(args.out)
     out = json.loads(path.read_text()) if path.exists() else {}
+    if args.images:
+        res = compare_images(Path(args.images[0]), Path(args.images[1]))
+        out.setdefault("images", {})[args.label] = res
+        for name, r in res["render"].items():
+            print(f"{name:50s} rel RMSE {r['rel_rmse']:.2e} max |d|/peak "
+                  f"{r['max_abs_over_peak']:.2e}")
+        print("changed:", res["other_arrays_changed"])
+        path.write_text(json.dumps(out, indent=1))
+        return
     out.setdefault("convention", RD_CONVENTION)
     out.setdefault("mc", {})
     res = out.setdefault(args.label, {})
