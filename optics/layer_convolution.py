@@ -84,9 +84,7 @@ def combine_layers(stack: LayerStack, chans, nq: int, h: float, n: int, lobes: N
         else:
             vals = _ring_grid(terms, ulo, uhi, h)[back]
         v = lobes.fix(vals, cell, radius, where, total=total)
-        block = np.zeros((n + 1, n + 1))
-        block[sel] = v * h * h
-        g[:n + 1, :n + 1] = block
+        g[:n + 1, :n + 1][sel] = v * h * h
         s = _quadrant_sum(g)
         if s > 0 and total != 0:
             g *= total / s
@@ -105,7 +103,9 @@ def combine_layers(stack: LayerStack, chans, nq: int, h: float, n: int, lobes: N
             if zero is None:
                 zero = np.zeros((m + 1, m + 1))
             return zero
-        return scipy.fft.dctn(sum(grids[1:], grids[0]), type=1, workers=-1)
+        for extra in grids[1:]:
+            grids[0] += extra                     # in place: one grid, not three
+        return scipy.fft.dctn(grids[0], type=1, workers=-1)
 
     R_out = np.zeros((n + 1, 3))
     T_out = np.zeros((n + 1, 3))
@@ -175,7 +175,7 @@ def combine_layers(stack: LayerStack, chans, nq: int, h: float, n: int, lobes: N
             down = A["Tc"] + A["Rud"] * U                            # diffuse down into B
             new = {"Rc": A["Rc"] + A["Tud"] * U,
                    "Tc": A["tau"] * B["Tc"] + B["Td"] * down,
-                   "tau": A["tau"] * B["tau"], "bal": A["bal"] * B["bal"]}
+                   "tau": _product(A["tau"], B["tau"]), "bal": A["bal"] * B["bal"]}
             if k + 1 < nl:
                 Uu = B["Tud"] * den
                 new["Rud"] = B["Rud"] + B["Td"] * A["Rud"] * Uu
@@ -225,6 +225,14 @@ def combine_layers(stack: LayerStack, chans, nq: int, h: float, n: int, lobes: N
         R_out[0, c] += R_delta / ring_area[0]
         T_out[0, c] += T_point / ring_area[0]
     return R_out, T_out, Rd, Tt, bal, fwd, dropped
+
+
+def _product(a, b):
+    """a * b for spectra or numbers; a zero number stays a number (a semi-infinite layer
+    passes nothing on: no grid of zeros)."""
+    if (not isinstance(a, np.ndarray) and a == 0) or (not isinstance(b, np.ndarray) and b == 0):
+        return 0.0
+    return a * b
 
 
 def _dc(spec) -> float:

@@ -51,14 +51,15 @@ MAX_SEED = 2**32 - 2
 
 # Peak memory of ``dermis profile`` (resident set size, 2-core PoCL machine; estimate_memory's
 # sum against it): the interpreter with numpy and scipy, 60 MiB (skin1; 68 MiB estimated); a
-# layered stack's FFT adding holds about 24 + 4 x (layers - 2) grids of (2n + 1)^2 float64,
-# at most FFT_GRIDS_MAX; the image sums IMAGE_SUM_ARRAYS float64 arrays of (radii x images)
+# layered stack's FFT adding holds about 26 + 5 x (layers - 2) grids of (2n + 1)^2 float64
+# (the collimated light a layer passes on is a grid where it spreads), at most FFT_GRIDS_MAX; the image sums IMAGE_SUM_ARRAYS float64 arrays of (radii x images)
 # pairs, in chunks of IMAGE_SUM_CHUNK unless one radius has more; the OpenCL Monte Carlo its
-# runtime, buffers and diffusion guide.  Measured (estimated), MiB: two_layer (n = 800) 532
-# (680), with --poles 2000 694 (716), with --mc 20000 644 (808); 3 layers at n = 1024 1009
-# (1144), 5 layers 1034 (1272).  Bytes.
+# runtime, buffers and diffusion guide.  Measured (estimated), MiB: two_layer (n = 800) 533
+# (719), with --poles 2000 697 (755); with --mc 20000 644, 3 layers at n = 1024 1009 and 5
+# layers 1034 were measured while the collimated light was a number (24 + 4 x (layers - 2)
+# grids: estimated 808, 1144, 1272; now 2 + (layers - 2) grids more).  Bytes.
 PROFILE_BASE_BYTES = 64 << 20
-FFT_GRIDS_MAX = 32
+FFT_GRIDS_MAX = 36
 IMAGE_SUM_ARRAYS = 6
 MC_BYTES = 128 << 20
 
@@ -210,7 +211,7 @@ def estimate_memory(stack: LayerStack, poles: int | None = None,
     h, r_max = auto_grid(st)
     n = int(math.ceil(r_max / h))
     if len(st.layers) > 1:
-        grids = min(FFT_GRIDS_MAX, 24 + 4 * (len(st.layers) - 2))
+        grids = min(FFT_GRIDS_MAX, 26 + 5 * (len(st.layers) - 2))
         parts.append((f"FFT adding on {grids} grids of {2 * n + 1} x {2 * n + 1}",
                       grids * 8 * (2 * n + 1) ** 2))
     # one image sum: (sources x images) pairs, evaluated over radii in chunks of
