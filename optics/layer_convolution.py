@@ -18,10 +18,11 @@ import math
 import numpy as np
 import scipy.fft
 
+from dermis.optics.forward_spread import RadialShape
 from dermis.optics.layer_file import NegativeLobes
 from dermis.optics.layers import LayerStack
-from dermis.optics.multipole import (evaluate_terms, layer_response, lit_from_below,
-                                     scaled_to_exact)
+from dermis.optics.multipole import (direct_parts, evaluate_terms, layer_response,
+                                     lit_from_below, scaled_to_exact)
 
 __all__ = ["combine_layers"]
 
@@ -69,24 +70,42 @@ def combine_layers(stack: LayerStack, chans, nq: int, h: float, n: int, lobes: N
     nl = len(stack.layers)
     zero = None
 
-    def spectrum(terms, total: float, where: dict) -> np.ndarray:
-        nonlocal zero
+    def pixels(terms, total: float, where: dict) -> np.ndarray | None:
+        """Pixel energies of ``terms`` on the quadrant (None without any), their sum set to
+        the closed-form ``total`` so the spectrum's DC term is exact."""
         if not terms or total == 0:
+            return None
+        g = np.zeros((m + 1, m + 1))
+        if len(terms) == 1 and isinstance(terms[0], RadialShape):
+            # spread direct light: its cumulative energy is cheap and monotone, so it is
+            # evaluated at the pixel radii themselves (no spline, no overshoot)
+            vals = ((terms[0].energy(uhi) - terms[0].energy(ulo))
+                    / (np.pi * (uhi**2 - ulo**2)))[back]
+        else:
+            vals = _ring_grid(terms, ulo, uhi, h)[back]
+        v = lobes.fix(vals, cell, radius, where, total=total)
+        g[:n + 1, :n + 1][sel] = v * h * h
+        s = _quadrant_sum(g)
+        if s > 0 and total != 0:
+            g *= total / s
+        return g
+
+    def spectrum(terms, total: float, where: dict, spread=None) -> np.ndarray:
+        """DCT-I of ``terms`` (energy ``total``) plus the spread direct light ``spread``
+        (a weighted RadialShape or None): one transform of the summed pixels."""
+        nonlocal zero
+        grids = [pixels(terms, total, where)]
+        if spread is not None:
+            grids.append(pixels([spread], spread.weight, dict(where, field=where["field"]
+                                                              + " direct")))
+        grids = [x for x in grids if x is not None]
+        if not grids:
             if zero is None:
                 zero = np.zeros((m + 1, m + 1))
             return zero
-        g = np.zeros((m + 1, m + 1))
-        if terms:
-            vals = _ring_grid(terms, ulo, uhi, h)[back]
-            v = lobes.fix(vals, cell, radius, where, total=total)
-            block = np.zeros((n + 1, n + 1))
-            block[sel] = v * h * h
-            g[:n + 1, :n + 1] = block
-            # rescale the sampled energy to the closed-form total so DC is exact
-            s = _quadrant_sum(g)
-            if s > 0 and total != 0:
-                g *= total / s
-        return scipy.fft.dctn(g, type=1, workers=-1)
+        for extra in grids[1:]:
+            grids[0] += extra                     # in place: one grid, not three
+        return scipy.fft.dctn(grids[0], type=1, workers=-1)
 
     R_out = np.zeros((n + 1, 3))
     T_out = np.zeros((n + 1, 3))
@@ -110,34 +129,41 @@ def combine_layers(stack: LayerStack, chans, nq: int, h: float, n: int, lobes: N
             dc = layer_response(ch, nq)
             Rf, Rdl, Tf, Tdl, sc = scaled_to_exact(dc, ex and ex.Rc, ex and ex.Tc, False,
                                                    ex and ex.Tu)
-            B = {"Rc": spectrum(dc.terms_R, Rf, dict(w, light="collimated", field="R")),
-                 "Tc": spectrum(dc.terms_T, Tf, dict(w, light="collimated", field="T")),
-                 "tau": Tdl}
+            # direct light: the unscattered beam stays at r = 0 (a constant spectrum), the
+            # rest lands where optics/forward_spread.py puts it
+            Rp, Rs, Tp, Ts = direct_parts(dc, Rdl, Tdl, False, ex and ex.Tu)
+            lit = dict(w, light="collimated")
+            B = {"Rc": spectrum(dc.terms_R, Rf, dict(lit, field="R"), Rs),
+                 "Tc": spectrum(dc.terms_T, Tf, dict(lit, field="T")),
+                 "tau": Tp + spectrum([], 0.0, dict(lit, field="T"), Ts) if Ts is not None else Tp,
+                 "bal": Tp}
             if scales is not None:
                 scales.append(dict(w, light="collimated", **sc))
             dropped[c] += dc.dropped
             bal_c *= dc.ballistic if ex is None else ex.Tu
             if k == 0:
-                R_delta = Rdl
+                R_delta = Rp
             else:
                 # not in place: spectrum() hands out one shared zero grid for layers without
                 # a diffusion shape (sigma_s' = 0), and += on it leaked this delta into every
                 # later layer and channel (Rd + Tt up to 1.33, test_stability test11)
-                B["Rc"] = B["Rc"] + Rdl
+                B["Rc"] = B["Rc"] + Rp
                 dd = layer_response(ch, nq, diffuse=True)
                 Rf, Rdl, Tf, Tdl, sc = scaled_to_exact(dd, ex and ex.Rd, ex and ex.Td, True)
-                B["Rd"] = spectrum(dd.terms_R, Rf, dict(w, light="diffuse", field="R")) + Rdl
-                B["Td"] = spectrum(dd.terms_T, Tf, dict(w, light="diffuse", field="T")) + Tdl
+                Rp, Rs, Tp, Ts = direct_parts(dd, Rdl, Tdl, True)
+                lit = dict(w, light="diffuse")
+                B["Rd"] = spectrum(dd.terms_R, Rf, dict(lit, field="R"), Rs) + Rp
+                B["Td"] = spectrum(dd.terms_T, Tf, dict(lit, field="T"), Ts) + Tp
                 dropped[c] += dd.dropped
                 if scales is not None:
                     scales.append(dict(w, light="diffuse", **sc))
             if k + 1 < nl:
                 du = layer_response(lit_from_below(ch), nq, diffuse=True)
                 Rf, Rdl, Tf, Tdl, sc = scaled_to_exact(du, ex and ex.Rud, ex and ex.Tud, True)
-                B["Rud"] = spectrum(du.terms_R, Rf, dict(w, light="diffuse from below",
-                                                         field="R")) + Rdl
-                B["Tud"] = spectrum(du.terms_T, Tf, dict(w, light="diffuse from below",
-                                                         field="T")) + Tdl
+                Rp, Rs, Tp, Ts = direct_parts(du, Rdl, Tdl, True)
+                lit = dict(w, light="diffuse from below")
+                B["Rud"] = spectrum(du.terms_R, Rf, dict(lit, field="R"), Rs) + Rp
+                B["Tud"] = spectrum(du.terms_T, Tf, dict(lit, field="T"), Ts) + Tp
                 dropped[c] += du.dropped
                 if scales is not None:
                     scales.append(dict(w, light="diffuse from below", **sc))
@@ -149,7 +175,7 @@ def combine_layers(stack: LayerStack, chans, nq: int, h: float, n: int, lobes: N
             down = A["Tc"] + A["Rud"] * U                            # diffuse down into B
             new = {"Rc": A["Rc"] + A["Tud"] * U,
                    "Tc": A["tau"] * B["Tc"] + B["Td"] * down,
-                   "tau": A["tau"] * B["tau"]}
+                   "tau": _product(A["tau"], B["tau"]), "bal": A["bal"] * B["bal"]}
             if k + 1 < nl:
                 Uu = B["Tud"] * den
                 new["Rud"] = B["Rud"] + B["Td"] * A["Rud"] * Uu
@@ -163,22 +189,29 @@ def combine_layers(stack: LayerStack, chans, nq: int, h: float, n: int, lobes: N
             if r_tot > 0:
                 A["Rc"] = A["Rc"] * (es.Rc / r_tot)
                 R_delta *= es.Rc / r_tot
-            t_sc = float(A["Tc"][0, 0]) + float(A["tau"]) - bal_c
+            t_sc = float(A["Tc"][0, 0]) + _dc(A["tau"]) - bal_c
             if t_sc > 0:
-                fwd_c = float(A["tau"]) - bal_c
+                # the scattered part of the collimated light (spread or not) scales with
+                # the diffuse T; the unscattered beam becomes the whole stack's
                 A["Tc"] = A["Tc"] * (es.Tc / t_sc)
-                A["tau"] = es.Tu + fwd_c * es.Tc / t_sc
+                A["tau"] = es.Tu + (A["tau"] - bal_c) * (es.Tc / t_sc)
+                A["bal"] = es.Tu + (A["bal"] - bal_c) * (es.Tc / t_sc)
             bal_c = es.Tu
             if scales is not None:
                 scales.append({"layer": "stack", "channel": "RGB"[c], "light": "collimated",
                                "R": es.Rc / r_tot if r_tot > 0 else 1.0,
                                "T": es.Tc / t_sc if t_sc > 0 else 1.0})
-        tau = float(A["tau"])
+        tau = _dc(A["tau"])
         Rd[c] = A["Rc"][0, 0] + R_delta
         Tt[c] = A["Tc"][0, 0] + tau
         bal[c] = bal_c
         fwd[c] = max(tau - bal_c, 0.0)
-        for key, spec, out in (("R", A["Rc"], R_out), ("T", A["Tc"], T_out)):
+        # the collimated light that was spread (scattered forward) joins the T field; the
+        # unscattered beam (A["bal"]) stays a delta at r = 0
+        T_spec = A["Tc"] + (A["tau"] - A["bal"]) if isinstance(A["tau"], np.ndarray) \
+            else A["Tc"]
+        T_point = A["bal"] if isinstance(A["tau"], np.ndarray) else tau
+        for key, spec, out in (("R", A["Rc"], R_out), ("T", T_spec, T_out)):
             if not np.any(spec):
                 continue
             e = scipy.fft.idctn(spec, type=1, workers=-1)  # energy per pixel
@@ -190,8 +223,21 @@ def combine_layers(stack: LayerStack, chans, nq: int, h: float, n: int, lobes: N
                                   {"layer": "stack", "field": key, "channel": "RGB"[c],
                                    "light": "inverse transform"}, total=energy)
         R_out[0, c] += R_delta / ring_area[0]
-        T_out[0, c] += tau / ring_area[0]
+        T_out[0, c] += T_point / ring_area[0]
     return R_out, T_out, Rd, Tt, bal, fwd, dropped
+
+
+def _product(a, b):
+    """a * b for spectra or numbers; a zero number stays a number (a semi-infinite layer
+    passes nothing on: no grid of zeros)."""
+    if (not isinstance(a, np.ndarray) and a == 0) or (not isinstance(b, np.ndarray) and b == 0):
+        return 0.0
+    return a * b
+
+
+def _dc(spec) -> float:
+    """Total energy of a spectrum (its DC term) or of a delta (a number)."""
+    return float(spec[0, 0]) if isinstance(spec, np.ndarray) else float(spec)
 
 
 class _RadialAverager:

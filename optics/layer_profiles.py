@@ -32,8 +32,8 @@ from dermis.optics.layers import (LayerStack, PROFILE_MODELS, DEFAULT_MC_PHOTONS
                                    DEFAULT_MC_SEED)
 from dermis.optics.monte_carlo_table import monte_carlo_profiles
 from dermis.optics.multipole import (DEFAULT_POLES, NQ_BEAM, check_diffusion,
-                                     diffusion_constants, evaluate_terms, layer_response,
-                                     relative_indices, scaled_to_exact)
+                                     diffusion_constants, direct_parts, evaluate_terms,
+                                     layer_response, relative_indices, scaled_to_exact)
 
 __all__ = ["build_profiles", "MultipoleOptions"]
 
@@ -181,8 +181,13 @@ def build_profiles(stack: LayerStack, *, model: str = "multipole",
                 want = (total / (resp.Rd if key == "R" else resp.Td)) * energy \
                     if (resp.Rd if key == "R" else resp.Td) > 0 else 0.0
                 out[:, c] = vals * (want / full_e) if full_e > 0 else vals
-            R[0, c] += Rdl / ring_area[0]
-            T[0, c] += Tdl / ring_area[0]
+            # the direct light: the unscattered beam at r = 0, the rest where it lands
+            Rp, Rs, Tp, Ts = direct_parts(resp, Rdl, Tdl, False, ex and ex.Tu)
+            R[0, c] += Rp / ring_area[0]
+            T[0, c] += Tp / ring_area[0]
+            for out, spread in ((R, Rs), (T, Ts)):
+                if spread is not None:
+                    out[:, c] += np.diff(spread.energy(edges)) / ring_area
             Rd[c] = Rf + Rdl
             Tt[c] = Tf + Tdl
             bal[c] = resp.ballistic if ex is None else ex.Tu

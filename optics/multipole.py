@@ -44,19 +44,22 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from numpy.polynomial.legendre import leggauss
 
 from dermis.pipeline.errors import DermisError
 from dermis.optics.adding_doubling import exact_totals
+from dermis.optics.forward_spread import RadialShape, convolve, diffuse_shape, forward_shape, mix
 from dermis.optics.fresnel import (diffusion_A, diffusion_boundary, fresnel_moments,
                                     fresnel_normal, fresnel_reflectance_inside)
 from dermis.optics.layers import Layer, LayerStack
 
 __all__ = ["multipole_profiles", "multipole_totals", "DiffusionConstants",
            "diffusion_constants", "lit_from_below", "BeamSources", "beam_sources", "image_sum",
-           "LayerResponse", "layer_response", "evaluate_terms", "relative_indices",
+           "LayerResponse", "layer_response", "direct_spreads", "direct_parts",
+           "evaluate_terms", "relative_indices",
            "check_diffusion", "scaled_to_exact", "DIFFUSION_MODELS", "DEFAULT_POLES",
            "MAX_POLES", "NQ_BEAM", "IMAGE_SUM_CHUNK"]
 
@@ -134,6 +137,8 @@ class DiffusionConstants:
     diffusion: str
     reach: float = math.inf  # field set to zero beyond this radius (weakly absorbing slab)
     tail: bool = False       # omitted images added as their integral
+    eta_t: float = 1.0       # relative indices (layer / neighbour) at the top and bottom
+    eta_b: float = 1.0
 
     @property
     def st(self) -> float:
@@ -200,14 +205,14 @@ def diffusion_constants(layer: Layer, c: int, eta_top: float, eta_bot: float, di
         else:
             n, tail = int(max(MIN_POLES, math.ceil(far))), True
     return DiffusionConstants(d, sa, ss, ssp, g, D, sig, zb_t, zb_b, cphi_t, ce_t, cphi_b,
-                              ce_b, fr_t, fr_b, n, diffusion, reach, tail)
+                              ce_b, fr_t, fr_b, n, diffusion, reach, tail, eta_top, eta_bot)
 
 
 def lit_from_below(ch: DiffusionConstants) -> DiffusionConstants:
     """The same layer lit from its bottom."""
     return DiffusionConstants(ch.d, ch.sa, ch.ss, ch.ssp, ch.g, ch.D, ch.sig, ch.zb_b, ch.zb_t,
                               ch.cphi_b, ch.ce_b, ch.cphi_t, ch.ce_t, ch.fr_b, ch.fr_t, ch.poles,
-                              ch.diffusion, ch.reach, ch.tail)
+                              ch.diffusion, ch.reach, ch.tail, ch.eta_b, ch.eta_t)
 
 
 @dataclass
@@ -413,6 +418,11 @@ class LayerResponse:
     dropped: float       # second-order Fresnel energy not followed
     returned: float = 0.0  # direct light the far side reflected back into the layer
     unshifted: bool = False  # sources kept at their collision depths (layer too thin)
+    ch: DiffusionConstants | None = None
+    diffuse: bool = False
+    # the far side's reflections of the direct light, (energy, how it arrived: "point"
+    # (collimated unscattered) / "forward" / "diffuse", the response of the layer to it)
+    returns: tuple = ()
 
 
 def layer_response(ch: DiffusionConstants, nq: int = NQ_BEAM, diffuse: bool = False,
@@ -438,6 +448,7 @@ def layer_response(ch: DiffusionConstants, nq: int = NQ_BEAM, diffuse: bool = Fa
     bal_out, fwd_out = src.ballistic * (1.0 - f_bal), src.forward * (1.0 - f_fwd)
     resp = LayerResponse(terms_R, terms_T, Rd, Td, bal_out + fwd_out, 0.0, bal_out, fwd_out, 0.0)
     resp.unshifted = unshifted
+    resp.ch, resp.diffuse = ch, diffuse
     back_c = src.ballistic * f_bal if not diffuse else 0.0
     back_d = src.forward * f_fwd + (src.ballistic * f_bal if diffuse else 0.0)
     resp.returned = back_c + back_d
@@ -445,22 +456,122 @@ def layer_response(ch: DiffusionConstants, nq: int = NQ_BEAM, diffuse: bool = Fa
         return resp
     # the reflected direct light enters the layer again from below, once
     fl = lit_from_below(ch)
+    returns = []
     for back, dif in ((back_c, False), (back_d, True)):
         if back <= 0.0:
             continue
         r = layer_response(fl, nq, dif, fresnel_return=False)
+        returns.append((back, "point" if not dif else ("diffuse" if diffuse else "forward"), r))
         resp.terms_R += [(c_, s_, sd, wt * back) for c_, s_, sd, wt in r.terms_T]
         resp.terms_T += [(c_, s_, sd, wt * back) for c_, s_, sd, wt in r.terms_R]
         resp.Rd += back * r.Td
         resp.Td += back * r.Rd
         resp.R_direct += back * r.direct
         resp.dropped += back * r.returned
+    resp.returns = tuple(returns)
     return resp
 
 
+def direct_spreads(resp: LayerResponse) -> tuple[RadialShape | None, float, RadialShape | None]:
+    """Where the direct light of ``resp`` lands (:mod:`dermis.optics.forward_spread`):
+    (shape of the spread part of ``direct``: the forward-scattered part for collimated
+    incidence, all of it for diffuse incidence; the part of ``R_direct`` that stays at
+    r = 0; shape of the rest of ``R_direct``).  Shapes are normalised (weight 1); None
+    where there is no such light or the layer is semi-infinite."""
+    ch = resp.ch
+    if ch is None or math.isinf(ch.d) or ch.diffusion != "pbd":
+        return None, resp.R_direct, None
+    layer = (ch.d, ch.sa, ch.ss, ch.g)
+    # the forward light of a collimated beam: as many small-angle scattering orders as its
+    # energy holds (optics/forward_spread.py forward_shape)
+    energy = _collimated_forward(ch)
+
+    def forward(eta: float, which: str):
+        return forward_shape(*layer, eta, which, energy) if ch.ss > 0 else None
+
+    # what leaves through the far face (its Fresnel transmission by direction), and what it
+    # reflects back up (its reflectance), which then leaves through the top
+    if resp.diffuse:
+        shape_T = diffuse_shape(*layer, resp.ballistic, resp.forward, ch.eta_b, "T", energy)
+    else:
+        shape_T = forward(ch.eta_b, "T") if resp.forward > 0 else None
+    point, parts = 0.0, []
+    for back, arrived, r in resp.returns:
+        # the returned light crosses the layer again: its spread on the way down, then the
+        # direct light's spread on the way up (point: the unscattered beam reflected)
+        if arrived == "point":
+            point += back * r.ballistic
+            parts.append((back * r.forward, forward(ch.eta_t, "T")))
+            continue
+        if r.direct <= 0.0 or (ch.ss <= 0.0 and arrived == "forward") or \
+                (arrived == "diffuse" and resp.direct <= 0.0):
+            point += back * r.direct
+            continue
+        parts.append((back * r.direct, _returned(layer, arrived, ch.eta_t, ch.eta_b,
+                                                 resp.ballistic, resp.forward, r.ballistic,
+                                                 r.forward, energy)))
+    shape_R = mix([(w, sh) for w, sh in parts if sh is not None])
+    point += sum(w for w, sh in parts if sh is None)
+    return (shape_T.scaled(1.0) if shape_T is not None else None, point,
+            shape_R.scaled(1.0) if shape_R is not None else None)
+
+
+@lru_cache(maxsize=256)
+def _returned(layer: tuple, arrived: str, eta_t: float, eta_b: float, bal_down: float,
+              fwd_down: float, bal_up: float, fwd_up: float, energy: float) -> RadialShape:
+    """Spread of direct light the far face reflected: down to it ("forward": scattered out
+    of a collimated beam; "diffuse": diffuse incidence's direct light), reflected, and up
+    through the top as diffuse incidence's direct light (normalised)."""
+    up = diffuse_shape(*layer, bal_up, fwd_up, eta_t, "T", energy)
+    down = forward_shape(*layer, eta_b, "R", energy) if arrived == "forward" else \
+        diffuse_shape(*layer, bal_down, fwd_down, eta_b, "R", energy)
+    return convolve(down.scaled(1.0), up.scaled(1.0))
+
+
+@lru_cache(maxsize=256)
+def _collimated_forward(ch: DiffusionConstants) -> float:
+    """The light a collimated beam at normal incidence leaves the layer with, scattered
+    forward (per unit flux, before the far face)."""
+    return beam_sources(ch, NQ_BEAM).forward
+
+
+def direct_parts(resp: LayerResponse, R_delta: float, T_delta: float, diffuse: bool,
+                 exact_Tu: float | None = None):
+    """Split the direct totals of :func:`scaled_to_exact` (``R_delta``, ``T_delta``) into
+    what stays at r = 0 and what spreads: (R at r = 0, R spread as a weighted
+    :class:`RadialShape` or None, T at r = 0, T spread or None).  For collimated incidence
+    the unscattered beam (``exact_Tu`` when given) stays at r = 0."""
+    shape_T, r_point, shape_R = direct_spreads(resp)
+    T_point = T_delta
+    T_spread = None
+    if shape_T is not None:
+        T_point = 0.0 if diffuse else min(T_delta, resp.ballistic if exact_Tu is None
+                                          else exact_Tu)
+        if T_delta - T_point > 0.0:
+            T_spread = shape_T.scaled(T_delta - T_point)
+        else:
+            T_point = T_delta
+    R_point, R_spread = R_delta, None
+    if shape_R is not None and resp.R_direct > 0.0:
+        R_point = R_delta * min(r_point / resp.R_direct, 1.0)
+        if R_delta - R_point > 0.0:
+            R_spread = shape_R.scaled(R_delta - R_point)
+        else:
+            R_point = R_delta
+    return R_point, R_spread, T_point, T_spread
+
+
 def evaluate_terms(terms, what: str, r: np.ndarray) -> np.ndarray:
+    """Sum of ``terms``: diffusion terms (ch, sources, side, weight) and spread direct light
+    (:class:`~dermis.optics.forward_spread.RadialShape`, cumulative energy only)."""
     out = np.zeros(np.asarray(r).size)
-    for ch, src, side, wt in terms:
+    for term in terms:
+        if isinstance(term, RadialShape):
+            if what != "energy":
+                raise DermisError(f"profiles: direct light has no {what!r} (energy only)")
+            out += term.energy(np.asarray(r, np.float64).ravel())
+            continue
+        ch, src, side, wt = term
         if src.t.size:
             out += wt * image_sum(ch, src, side, what, r)
     return out

@@ -51,14 +51,15 @@ MAX_SEED = 2**32 - 2
 
 # Peak memory of ``dermis profile`` (resident set size, 2-core PoCL machine; estimate_memory's
 # sum against it): the interpreter with numpy and scipy, 60 MiB (skin1; 68 MiB estimated); a
-# layered stack's FFT adding holds about 24 + 4 x (layers - 2) grids of (2n + 1)^2 float64,
-# at most FFT_GRIDS_MAX; the image sums IMAGE_SUM_ARRAYS float64 arrays of (radii x images)
+# layered stack's FFT adding holds about 26 + 5 x (layers - 2) grids of (2n + 1)^2 float64
+# (the collimated light a layer passes on is a grid where it spreads), at most FFT_GRIDS_MAX; the image sums IMAGE_SUM_ARRAYS float64 arrays of (radii x images)
 # pairs, in chunks of IMAGE_SUM_CHUNK unless one radius has more; the OpenCL Monte Carlo its
-# runtime, buffers and diffusion guide.  Measured (estimated), MiB: two_layer (n = 800) 532
-# (680), with --poles 2000 694 (716), with --mc 20000 644 (808); 3 layers at n = 1024 1009
-# (1144), 5 layers 1034 (1272).  Bytes.
+# runtime, buffers and diffusion guide.  Measured (estimated), MiB: two_layer (n = 800) 533
+# (719), with --poles 2000 697 (755); with --mc 20000 644, 3 layers at n = 1024 1009 and 5
+# layers 1034 were measured while the collimated light was a number (24 + 4 x (layers - 2)
+# grids: estimated 808, 1144, 1272; now 2 + (layers - 2) grids more).  Bytes.
 PROFILE_BASE_BYTES = 64 << 20
-FFT_GRIDS_MAX = 32
+FFT_GRIDS_MAX = 36
 IMAGE_SUM_ARRAYS = 6
 MC_BYTES = 128 << 20
 
@@ -118,13 +119,16 @@ def _rebin(prof, edges: np.ndarray, key: str) -> np.ndarray:
     return np.diff(cum[idx], axis=0) / (np.pi * np.diff(edges**2))[:, None]
 
 
-def profile_errors(prof, ref, band=ERROR_BAND_MM, rings: int = ERROR_RINGS) -> dict:
-    """Rd, Tt and R(r) errors of layer file ``prof`` against the Monte Carlo ``ref``.
+def profile_errors(prof, ref, band=ERROR_BAND_MM, rings: int = ERROR_RINGS,
+                   field: str = "R") -> dict:
+    """Rd, Tt and R(r) (``field="T"``: T(r)) errors of layer file ``prof`` against the Monte
+    Carlo ``ref``.
 
     Returns per channel: dRd, dTt (relative; None where the reference is 0), their reference
     standard errors (relative), and over ``rings`` log-spaced rings in ``band``: the rms and
     the largest relative R(r) error, the radius of the largest, the misplaced energy
-    (sum |E - E_ref| / sum E_ref over the rings) and the reference's median relative noise.
+    (sum |E - E_ref| / sum E_ref over the rings) and the reference's median relative noise;
+    their keys start with ``field`` (``R_misplaced``, ``T_misplaced``, ...).
     The ring edges are moved to the nearest edges of ``prof``'s own rings, and ``ref``
     should hold those edges too (the CLI's reference runs on the union of all rings).
     """
@@ -135,9 +139,9 @@ def profile_errors(prof, ref, band=ERROR_BAND_MM, rings: int = ERROR_RINGS) -> d
     edges = np.unique(own_p[np.abs(own_p[None, :] - edges[:, None]).argmin(axis=1)])
     edges = edges[edges > 0] if np.sum(edges > 0) > 1 else edges
     mid = np.sqrt(edges[1:] * np.maximum(edges[:-1], 1e-12))
-    ep, er = ring_energy(prof, edges), ring_energy(ref, edges)
+    ep, er = ring_energy(prof, edges, field), ring_energy(ref, edges, field)
     own = ring_edges(ref)
-    var = np.vstack([np.zeros(3), np.cumsum((np.asarray(ref.info["R_err"])
+    var = np.vstack([np.zeros(3), np.cumsum((np.asarray(ref.info[f"{field}_err"])
                                              * (np.pi * np.diff(own**2))[:, None]) ** 2, axis=0)])
     ev = np.diff(np.stack([np.interp(edges, own, var[:, c]) for c in range(3)], axis=1), axis=0)
     out = []
@@ -150,14 +154,15 @@ def profile_errors(prof, ref, band=ERROR_BAND_MM, rings: int = ERROR_RINGS) -> d
         tot = float(np.nansum(er[:, c]))
         out.append({
             # energy on the rings put where the reference has none: sum |E - E_ref| / sum E_ref
-            "R_misplaced": float(np.nansum(np.abs(ep[:, c] - er[:, c])) / tot) if tot > 0 else None,
+            f"{field}_misplaced": float(np.nansum(np.abs(ep[:, c] - er[:, c])) / tot)
+            if tot > 0 else None,
             "dRd": float(prof.Rd[c] / rd - 1) if rd > 0 else None,
             "dTt": float(prof.Tt[c] / tt - 1) if tt > 0 else None,
             "Rd_se": float(ref.info["Rd_err"][c] / rd) if rd > 0 else None,
             "Tt_se": float(ref.info["Tt_err"][c] / tt) if tt > 0 else None,
-            "R_rms": float(np.sqrt(np.nanmean(rel**2))) if np.any(ok) else None,
-            "R_max": float(rel[k]) if np.any(ok) else None,
-            "R_max_at_mm": float(mid[k]),
+            f"{field}_rms": float(np.sqrt(np.nanmean(rel**2))) if np.any(ok) else None,
+            f"{field}_max": float(rel[k]) if np.any(ok) else None,
+            f"{field}_max_at_mm": float(mid[k]),
             "ref_noise_median": float(np.nanmedian(noise)) if np.any(ok) else None,
         })
     return {"channels": out, "rings_mm": edges.tolist()}
@@ -206,7 +211,7 @@ def estimate_memory(stack: LayerStack, poles: int | None = None,
     h, r_max = auto_grid(st)
     n = int(math.ceil(r_max / h))
     if len(st.layers) > 1:
-        grids = min(FFT_GRIDS_MAX, 24 + 4 * (len(st.layers) - 2))
+        grids = min(FFT_GRIDS_MAX, 26 + 5 * (len(st.layers) - 2))
         parts.append((f"FFT adding on {grids} grids of {2 * n + 1} x {2 * n + 1}",
                       grids * 8 * (2 * n + 1) ** 2))
     # one image sum: (sources x images) pairs, evaluated over radii in chunks of

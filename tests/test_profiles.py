@@ -251,7 +251,26 @@ def test16_negative_lobes_reported_and_energy_kept():
                                Rd, rtol=1e-9)
 
 
-def test17_zero_thickness_top_is_identity():
+def test17_negative_lobe_fraction_is_scale_free():
+    # a lobe's energy fraction is a property of the profile's shape: the same profile at
+    # 1e-303 of the light (a 660 mm layer's transmittance) has ring energies below the float64
+    # range, which read 0 and hid a 0.65 % lobe (tests/test_stability.py test11's example)
+    from dermis.optics.layer_file import NegativeLobes
+    h = 0.0079
+    r = np.arange(500) * h
+    area = np.pi * np.diff(np.concatenate([[0.0], (np.arange(500) + 0.5) * h]) ** 2)
+    vals = np.exp(-r / 0.1) - 0.05 * np.exp(-((r - 1.0) / 0.3) ** 2)
+    fractions = []
+    for scale in (1.0, 1e-303):
+        lobes = NegativeLobes()
+        out = lobes.fix(vals * scale, area, r, {"field": "T"}, total=2.0 * scale)
+        assert len(lobes.items) == 1 and np.all(out >= 0)
+        assert float(np.sum(out * area)) == pytest.approx(2.0 * scale, rel=1e-12)
+        fractions.append(lobes.items[0]["energy_fraction"])
+    assert fractions[1] == pytest.approx(fractions[0], rel=1e-12) and fractions[0] > 1e-3
+
+
+def test18_zero_thickness_top_is_identity():
     a = build_profiles(PRESETS["two_layer"], options=MultipoleOptions(grid=(0.05, 8.0)))
     zero = Layer(0.0, 1.7, (5.0, 5.0, 5.0), (1.0, 1.0, 1.0))
     b = build_profiles(LayerStack((zero,) + PRESETS["two_layer"].layers),
@@ -261,14 +280,14 @@ def test17_zero_thickness_top_is_identity():
 
 
 @pytest.mark.parametrize("totals", ["diffusion", "transport"])
-def test18_thin_slab_tends_to_identity(totals):
+def test19_thin_slab_tends_to_identity(totals):
     for d in (1e-3, 1e-6):
         lay = Layer(d, 1.4, (0.3, 0.4, 0.9), (4.0, 6.0, 9.0))
         Rd, Td, tau = multipole_totals(lay, eta_above=1.4, eta_below=1.4, totals=totals)
         assert np.all(Rd < 20 * d) and np.all(np.abs(Td + tau - 1) < 20 * d)
 
 
-def test19_ballistic_is_the_real_extinction():
+def test20_ballistic_is_the_real_extinction():
     # the unscattered transmission of a layer is e^{-sigma_t d} with sigma_t = sigma_a +
     # sigma_s (not sigma_t'), times the normal-incidence Fresnel transmission at the bottom
     lay = Layer(0.25, 1.4, (0.27,) * 3, (2.03,) * 3, 0.8)
@@ -287,7 +306,7 @@ def test19_ballistic_is_the_real_extinction():
     Layer(1e3, 1.4, (1e-3, 0.01, 0.1), (0.1, 1.0, 10.0), 0.99),  # thickness >> mfp, g ~ 1
     Layer(5.0, 1.4, (2e-4, 1.0, 3.0), (2.0, 1.0, 0.0), -0.99),  # albedo 0.9999, g ~ -1
 ])
-def test20_extremes_are_finite_and_nonnegative(lay):
+def test21_extremes_are_finite_and_nonnegative(lay):
     prof = build_profiles(LayerStack((lay,)))
     for a in (prof.R, prof.T, prof.Rd, prof.Tt, prof.cutoff_mm):
         assert np.all(np.isfinite(a)) and np.all(a >= 0)
