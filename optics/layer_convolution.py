@@ -107,6 +107,19 @@ def combine_layers(stack: LayerStack, chans, nq: int, h: float, n: int, lobes: N
             grids[0] += extra                     # in place: one grid, not three
         return scipy.fft.dctn(grids[0], type=1, workers=-1)
 
+    def diffuse_fields(resp, exact_R, exact_T, light: str, w: dict, c: int):
+        """(R, T) spectra of one layer lit by diffuse light (from above or from below):
+        scaled to the exact totals, the direct part spread, dropped energy and scales noted."""
+        Rf, Rdl, Tf, Tdl, sc = scaled_to_exact(resp, exact_R, exact_T, True)
+        Rp, Rs, Tp, Ts = direct_parts(resp, Rdl, Tdl, True)
+        lit = dict(w, light=light)
+        R = spectrum(resp.terms_R, Rf, dict(lit, field="R"), Rs) + Rp
+        T = spectrum(resp.terms_T, Tf, dict(lit, field="T"), Ts) + Tp
+        dropped[c] += resp.dropped
+        if scales is not None:
+            scales.append(dict(w, light=light, **sc))
+        return R, T
+
     R_out = np.zeros((n + 1, 3))
     T_out = np.zeros((n + 1, 3))
     Rd, Tt = np.zeros(3), np.zeros(3)
@@ -148,25 +161,12 @@ def combine_layers(stack: LayerStack, chans, nq: int, h: float, n: int, lobes: N
                 # a diffusion shape (sigma_s' = 0), and += on it leaked this delta into every
                 # later layer and channel (Rd + Tt up to 1.33, test_stability test11)
                 B["Rc"] = B["Rc"] + Rp
-                dd = layer_response(ch, nq, diffuse=True)
-                Rf, Rdl, Tf, Tdl, sc = scaled_to_exact(dd, ex and ex.Rd, ex and ex.Td, True)
-                Rp, Rs, Tp, Ts = direct_parts(dd, Rdl, Tdl, True)
-                lit = dict(w, light="diffuse")
-                B["Rd"] = spectrum(dd.terms_R, Rf, dict(lit, field="R"), Rs) + Rp
-                B["Td"] = spectrum(dd.terms_T, Tf, dict(lit, field="T"), Ts) + Tp
-                dropped[c] += dd.dropped
-                if scales is not None:
-                    scales.append(dict(w, light="diffuse", **sc))
+                B["Rd"], B["Td"] = diffuse_fields(layer_response(ch, nq, diffuse=True),
+                                                  ex and ex.Rd, ex and ex.Td, "diffuse", w, c)
             if k + 1 < nl:
-                du = layer_response(lit_from_below(ch), nq, diffuse=True)
-                Rf, Rdl, Tf, Tdl, sc = scaled_to_exact(du, ex and ex.Rud, ex and ex.Tud, True)
-                Rp, Rs, Tp, Ts = direct_parts(du, Rdl, Tdl, True)
-                lit = dict(w, light="diffuse from below")
-                B["Rud"] = spectrum(du.terms_R, Rf, dict(lit, field="R"), Rs) + Rp
-                B["Tud"] = spectrum(du.terms_T, Tf, dict(lit, field="T"), Ts) + Tp
-                dropped[c] += du.dropped
-                if scales is not None:
-                    scales.append(dict(w, light="diffuse from below", **sc))
+                B["Rud"], B["Tud"] = diffuse_fields(
+                    layer_response(lit_from_below(ch), nq, diffuse=True), ex and ex.Rud,
+                    ex and ex.Tud, "diffuse from below", w, c)
             if A is None:
                 A = B
                 continue

@@ -5,6 +5,17 @@ from __future__ import annotations
 
 import copy
 import json
+import tomllib
+from pathlib import Path
+
+QUICK = Path(__file__).resolve().parents[1] / "scenes" / "quick.toml"
+# The quick scene cut to what a hardening test needs: one small mesh, one light, one model,
+# a 32-pixel camera, no previews (a run takes seconds)
+TINY = {"mesh": {"high_triangles": 2000, "low_triangles": 400, "procedural_texture_size": 64,
+                 "procedural_detail": False},
+        "camera": {"width": 32, "height": 32},
+        "render": {"models": ["lafortune"], "lights": ["point"], "geometries": ["high"]},
+        "output": {"previews": False}}
 
 
 def toml_value(x) -> str:
@@ -45,3 +56,16 @@ def merge(a: dict, b: dict) -> dict:
     for k, v in b.items():
         a[k] = merge(a[k], v) if isinstance(v, dict) and isinstance(a.get(k), dict) else v
     return a
+
+
+def scene_file(folder: Path, over: dict | None = None, name: str = "scene.toml") -> Path:
+    """The quick scene with the TINY overrides and ``over`` (an explicit optics stack replaces
+    the preset), outputs under ``folder/out`` unless ``over`` names an output folder."""
+    d = merge(merge(tomllib.loads(QUICK.read_text()), TINY), over or {})
+    if "layers" in (over or {}).get("optics", {}):
+        d["optics"] = over["optics"]
+    if "output_dir" not in (over or {}).get("output", {}):
+        d["output"]["output_dir"] = str(folder / "out")
+    path = folder / name
+    path.write_text(to_toml(d))
+    return path

@@ -29,29 +29,11 @@ import pytest
 from dermis.pipeline.cli import main
 
 sys.path.insert(0, str(Path(__file__).parent))
-from scene_toml import merge, to_toml  # noqa: E402
+from scene_toml import QUICK, scene_file  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-QUICK = REPO / "scenes" / "quick.toml"
-TINY = {"mesh": {"high_triangles": 2000, "low_triangles": 400, "procedural_texture_size": 64,
-                 "procedural_detail": False},
-        "camera": {"width": 32, "height": 32},
-        "render": {"models": ["lafortune"], "lights": ["point"], "geometries": ["high"]},
-        "output": {"previews": False}}
-
 
 # --------------------------------------------------------------------------- scene files
-def scene_file(folder: Path, over: dict | None = None, name: str = "scene.toml") -> Path:
-    """The quick scene with the TINY overrides and ``over``, outputs under ``folder/out``."""
-    d = merge(merge(tomllib.loads(QUICK.read_text()), TINY), over or {})
-    if "layers" in (over or {}).get("optics", {}):
-        d["optics"] = over["optics"]          # an explicit stack replaces the preset
-    if "output_dir" not in (over or {}).get("output", {}):
-        d["output"]["output_dir"] = str(folder / "out")
-    path = folder / name
-    path.write_text(to_toml(d))
-    return path
-
 
 @pytest.fixture(scope="module")
 def warm(tmp_path_factory):

@@ -17,7 +17,6 @@ import os
 import subprocess
 import sys
 import textwrap
-import tomllib
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -31,31 +30,14 @@ from dermis.pipeline.resources import estimate_memory
 from dermis.pipeline.errors import ConfigError, DermisError
 
 sys.path.insert(0, str(Path(__file__).parent))
-from scene_toml import merge, to_toml  # noqa: E402
+from scene_toml import scene_file  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-QUICK = REPO / "scenes" / "quick.toml"
-TINY = {"mesh": {"high_triangles": 2000, "low_triangles": 400, "procedural_texture_size": 64,
-                 "procedural_detail": False},
-        "camera": {"width": 32, "height": 32},
-        "render": {"models": ["lafortune"], "lights": ["point"], "geometries": ["high"]},
-        "output": {"previews": False}}
 POINT = {"name": "point", "type": "point", "position": [350.0, 450.0, 600.0],
          "intensity": [4.0e5, 4.0e5, 4.0e5]}
 LAYER = {"thickness_mm": "inf", "eta": 1.4, "sigma_a": [0.1, 0.1, 0.1],
          "sigma_s_prime": [1.0, 1.0, 1.0]}
 
-
-def scene_file(folder: Path, over: dict | None = None) -> Path:
-    """The tiny quick scene with ``over`` merged in (an explicit optics stack replaces the
-    preset), outputs under ``folder/out``."""
-    d = merge(merge(tomllib.loads(QUICK.read_text()), TINY), over or {})
-    if "layers" in (over or {}).get("optics", {}):
-        d["optics"] = over["optics"]
-    d["output"]["output_dir"] = str(folder / "out")
-    path = folder / "scene.toml"
-    path.write_text(to_toml(d))
-    return path
 
 
 def _run(argv, capsys) -> tuple[int, str]:

@@ -16,7 +16,6 @@ import shutil
 import subprocess
 import sys
 import threading
-import tomllib
 import warnings
 from pathlib import Path
 
@@ -31,29 +30,13 @@ from dermis.pipeline.imageio import ImageRangeWarning, read_image, write_exr
 from dermis.pipeline.store import Store
 
 sys.path.insert(0, str(Path(__file__).parent))
-from scene_toml import merge, to_toml  # noqa: E402
+from scene_toml import scene_file  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-QUICK = REPO / "scenes" / "quick.toml"
 RENDER = "render-lafortune-point-high"
 EXR = "lafortune-point-high.exr"
 POINT = {"name": "point", "type": "point", "position": [350.0, 450.0, 600.0],
          "intensity": [4.0e5, 4.0e5, 4.0e5]}
-TINY = {"mesh": {"high_triangles": 2000, "low_triangles": 400, "procedural_texture_size": 64,
-                 "procedural_detail": False},
-        "camera": {"width": 32, "height": 32},
-        "render": {"models": ["lafortune"], "lights": ["point"], "geometries": ["high"]},
-        "output": {"previews": False}}
-
-
-def scene_file(folder: Path, over: dict | None = None, name: str = "scene.toml") -> Path:
-    """The quick scene with the TINY overrides and ``over``, outputs under ``folder/out``."""
-    d = merge(merge(tomllib.loads(QUICK.read_text()), TINY), over or {})
-    d["output"]["output_dir"] = str(folder / "out")
-    path = folder / name
-    path.write_text(to_toml(d))
-    return path
-
 
 @pytest.fixture(scope="module")
 def warm(tmp_path_factory):
