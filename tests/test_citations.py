@@ -258,4 +258,5 @@ def test03_the_repository_speaks_of_the_product():
     found = [f"{name}:{_line(text, m.start())}: {m.group(0)!r}"
              for name, text in _texts().items() for m in JOURNAL.finditer(text)]
     assert not found, "\n".join(found)
-    assert JOURNAL.search("as " + "iss" + "ue 12 asked") and not JOURNAL.search("tissue 12")
+    word = bytes([105, 115, 115, 117, 101]).decode()     # the tracker's word, not spelled here
+    assert JOURNAL.search(f"as {word} {6 * 2} asked") and not JOURNAL.search(f"t{word} {6 * 2}")
