@@ -36,8 +36,8 @@ import numpy as np
 
 from dermis.pipeline.errors import DermisError
 
-__all__ = ["REGIONS", "landmarks", "face_regions", "block_mean", "region_stats",
-           "REGION_LABELS"]
+__all__ = ["REGIONS", "REGION_PALETTE", "region_colours", "landmarks", "face_regions",
+           "block_mean", "region_stats", "REGION_LABELS"]
 
 REGIONS = ("forehead", "cheek", "nose", "ear", "shadowed_side")
 REGION_LABELS = {name: i + 1 for i, name in enumerate(REGIONS)}
@@ -81,6 +81,20 @@ def face_regions(vertices, faces) -> np.ndarray:
     for name in ("nose", "ear", "forehead", "cheek", "shadowed_side"):  # first match wins
         out[(out == 0) & rules[name]] = REGION_LABELS[name]
     return out
+
+
+# One colour per label of :func:`region_colours`: none (black), each region, then grey for a
+# pixel that sees the head outside every region.
+REGION_PALETTE = np.array([[0, 0, 0], [230, 60, 60], [60, 200, 60], [60, 60, 230],
+                           [230, 200, 40], [160, 60, 200], [40, 200, 200], [128, 128, 128]],
+                          np.uint8)
+
+
+def region_colours(labels: np.ndarray, hit: np.ndarray) -> np.ndarray:
+    """(H, W, 3) uint8 picture of per-pixel region ``labels`` (0: none) where ``hit``: a
+    colour per region, grey for head pixels in no region, black off the head."""
+    other = len(REGION_PALETTE) - 1
+    return REGION_PALETTE[np.where(np.asarray(hit, bool) & (labels == 0), other, labels)]
 
 
 def block_mean(image: np.ndarray, mask: np.ndarray, factor: int

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dermis.groundtruth.pixel_tracing import sensor_mean
 from dermis.groundtruth.scene_export import boundary_bsdf, medium_dict, rgb_spectrum
 from dermis.pipeline.shared import Shared
 
@@ -104,19 +105,18 @@ def slab_reflectance(mi, stack, *, roughness: float, samples: int = 1 << 18, bat
     the same render with a black interior gives the boundary's own reflection, and
     Rd = M - specular (per incident irradiance, the reading every dermis model gives the
     albedo texture).  A finite stack ends on vacuum.  Standard errors from ``batches``
-    independent renders.
+    independent renders, each summed in a fixed order (:func:`~dermis.groundtruth.
+    pixel_tracing.sensor_mean`: the same bytes on every run).
     """
     t0 = time.perf_counter()
     sc = _slab_scene(mi, stack, roughness, black=False, max_depth=max_depth, rr_depth=rr_depth)
     per = max(1, samples // batches)
     vals = []
     for b in range(batches):
-        vals.append(np.asarray(mi.render(sc, spp=per, seed=int(seed) * 1000 + b),
-                               np.float64).reshape(-1)[:3])
+        vals.append(sensor_mean(mi, sc, per, int(seed) * 1000 + b))
     vals = np.array(vals)
     spec_sc = _slab_scene(mi, stack, roughness, black=True)
-    spec = np.asarray(mi.render(spec_sc, spp=1 << 14, seed=int(seed) * 1000 + 999),
-                      np.float64).reshape(-1)[:3]
+    spec = sensor_mean(mi, spec_sc, 1 << 14, int(seed) * 1000 + 999)
     M = vals.mean(axis=0)
     err = vals.std(axis=0, ddof=1) / math.sqrt(batches)
     rd = M - spec

@@ -13,6 +13,7 @@ import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -25,6 +26,7 @@ from .plan import build_graph
 from .registry import STAGE_NAMES
 from .shared import RunCache
 from .store import CACHE_ENV_VAR, Store
+from .taskpool import SerialPool
 
 __all__ = ["load_scene", "run", "status", "clean", "devices", "cache_dir_for", "RunContext",
            "dark_renders"]
@@ -35,20 +37,23 @@ class RunContext:
     """What a node function may use besides its inputs: the OpenCL env, its output dir,
     progress, the run's shared intermediates (``shared``: a view restricted to the kinds the
     node's stage declares in ``SHARES``, pipeline/shared.py) and the cache keys of its inputs
-    by role (``input_keys``: content keys for what it shares)."""
+    by role (``input_keys``: content keys for what it shares), and for a node with
+    ``resumable`` params the earlier entry it may continue (``resume_from``)."""
 
     device: str | None = None
     out_dir: Path | None = None
     progress: object = None
     shared: RunCache = field(default_factory=RunCache)
     input_keys: dict = field(default_factory=dict)
+    resume_from: Path | None = None    # an earlier entry of the node to continue (Node.resumable)
+    tasks: Any = field(default_factory=SerialPool)   # where a node's own tasks run (taskpool.py)
     _env: object = None
     _shared: dict = field(default_factory=lambda: {"lock": threading.Lock()}, repr=False)
 
     def for_node(self) -> "RunContext":
         """A copy for one node (its own out_dir and progress) sharing the run's intermediates
         and the OpenCL environment (nodes may run on several threads at once)."""
-        return replace(self, out_dir=None, progress=None, input_keys={})
+        return replace(self, out_dir=None, progress=None, input_keys={}, resume_from=None)
 
     @property
     def cl(self):
@@ -122,7 +127,7 @@ def _targets(nodes, targets, until):
 
 def run(scene: Scene, *, cache=None, until: str | None = None, force=(), device: str | None = None,
         progress=None, export: bool = True, notice=None, jobs: int | None = None,
-        shared: RunCache | None = None) -> RunSummary:
+        shared: RunCache | None = None, tasks=None) -> RunSummary:
     """Build everything the scene asks for that is not cached; return the per-stage summary.
 
     Parameters
@@ -151,6 +156,10 @@ def run(scene: Scene, *, cache=None, until: str | None = None, force=(), device:
         The intermediates nodes share (Embree scenes, surface passes, octrees...), new for
         each run by default; a process that renders several runs one after another may pass
         one to keep them across runs (keys are content: an equal mesh finds its scene).
+    tasks : pipeline.taskpool pool, optional
+        Where nodes that split their work into tasks run them (the reference's tiles): this
+        process by default, Dask workers with a ``DaskPool`` (``dermis run --workers N``).
+        Any pool gives the same artifacts.
     """
     jobs = resolve_jobs(jobs)
     for f in force:
@@ -160,7 +169,8 @@ def run(scene: Scene, *, cache=None, until: str | None = None, force=(), device:
     targets = _targets(nodes, targets, until)
     _check_force(nodes, plan_order(nodes, targets), force, until)
     store = Store(cache_dir_for(scene, cache))
-    ctx = RunContext(device=device, shared=RunCache() if shared is None else shared)
+    ctx = RunContext(device=device, shared=RunCache() if shared is None else shared,
+                     tasks=SerialPool() if tasks is None else tasks)
     from .cl import check_device
     check_device(device)  # --device or $DERMIS_CL_DEVICE: checked before any stage runs
     if notice is None:

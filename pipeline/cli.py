@@ -15,6 +15,7 @@ import dermis
 
 from .errors import ConfigError, DermisError
 from .registry import COMMANDS, command
+from .taskpool import task_pool
 
 __all__ = ["main"]
 
@@ -50,9 +51,13 @@ def cmd_run(args) -> int:
     scene = _scene(args)
     print(f"scene {scene.path}  cache {api.cache_dir_for(scene, args.cache).resolve()}",
           file=sys.stderr)
-    summary = api.run(scene, cache=args.cache, until=args.until, force=tuple(args.force or ()),
-                      device=args.device, progress=None if args.quiet else progress_bars(),
-                      jobs=args.jobs)
+    if args.workers < 1:
+        raise DermisError(f"--workers {args.workers}: must be >= 1")
+    with task_pool(args.workers, args.scheduler) as tasks:
+        summary = api.run(scene, cache=args.cache, until=args.until,
+                          force=tuple(args.force or ()), device=args.device,
+                          progress=None if args.quiet else progress_bars(), jobs=args.jobs,
+                          tasks=tasks)
     print(summary.table())
     print(f"outputs in {os.path.join(scene.output.output_dir, scene.scene.name)}")
     return 0
@@ -119,6 +124,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--force", action="append", metavar="STAGE", help="recompute STAGE (repeatable)")
     r.add_argument("--device", default=None, help="OpenCL device: P:D, P, or a name substring")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    r.add_argument("--workers", type=int, default=1, metavar="N",
+                   help="Dask worker processes for the tasks of a node (the reference's "
+                        "tiles; default 1: this process); the results are the same for any N")
+    r.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="run those tasks on the workers of an existing Dask scheduler")
     r.set_defaults(func=cmd_run)
 
     s = sub.add_parser("status", help="what is cached, what is stale and why")

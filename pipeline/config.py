@@ -174,13 +174,31 @@ class BssrdfConfig:
 
 @dataclass(frozen=True)
 class ReferenceConfig:
-    # Mitsuba 3 path-traced ground truth (stages/reference.py, docs/ground-truth.md); costly:
-    # ~0.7 s per spp at 100x100 for the two-layer head on 2 cores (bench/results/reference.json)
-    enabled: bool = spec(False, doc="render Mitsuba 3 references (pip install dermis[reference])")
-    width: int = spec(100, lo=1, hi=16384, doc="pixels; must divide camera.width (block-averaged comparison)")
-    height: int = spec(100, lo=1, hi=16384, doc="pixels; must divide camera.height")
-    spp: int = spec(256, lo=1, hi=1 << 20, doc="samples per pixel of each of the two seeds")
-    seed: int = spec(1, lo=0, hi=30000, doc="the two independent renders use seeds 2 seed and 2 seed + 1")
+    # Mitsuba 3 path-traced ground truth (stages/reference.py, docs/ground-truth.md), rendered
+    # in progressive passes of two half-buffers over the head's pixels until every face
+    # region's mean is known to target_rel_se or budget_s runs out (groundtruth/progressive.py);
+    # the defaults' cost: bench/results/reference_passes.json
+    enabled: bool = spec(True, doc="render Mitsuba 3 references (skipped with one message where "
+                                   "Mitsuba cannot run)")
+    # 100 reference pixels across the default camera's 800: 8x8-pixel blocks, where the
+    # reference's noise resolves the models (bench/results/reference.json)
+    width: int = spec(0, lo=0, hi=16384, doc="pixels; must divide camera.width (block-averaged "
+                                             "comparison); 0 = about 100 (reference_size)")
+    height: int = spec(0, lo=0, hi=16384, doc="pixels; must divide camera.height; 0 = with width")
+    target_rel_se: float = spec(0.01, lo=0.0, lo_open=True, hi=1.0,
+                                doc="stop when every face region's luminance mean has this "
+                                    "relative standard error")
+    budget_s: float = spec(60.0, lo=0.0, hi=1e7, doc="seconds of rendering per lighting condition "
+                                                     "(0 = no limit); a larger budget continues "
+                                                     "from the cached passes")
+    max_passes: int = spec(0, lo=0, hi=1 << 20, doc="stop after this many passes (0 = no limit); "
+                                                    "like budget_s, continued from the cache")
+    min_spp: int = spec(32, lo=1, hi=1 << 20, doc="samples per pixel of each half-buffer every "
+                                                 "head pixel gets")
+    max_spp: int = spec(4096, lo=1, hi=1 << 24, doc="samples per pixel of each half-buffer no "
+                                                   "pixel exceeds")
+    pass_spp: int = spec(8, lo=1, hi=1 << 20, doc="fewest samples per pixel and half a pass adds")
+    seed: int = spec(1, lo=0, hi=30000, doc="seeds every pass, tile and half-buffer")
     lights: tuple = spec((), names=True,
                          doc="lighting conditions to reference (names as in [render] lights); empty = all")
     roughness: float = spec(0.3, lo=0.0, lo_open=True, hi=1.0, doc="GGX alpha of the skin boundary")
@@ -643,7 +661,7 @@ def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | No
             found = check(stack, dict(vars(sc)), where) if check is not None else []
             problems += [p for p in found if p not in problems]   # bssrdf_mc shares bssrdf's
     given = table.get("reference")
-    if sc.reference is not None and not sc.reference.enabled and isinstance(given, dict):
+    if sc.reference is not None and isinstance(given, dict):
         labels = (render.lights or tuple(names)) if render is not None else None
         problems += check_reference(sc.reference, set(given), sc.camera, labels, where)
     if sc.mesh is not None:

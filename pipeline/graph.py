@@ -26,6 +26,7 @@ import threading
 import time
 import traceback
 from contextlib import contextmanager
+from pathlib import Path
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -75,6 +76,10 @@ class Node:
     # run-wide intermediates (pipeline/shared.py) this node uses beyond its stage's SHARES
     # (those of the model it renders)
     shares: tuple = ()
+    # params that only say how far to go (a time budget): an intact entry of this node whose
+    # key parts differ from this one's only in them is handed to the run to continue from
+    # (``ctx.resume_from``, :func:`resumable_entry`)
+    resumable: tuple = ()
 
     def __post_init__(self):
         if not isinstance(self.deps, dict):
@@ -127,6 +132,30 @@ def key_parts(node: Node, upstream_keys: dict[str, str]) -> dict:
         "params": _without(node.params, node.locations),
         "deps": {d: upstream_keys[d] for d in node.dep_ids},
     }
+
+
+def resumable_entry(store: Store, node: Node, parts: dict) -> Path | None:
+    """The newest intact entry of ``node`` built from the same code, inputs and params up to
+    ``node.resumable`` (a smaller or larger budget of the same work), or None."""
+    if not node.resumable:
+        return None
+    def same_work(p):
+        return (isinstance(p, dict) and isinstance(p.get("params"), dict)
+                and {**p, "params": _without(p["params"], node.resumable)} == want)
+    want = json.loads(_canonical({**parts, "params": _without(parts["params"], node.resumable)}))
+    best, newest = None, ""
+    folder = store.root / node.id
+    for d in (sorted(folder.iterdir()) if folder.is_dir() else []):
+        try:
+            meta = json.loads((d / META).read_text())
+        except (OSError, ValueError):
+            continue
+        if (not isinstance(meta, dict) or not same_work(meta.get("parts"))
+                or store.verify(node.id, d.name) is not None):
+            continue
+        if str(meta.get("finished", "")) >= newest:
+            best, newest = d, str(meta.get("finished", ""))
+    return best
 
 
 def node_key(parts: dict) -> str:
@@ -427,6 +456,8 @@ class _NodeRunner:
             ctx.shared = ctx.shared.restricted(
                 tuple(getattr(importlib.import_module(node.module), "SHARES", ())) + node.shares)
             ctx.input_keys = {role: self.keys[nid] for role, nid in node.deps.items()}
+            if node.resumable:
+                ctx.resume_from = resumable_entry(self.store, node, self.parts[node.id])
         return ctx
 
     def run(self, nid: str, rep: NodeReport) -> None:

@@ -87,12 +87,26 @@ def check_camera(camera, where: str) -> list[str]:
     return out
 
 
+def reference_size(camera, ref) -> tuple[int, int]:
+    """The reference's pixels: ``ref.width`` x ``ref.height`` when given, else the camera's
+    size divided by the smallest factor that divides both sides and leaves at most 100
+    pixels across (the default 800-pixel camera: 100 x 100)."""
+    if ref.width and ref.height:
+        return int(ref.width), int(ref.height)
+    w, h = int(camera.width), int(camera.height)
+    f = next(f for f in range(1, max(w, h) + 1) if w % f == 0 and h % f == 0
+             and max(w, h) // f <= 100 or f == math.gcd(w, h))
+    return w // f, h // f
+
+
 def check_reference(ref, given: set, camera, labels, where: str) -> list[str]:
     """The ``[reference]`` keys a scene gives (``given``; ``ref`` the ReferenceConfig, ``labels``
-    the lighting conditions), checked while the reference is off (when it is on,
-    stages/reference.py and pipeline/plan.py check them, by the same rules, while planning)."""
+    the lighting conditions), checked at load whether the reference is on or off."""
     out = []
-    if camera is not None and given & {"width", "height"}:
+    if (ref.width == 0) != (ref.height == 0):
+        out.append(f"{where}: reference.width x height = {ref.width} x {ref.height}: give both, "
+                   "or neither (0: chosen from the camera)")
+    elif camera is not None and given & {"width", "height"} and ref.width:
         if camera.width % ref.width or camera.height % ref.height:
             out.append(f"{where}: reference.width x height = {ref.width} x {ref.height}: must "
                        f"divide the camera's {camera.width} x {camera.height} (a reference "
@@ -100,6 +114,10 @@ def check_reference(ref, given: set, camera, labels, where: str) -> list[str]:
         elif camera.width // ref.width != camera.height // ref.height:
             out.append(f"{where}: reference.width x height = {ref.width} x {ref.height}: must "
                        f"keep the camera's aspect ({camera.width} x {camera.height})")
+    if ref.min_spp > ref.max_spp:
+        out.append(f"{where}: reference.min_spp = {ref.min_spp} exceeds reference.max_spp = "
+                   f"{ref.max_spp}: every head pixel gets min_spp samples per half-buffer, "
+                   "none more than max_spp")
     if labels is not None and "lights" in given:
         for label in ref.lights:
             if label not in labels:

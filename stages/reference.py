@@ -2,26 +2,27 @@
 
 The ground truth every model is measured against (docs/ground-truth.md): the scene exported
 by :mod:`dermis.groundtruth.scene_export` (high mesh in mm, camera, lights, the layer stack as
-media inside a rough dielectric boundary, the albedo texture as a transmission tint) and
-rendered twice with independent seeds, so the reference carries its own noise:
+media inside a rough dielectric boundary, the albedo texture as a transmission tint), traced
+in progressive passes of two independent half-buffers over the head's pixels until every face
+region's mean is known to ``target_rel_se`` or ``budget_s`` runs out
+(:mod:`dermis.groundtruth.progressive`).  The image is the mean of the halves; (A - B) / 2
+estimates its error:
 
-* the image is the mean of the two renders; (A - B) / 2 estimates its per-pixel error;
 * ``info["noise"]``: the relative RMSE noise of the image on ``factor`` x ``factor`` block
-  means (factor 1 = reference pixels), the same measure as the models' relative RMSE
-  (:mod:`dermis.groundtruth.noise`);
-* ``info["regions"]``: per face region (:mod:`dermis.geometry.regions`) the mean RGB and the
-  standard error of that mean (sqrt(sum ((A - B) / 2)^2) / N, independent pixels), plus
-  the calibration error of the albedo tint (``info["slab"]``);
-* ``info["noise_curve"]``: the same noise at 1/16 .. 1 of the samples, and the fitted
-  constant c = noise x sqrt(spp) per factor, from which :mod:`dermis.reports.ground_truth`
-  computes the path tracer's time to reach a given error.
+  means (:mod:`dermis.groundtruth.noise`); ``info["noise_curve"]``/``["noise_fit"]``: that
+  noise during the uniform passes and c = noise x sqrt(spp), from which
+  :mod:`dermis.reports.ground_truth` computes the path tracer's time to reach an error;
+* ``info["regions"]``: per face region the mean RGB and its standard error
+  (sqrt(sum ((A - B) / 2)^2) / N); ``info["region_rel_se"]`` that error of the luminance
+  mean, relative; ``passes``, ``stopped`` (target, budget, max_spp or max_passes) say how
+  far it got.
 
 The image is at ``[reference] width`` x ``height``, an integer fraction of the camera's
 size: a reference pixel is the average over the block of camera pixels it covers (box
-filter), so the models' images are compared block-averaged.  One node per lighting
-condition, on the high mesh; the node exists only when ``[reference] enabled = true`` and
-Mitsuba is installed (:func:`unavailable_reason`; the planner then skips it with one
-message).
+filter).  One node per lighting condition, on the high mesh, when ``[reference] enabled``
+(the default) and Mitsuba can run (:func:`unavailable_reason`; else the planner skips it with
+one message).  ``budget_s`` and ``max_passes`` are resumable: a run with a larger budget
+continues from the passes of the cached entry (``passes.npz``) instead of starting over.
 """
 from __future__ import annotations
 
@@ -32,11 +33,13 @@ from dataclasses import asdict
 
 import numpy as np
 
-from dermis.geometry.regions import REGIONS, REGION_LABELS, face_regions, region_stats
+from dermis.geometry.regions import REGION_LABELS, face_regions, region_colours, region_stats
 from dermis.groundtruth import mitsuba
-from dermis.groundtruth.noise import noise_curve, noise_fit, two_seed_noise
-from dermis.groundtruth.passes import render_two_seeds
-from dermis.groundtruth.scene_export import HeadSceneOptions, head_scene, release
+from dermis.groundtruth.noise import noise_fit, two_seed_noise
+from dermis.groundtruth.passes import pixel_hits
+from dermis.groundtruth.pixel_tracing import TraceJob, forget, job_scene, trace_tile
+from dermis.groundtruth.progressive import HalfBuffers, PassSettings, refine, region_rel_se
+from dermis.groundtruth.scene_export import HeadSceneOptions
 from dermis.groundtruth.slab import SLABS, slab_reflectance
 from dermis.lighting.emitters import light_params
 from dermis.optics.layers import LayerStack
@@ -44,14 +47,16 @@ from dermis.pipeline.artifacts import RenderedImage
 from dermis.pipeline.config import CameraConfig, LightConfig
 from dermis.pipeline.errors import ConfigError
 from dermis.pipeline.graph import Node, StageResult
+from dermis.pipeline.scene_rules import reference_size
 from dermis.pipeline.imageio import write_exr, write_png
 
 NAME = "reference"
-VERSION = 1
+VERSION = 2   # 2: progressive half-buffers over the head's pixels
 KERNELS = ()
 SHARES = (SLABS,)
 GEOMETRY = "high"
 MESH_NODE = "mesh_high"
+PASSES = "passes.npz"    # the half-buffers' sums, what a larger budget continues from
 
 
 def unavailable_reason() -> str | None:
@@ -64,19 +69,15 @@ def node_id(label: str) -> str:
 
 
 def node(scene, label: str, lights: tuple) -> Node:
-    r = scene.reference
-    cam = scene.camera
-    if cam.width % r.width or cam.height % r.height:
-        raise ConfigError(f"{scene.path}: reference.width x height = {r.width} x {r.height}: "
-                          f"must divide the camera's {cam.width} x {cam.height} (a reference "
-                          "pixel is a block of camera pixels)")
-    if cam.width // r.width != cam.height // r.height:
-        raise ConfigError(f"{scene.path}: reference.width x height = {r.width} x {r.height}: "
-                          f"must keep the camera's aspect ({cam.width} x {cam.height})")
-    params = {"label": label, "camera": asdict(cam), **light_params(lights),
-              "optics": scene.optics.to_dict(), "reference": asdict(r)}
+    """The reference of one lighting condition (its ``[reference]`` keys checked at load:
+    pipeline/scene_rules.py ``check_reference``)."""
+    w, h = reference_size(scene.camera, scene.reference)
+    params = {"label": label, "camera": asdict(scene.camera), **light_params(lights),
+              "optics": scene.optics.to_dict(),
+              "reference": {**asdict(scene.reference), "width": w, "height": h}}
     return Node(node_id(label), NAME, __name__, params, {"mesh": MESH_NODE},
-                label=f"reference / {label} (Mitsuba)")
+                label=f"reference / {label} (Mitsuba)",
+                resumable=("reference.budget_s", "reference.max_passes"))
 
 
 def run(params: dict, inputs: dict, ctx) -> StageResult:
@@ -95,53 +96,82 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     slab = ctx.shared.get(SLABS, key, lambda: slab_reflectance(
         mi, stack, roughness=r["roughness"], samples=r["slab_samples"], seed=r["seed"],
         max_depth=r["max_depth"], rr_depth=r["rr_depth"]))
-    t0 = time.perf_counter()
-    head = head_scene(mi, mesh, stack, camera, lights, width=r["width"], height=r["height"],
-                      options=HeadSceneOptions(roughness=r["roughness"], tint_rd=slab.Rd,
-                                               env_clamp=r["env_clamp"],
-                                               max_depth=r["max_depth"],
-                                               rr_depth=r["rr_depth"]))
-    t_load = time.perf_counter() - t0
-    w, h, spp = r["width"], r["height"], int(r["spp"])
+    w, h = r["width"], r["height"]
+    options = HeadSceneOptions(roughness=r["roughness"], tint_rd=slab.Rd,
+                               env_clamp=r["env_clamp"], max_depth=r["max_depth"],
+                               rr_depth=r["rr_depth"])
+    job = TraceJob(f"{NAME}-{params['label']}-{time.time_ns()}", mesh, stack, camera, lights,
+                   w, h, options, variant)
+    settings = PassSettings(pass_spp=r["pass_spp"], min_spp=r["min_spp"], max_spp=r["max_spp"],
+                            target_rel_se=r["target_rel_se"], budget_s=r["budget_s"],
+                            max_passes=r["max_passes"])
     try:
-        two = render_two_seeds(mi, head.scene, width=w, height=h, spp=spp, seed=r["seed"],
-                               progress=ctx.progress)
+        t0 = time.perf_counter()
+        _, head = job_scene(job)
+        t_load = time.perf_counter() - t0
+        export = head.export
+        hit, prim = pixel_hits(mi, head.scene, width=w, height=h)
+        labels = np.where(hit, face_regions(mesh.vertices, mesh.faces)[np.maximum(prim, 0)], 0)
+        buffers, resumed = _resumed(ctx, h, w)
+        stopped = refine(lambda tiles: ctx.tasks.map(trace_tile, job, tiles), buffers, hit,
+                         labels, settings, seed=r["seed"], progress=ctx.progress)
     finally:
-        release(head)
-    img_a, img_b, hit, total = two.img_a, two.img_b, two.hit, 2 * spp
-    labels = np.where(hit, face_regions(mesh.vertices, mesh.faces)[np.maximum(two.prim, 0)], 0)
-    mean = (img_a + img_b) / 2.0
+        forget(job.token)
+        ctx.tasks.each_worker(forget, job.token)
+    buffers.save(ctx.out_dir / PASSES)
+    img_a, img_b = buffers.halves()
+    mean = buffers.image()
     noise = two_seed_noise(img_a, img_b, hit)
-    curve = noise_curve(two.curve_a, two.curve_b, hit)
-    fit = noise_fit(noise, curve, spp)
-    regions = region_stats(mean, labels, half_diff=(img_a - img_b) / 2.0)
-    seconds = two.seconds
+    curve = [{"spp": p["spp_min"], "noise": p["noise"]} for p in buffers.log if "noise" in p]
+    regions = region_stats(mean, labels, half_diff=buffers.half_diff())
+    rel_se = region_rel_se(buffers, labels)
+    seconds = buffers.seconds
+    paths = 2 * int(buffers.count.sum())
     timings = {"total": time.perf_counter() - t_start, "render": seconds, "scene_load": t_load,
-               "slab": slab.seconds, "seconds_per_spp": seconds / total, "kernel_seconds": 0.0}
+               "slab": slab.seconds, "seconds_per_spp": seconds * hit.sum() / max(paths, 1),
+               "kernel_seconds": 0.0}
     name = f"reference-{params['label']}"
     write_exr(ctx.out_dir / f"{name}.exr", mean.astype(np.float32))
-    write_exr(ctx.out_dir / f"{name}-seedA.exr", img_a.astype(np.float32))
-    write_exr(ctx.out_dir / f"{name}-seedB.exr", img_b.astype(np.float32))
-    palette = np.array([[0, 0, 0], [230, 60, 60], [60, 200, 60], [60, 60, 230], [230, 200, 40],
-                        [160, 60, 200], [128, 128, 128]], np.uint8)
-    lab_img = palette[np.where(hit & (labels == 0), len(REGIONS) + 1, labels)]
-    write_png(ctx.out_dir / f"{name}-regions.png", lab_img)
+    write_exr(ctx.out_dir / f"{name}-halfA.exr", img_a.astype(np.float32))
+    write_exr(ctx.out_dir / f"{name}-halfB.exr", img_b.astype(np.float32))
+    write_exr(ctx.out_dir / f"{name}-spp.exr",
+              np.repeat(2.0 * buffers.count[..., None], 3, axis=2).astype(np.float32))
+    write_png(ctx.out_dir / f"{name}-regions.png", region_colours(labels, hit))
     info = {"model": "reference", "light": params["label"], "geometry": GEOMETRY,
-            "variant": variant, "width": w, "height": h, "spp": total,
-            "spp_per_seed": spp, "seeds": [2 * r["seed"], 2 * r["seed"] + 1],
-            "noise": noise, "noise_curve": curve, "noise_fit": fit,
+            "variant": variant, "width": w, "height": h,
+            "spp": paths / max(int(hit.sum()), 1), "spp_min": 2 * int(buffers.count[hit].min())
+            if hit.any() else 0, "spp_max": 2 * int(buffers.count.max()),
+            "paths": paths, "passes": buffers.passes, "resumed_passes": resumed,
+            "stopped": stopped, "target_rel_se": settings.target_rel_se,
+            "budget_s": settings.budget_s, "region_rel_se": rel_se,
+            "noise": noise, "noise_curve": curve,
+            "noise_fit": noise_fit(noise, curve, curve[-1]["spp"] // 2) if curve else {},
             "regions": regions, "region_labels": REGION_LABELS,
             "slab": {"Rd": [float(v) for v in slab.Rd],
                      "Rd_stderr": [float(v) for v in slab.Rd_stderr],
                      "specular": [float(v) for v in slab.specular],
                      "Rd_entered": [float(v) for v in slab.Rd_entered],
                      "samples": slab.samples, "seconds": slab.seconds},
-            "export": head.export, "env_clamp": r["env_clamp"],
-            "hit_pixels": int(hit.sum())}
-    files = [f"{name}.exr", f"{name}-seedA.exr", f"{name}-seedB.exr", f"{name}-regions.png"]
+            "export": export, "env_clamp": r["env_clamp"],
+            "hit_pixels": int(hit.sum()), "pass_log": buffers.log}
+    files = [f"{name}.exr", f"{name}-halfA.exr", f"{name}-halfB.exr", f"{name}-spp.exr",
+             f"{name}-regions.png"]
     return StageResult(RenderedImage(mean.astype(np.float32), hit, timings, info), files=files,
                        info={"timings": timings, "variant": variant, "noise": noise,
+                             "passes": buffers.passes, "resumed_passes": resumed,
+                             "stopped": stopped, "region_rel_se": rel_se,
                              "kernel_seconds": 0.0})
+
+
+def _resumed(ctx, height: int, width: int) -> tuple[HalfBuffers, int]:
+    """The half-buffers of an earlier entry of the same work (a smaller or larger budget,
+    ``Node.resumable``) and their pass count, else empty ones and 0."""
+    earlier = getattr(ctx, "resume_from", None)
+    if earlier is not None and (earlier / PASSES).is_file():
+        buffers = HalfBuffers.load(earlier / PASSES)
+        if buffers.count.shape == (height, width):
+            return buffers, buffers.passes
+    return HalfBuffers.empty(height, width), 0
 
 
 _SKIP_NOTICES: set = set()   # each reason once per process

@@ -66,18 +66,33 @@ def test01_without_mitsuba_the_stage_is_skipped_with_one_message(monkeypatch, ca
     assert err.count("reference stage skipped") == 1 and "dermis[reference]" in err
 
 
-def test02_reference_off_by_default_and_config_errors():
+def test02_reference_on_by_default_and_config_errors():
     from dermis.pipeline.errors import ConfigError
     from dermis.pipeline.plan import build_graph
-    nodes, _ = build_graph(load_scene(QUICK))
+    from dermis.pipeline.config import ReferenceConfig
+    from dermis.groundtruth import mitsuba
+    assert ReferenceConfig().enabled                  # every default run measures the truth
+    nodes, _ = build_graph(load_scene(QUICK))         # the quick scene turns it off
     assert not [n for n in nodes if n.startswith("reference")]
-    bad = load_scene(QUICK, overrides={"reference": {"enabled": True, "width": 30}})
+    if mitsuba.mitsuba_missing_reason() is None:
+        nodes, _ = build_graph(load_scene(QUICK, overrides={"reference": {"enabled": True}}))
+        groups = [label for label, _ in load_scene(QUICK).light_groups()]
+        assert sorted(n for n in nodes if n.startswith("reference")) == sorted(
+            f"reference-{g}" for g in groups)
     with pytest.raises(ConfigError, match="must divide the camera"):
-        from dermis.stages import reference
-        reference.node(bad, "point", bad.light_groups()[0][1])
+        load_scene(QUICK, overrides={"reference": {"enabled": True, "width": 30, "height": 30}})
+    with pytest.raises(ConfigError, match="give both"):
+        load_scene(QUICK, overrides={"reference": {"enabled": True, "width": 40}})
+    from dermis.pipeline.scene_rules import reference_size
+    ref = load_scene(QUICK).reference
+    assert [reference_size(_camera(w, h), ref) for w, h in ((800, 800), (160, 160),
+            (32, 32), (1920, 1080), (101, 103))] == [(100, 100), (80, 80), (32, 32), (96, 54),
+                                                      (101, 103)]
     with pytest.raises(ConfigError, match="reference.lights"):
         build_graph(load_scene(QUICK, overrides={"reference": {"enabled": True,
                                                                "lights": ["nope"]}}))
+    with pytest.raises(ConfigError, match="reference.min_spp"):
+        load_scene(QUICK, overrides={"reference": {"min_spp": 64, "max_spp": 32}})
 
 
 # ------------------------------------------------------------------------ regions
@@ -232,11 +247,14 @@ def test08_stage_runs_and_distances_are_honest(mi, quick_mesh, tmp_path):
     from dermis.pipeline.artifacts import RenderedImage
     from dermis.reports.ground_truth import ground_truth_metrics, ground_truth_pages
     from dermis.stages import reference
+    from dermis.pipeline.taskpool import SerialPool
     scene = load_scene(QUICK, overrides={"reference": {
-        "enabled": True, "width": 40, "height": 40, "spp": 16, "slab_samples": 4096}})
+        "enabled": True, "width": 40, "height": 40, "min_spp": 16, "max_spp": 16, "budget_s": 0,
+        "slab_samples": 4096}})
     label, lights = scene.light_groups()[0]
     node = reference.node(scene, label, lights)
-    ctx = SimpleNamespace(out_dir=tmp_path, progress=None, shared=RunCache())
+    ctx = SimpleNamespace(out_dir=tmp_path, progress=None, shared=RunCache(),
+                          tasks=SerialPool())
     ref = reference.run(node.params, {"mesh": quick_mesh}, ctx).artifact
     info = ref.info
     assert info["noise"]["1"]["rel"] > info["noise"]["4"]["rel"] > 0       # averaging helps
@@ -278,8 +296,8 @@ def test09_report_gains_the_ground_truth_section(mi, tmp_path, monkeypatch):
             "render": {"models": ["lafortune", "bssrdf", "bssrdf_mc"], "lights": ["point"],
                        "geometries": ["high"]},
             "output": {"previews": False, "output_dir": str(tmp_path / "out")},
-            "reference": {"enabled": True, "width": 40, "height": 40, "spp": 8,
-                          "slab_samples": 4096}}
+            "reference": {"enabled": True, "width": 40, "height": 40, "min_spp": 8,
+                          "max_spp": 8, "budget_s": 0, "slab_samples": 4096}}
     cache = tmp_path / "cache"
 
     def report_of(summary):

@@ -1,0 +1,128 @@
+"""Tracing the reference at chosen pixels, in this process or on a worker.
+
+:func:`trace_pixels` traces paths at a list of pixels of an exported head
+(:mod:`dermis.groundtruth.scene_export`): each path starts at a uniform point of its pixel (a
+box filter, as ``mi.render`` with the export's ``box`` filter), takes the sensor's ray and is
+traced by the scene's integrator (``volpathmis``).  Called on the pixels the head covers
+only, it spends no path on the background (:mod:`dermis.groundtruth.progressive`).
+
+:class:`TraceJob` is everything a process needs to build the scene itself (mesh, layer stack,
+camera, lights, export options, Mitsuba variant); :func:`trace_tile` traces one task of a
+pass with it, building the scene once per process and job (``token``), so the same function
+runs in the planning process and on Dask workers (``pipeline/taskpool.py``), with the same
+bytes: a tile's result depends on its pixels, samples and seeds alone.
+"""
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from dermis.groundtruth import mitsuba
+from dermis.groundtruth.passes import MAX_LANES
+from dermis.groundtruth.scene_export import HeadSceneOptions, head_scene, release
+
+__all__ = ["trace_pixels", "sensor_mean", "TraceJob", "trace_tile", "job_scene", "forget"]
+
+
+def trace_pixels(mi, scene, pixels: np.ndarray, spp: int, seed: int, *, width: int,
+                 height: int) -> np.ndarray:
+    """(M, 3) float64 sums of ``spp`` paths at each of ``pixels`` ((M, 2) x, y).
+
+    Each path starts at a uniform point of its pixel (a box filter, as ``mi.render``) through
+    the scene's first sensor and is traced by the scene's integrator; calls of at most
+    :data:`MAX_LANES` paths, call k seeded ``seed + k`` (mod 2^32).
+    """
+    sensor, integrator = scene.sensors()[0], scene.integrator()
+    px = np.asarray(pixels, np.int64).reshape(-1, 2)
+    out = np.zeros((len(px), 3))
+    per_call = max(1, MAX_LANES // max(int(spp), 1))
+    for k, lo in enumerate(range(0, len(px), per_call)):
+        part = px[lo:lo + per_call]
+        n = len(part) * int(spp)
+        sampler = mi.load_dict({"type": "independent"})
+        sampler.seed((int(seed) + k) % (1 << 32), n)
+        x = mi.Float(np.repeat(part[:, 0], spp).astype(np.float32))
+        y = mi.Float(np.repeat(part[:, 1], spp).astype(np.float32))
+        u = sampler.next_2d()
+        pos = mi.Point2f((x + u.x) / float(width), (y + u.y) / float(height))
+        ray, weight = sensor.sample_ray(0.0, sampler.next_1d(), pos, sampler.next_2d())
+        spec, _, _ = integrator.sample(scene, sampler, ray, None, True)
+        v = np.asarray(spec * weight, np.float64)
+        v = v.T if v.shape[0] == 3 and v.ndim == 2 and v.shape[1] == n else v
+        out[lo:lo + len(part)] = v.reshape(len(part), int(spp), 3).sum(axis=1)
+    return out
+
+
+
+def sensor_mean(mi, scene, samples: int, seed: int) -> np.ndarray:
+    """(3,) float64 mean of ``samples`` paths of the scene's first sensor over its whole film
+    (one pixel: an irradiance meter), summed here in a fixed order: ``mi.render`` adds a
+    one-pixel film's samples with atomics, whose order (so the last bits) varies run to run."""
+    sensor, integrator = scene.sensors()[0], scene.integrator()
+    total, done, k = np.zeros(3), 0, 0
+    while done < samples:
+        n = min(int(samples) - done, MAX_LANES)
+        sampler = mi.load_dict({"type": "independent"})
+        sampler.seed((int(seed) + k) % (1 << 32), n)
+        ray, weight = sensor.sample_ray_differential(0.0, sampler.next_1d(),
+                                                     sampler.next_2d(), sampler.next_2d())
+        spec, _, _ = integrator.sample(scene, sampler, mi.Ray3f(ray), None, True)
+        v = np.asarray(spec * weight, np.float64)
+        v = v.T if v.shape[0] == 3 and v.ndim == 2 and v.shape[1] == n else v
+        total += v.reshape(n, 3).sum(axis=0)
+        done, k = done + n, k + 1
+    return total / max(int(samples), 1)
+
+
+@dataclass(frozen=True)
+class TraceJob:
+    """The reference scene of one lighting condition, as data a worker can build it from.
+
+    token : names the job (the node's cache key): one scene per token and process
+    mesh : the high mesh (``Mesh`` artifact); stack : ``LayerStack``; camera : CameraConfig;
+    lights : list of LightConfig; width, height : reference pixels; options : the export's
+    ``HeadSceneOptions``; variant : the Mitsuba variant the planning process chose
+    """
+
+    token: str
+    mesh: Any
+    stack: Any
+    camera: Any
+    lights: list
+    width: int
+    height: int
+    options: HeadSceneOptions
+    variant: str
+
+
+_SCENES: dict = {}          # token -> (mitsuba module, HeadScene), per process
+_LOCK = threading.Lock()
+
+
+def job_scene(job: TraceJob):
+    """(mitsuba module, loaded HeadScene) of ``job`` in this process, built on first use."""
+    with _LOCK:
+        if job.token not in _SCENES:
+            mi = mitsuba.load_mitsuba(job.variant)
+            _SCENES[job.token] = (mi, head_scene(mi, job.mesh, job.stack, job.camera, job.lights,
+                                                 width=job.width, height=job.height,
+                                                 options=job.options))
+        return _SCENES[job.token]
+
+
+def trace_tile(job: TraceJob, tile) -> tuple[np.ndarray, np.ndarray]:
+    """Sums of half A and half B of one :class:`~dermis.groundtruth.progressive.Tile`."""
+    mi, head = job_scene(job)
+    return tuple(trace_pixels(mi, head.scene, tile.pixels, tile.spp, seed, width=job.width,
+                              height=job.height) for seed in tile.seeds)
+
+
+def forget(token: str) -> None:
+    """Release this process's scene of the job ``token`` (its temporary files too)."""
+    with _LOCK:
+        entry = _SCENES.pop(token, None)
+    if entry is not None:
+        release(entry[1])
