@@ -1,7 +1,8 @@
 """Mitsuba 3 itself: whether it is installed, and which variant of it runs here.
 
-Mitsuba 3 (``pip install dermis[reference]``) renders the path-traced ground truth
-(docs/ground-truth.md); it is an optional dependency, imported only when a reference is made.
+Mitsuba 3 (a dependency of dermis) renders the path-traced ground truth
+(docs/ground-truth.md); it is imported only when a reference is made, and a machine where it
+cannot run still renders every model (the reference is then skipped with its reason).
 
 Variant: :func:`load_mitsuba` picks ``cuda_ad_rgb`` where a CUDA device answers, else
 ``llvm_ad_rgb`` where libLLVM is found (Debian's ``libllvm19``; ``DRJIT_LIBLLVM_PATH`` is set
@@ -26,8 +27,8 @@ __all__ = ["MitsubaUnavailable", "load_mitsuba", "mitsuba_missing_reason", "VARI
            "INSTALL_HINT"]
 
 VARIANTS = ("cuda_ad_rgb", "llvm_ad_rgb")
-INSTALL_HINT = ("pip install 'dermis[reference]' (mitsuba, drjit, flip-evaluator); without a "
-                "CUDA device also apt-get install libllvm19 (the llvm_ad_rgb variant)")
+INSTALL_HINT = ("bash .ci/setup, or pip install mitsuba drjit (dermis's dependencies); "
+                "without a CUDA device also apt-get install libllvm19 (the llvm_ad_rgb variant)")
 
 
 class MitsubaUnavailable(DermisError):

@@ -1,6 +1,6 @@
 """A dermis scene as a Mitsuba 3 scene: the path-traced ground truth's export.
 
-Mitsuba 3 (``pip install dermis[reference]``) path-traces light inside participating media
+Mitsuba 3 path-traces light inside participating media
 exactly; it has no diffusion BSSRDF.  This module turns dermis's mesh, camera, lights and
 layer stack into a Mitsuba scene dictionary and loads it (docs/ground-truth.md; the renders
 are :mod:`dermis.groundtruth.passes`):

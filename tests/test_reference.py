@@ -18,7 +18,7 @@ from dermis.geometry.regions import REGION_LABELS, face_regions
 
 REPO = Path(__file__).resolve().parents[1]
 QUICK = REPO / "scenes" / "quick.toml"
-SKIP_REASON = ("Mitsuba 3 is not installed (pip install 'dermis[reference]'): the reference "
+SKIP_REASON = ("Mitsuba 3 is not installed (pip install mitsuba): the reference "
                "tests are skipped")
 
 
@@ -55,7 +55,7 @@ def test01_without_mitsuba_the_stage_is_skipped_with_one_message(monkeypatch, ca
     from dermis.groundtruth import mitsuba
     from dermis.stages import reference
     monkeypatch.setattr(mitsuba, "mitsuba_missing_reason",
-                        lambda: "Mitsuba 3 is not installed: pip install 'dermis[reference]'")
+                        lambda: "Mitsuba 3 is not installed: pip install mitsuba")
     monkeypatch.setattr(reference, "_SKIP_NOTICES", set())
     scene = load_scene(QUICK, overrides={"reference": {"enabled": True}})
     for _ in range(2):  # planning twice (run + status) still says it once
@@ -63,7 +63,7 @@ def test01_without_mitsuba_the_stage_is_skipped_with_one_message(monkeypatch, ca
     assert not [n for n in nodes if n.startswith("reference")]
     assert "report" in nodes and "images" in nodes          # the rest of the report builds
     err = capsys.readouterr().err
-    assert err.count("reference stage skipped") == 1 and "dermis[reference]" in err
+    assert err.count("reference stage skipped") == 1 and "pip install mitsuba" in err
 
 
 def test02_reference_on_by_default_and_config_errors():
@@ -315,10 +315,10 @@ def test09_report_gains_the_ground_truth_section(mi, tmp_path, monkeypatch):
     assert "Distance to ground truth" in text and "Mitsuba" in text
 
     monkeypatch.setattr(mitsuba, "mitsuba_missing_reason",
-                        lambda: "Mitsuba 3 is not installed: pip install 'dermis[reference]'")
+                        lambda: "Mitsuba 3 is not installed: pip install mitsuba")
     monkeypatch.setattr(reference, "_SKIP_NOTICES", set())
     out = report_of(run(load_scene(QUICK, overrides=over), cache=cache, export=False))
     assert not (out / "ground_truth.json").exists()
     text = subprocess.run(["pdftotext", str(out / "report.pdf"), "-"], capture_output=True,
                           text=True, check=True).stdout
-    assert "Reference stage skipped" in text and "dermis[reference]" in text
+    assert "Reference stage skipped" in text and "pip install mitsuba" in text
