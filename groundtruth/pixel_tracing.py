@@ -15,6 +15,7 @@ bytes: a tile's result depends on its pixels, samples and seeds alone.
 from __future__ import annotations
 
 import threading
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -113,11 +114,14 @@ def job_scene(job: TraceJob):
         return _SCENES[job.token]
 
 
-def trace_tile(job: TraceJob, tile) -> tuple[np.ndarray, np.ndarray]:
-    """Sums of half A and half B of one :class:`~dermis.groundtruth.progressive.Tile`."""
+def trace_tile(job: TraceJob, tile) -> tuple[np.ndarray, np.ndarray, float]:
+    """Sums of half A and half B of one :class:`~dermis.groundtruth.progressive.Tile`, and
+    the seconds they took (the scene built first if this process has not yet)."""
     mi, head = job_scene(job)
-    return tuple(trace_pixels(mi, head.scene, tile.pixels, tile.spp, seed, width=job.width,
-                              height=job.height) for seed in tile.seeds)
+    t0 = time.perf_counter()
+    a, b = (trace_pixels(mi, head.scene, tile.pixels, tile.spp, seed, width=job.width,
+                         height=job.height) for seed in tile.seeds)
+    return a, b, time.perf_counter() - t0
 
 
 def forget(token: str) -> None:

@@ -20,8 +20,9 @@ their mean.  So the reference is rendered in passes (docs/ground-truth.md):
   that many, at least ``pass_spp`` and at most doubling n (the estimate of s is itself noisy
   at small n), never beyond ``max_spp``.  The stopping rule reads only the buffers, so the
   passes are the same on every machine; only the time budget depends on the clock.
-* **Tasks.**  A pass is a list of tiles of at most :data:`TILE_PIXELS` pixels, each traced
-  with its own seed, derived from (seed, pass, tile, half) alone.  The tiles of a pass are independent tasks
+* **Tasks.**  A pass is a list of tasks: tiles of at most :data:`TILE_PIXELS` pixels times
+  chunks of their samples of about :data:`TASK_PATHS` paths per half, each traced with its
+  own seed, derived from (seed, pass, task, half) alone.  The tasks of a pass are independent
   (:func:`render_pass` takes any way of tracing a list of them: serially, or on Dask
   workers through ``pipeline/taskpool.py``), and their sums are added in
   tile order, so the buffers are the same bytes for any number of workers.
@@ -45,12 +46,16 @@ from dermis.geometry.regions import REGION_LABELS, REGIONS
 from dermis.groundtruth.noise import two_seed_noise
 from dermis.rendering.color import LUMINANCE
 
-__all__ = ["PassSettings", "HalfBuffers", "Tile", "TILE_PIXELS", "tile_seed", "region_rel_se",
+__all__ = ["PassSettings", "HalfBuffers", "Tile", "TILE_PIXELS", "TASK_PATHS", "tile_seed", "region_rel_se",
            "next_pass", "render_pass", "refine"]
 
-# Pixels per task: small enough that a pass of the default scene (4,000 head pixels at 100^2)
-# spreads over a few workers, large enough that a call keeps Mitsuba's wavefront busy.
+# Pixels per task: a pass of the default scene (4,000 head pixels at 100^2) spreads over a
+# few workers.
 TILE_PIXELS = 1024
+# Paths per half a task's samples are cut into: ~1-2 s of volpathmis on 2 cores (about 30 us
+# a path, bench/results/reference_passes.json), so a call's fixed cost stays small while a
+# long adaptive pass still spreads over many workers.
+TASK_PATHS = 1 << 16
 
 
 @dataclass(frozen=True)
@@ -187,31 +192,39 @@ def next_pass(buffers: HalfBuffers, hit: np.ndarray, labels: np.ndarray,
 
 
 def _tiles(add: np.ndarray, seed: int, pass_index: int) -> list[Tile]:
-    """The pass's pixels grouped by samples to add, in flat-index order, cut into tiles."""
+    """The pass's tasks: pixels grouped by samples to add, in flat-index order, cut into
+    tiles of :data:`TILE_PIXELS`, whose samples are cut into chunks of about
+    :data:`TASK_PATHS` paths per half."""
     tiles = []
     for spp in np.unique(add[add > 0]):
         ys, xs = np.nonzero(add == spp)
         pix = np.stack([xs, ys], axis=1).astype(np.int32)
         for lo in range(0, len(pix), TILE_PIXELS):
-            t = len(tiles)
-            tiles.append(Tile(pix[lo:lo + TILE_PIXELS], int(spp),
-                              (tile_seed(seed, pass_index, t, 0), tile_seed(seed, pass_index, t, 1))))
+            part = pix[lo:lo + TILE_PIXELS]
+            chunk = max(1, TASK_PATHS // len(part))
+            for done in range(0, int(spp), chunk):
+                t = len(tiles)
+                tiles.append(Tile(part, min(chunk, int(spp) - done),
+                                  (tile_seed(seed, pass_index, t, 0),
+                                   tile_seed(seed, pass_index, t, 1))))
     return tiles
 
 
 def render_pass(trace_tiles: Callable[[list], list], buffers: HalfBuffers, add: np.ndarray, *,
                 seed: int) -> float:
     """Trace one pass into ``buffers``: ``trace_tiles(tiles)`` returns each tile's (sums of
-    half A, sums of half B), in any way (serially, on workers); they are added in tile
-    order.  Returns its seconds."""
+    half A, sums of half B[, seconds it took]), in any way (serially, on workers); they are
+    added in tile order.  Returns its seconds and the tasks' own seconds."""
     t0 = time.perf_counter()
     tiles = _tiles(add, seed, buffers.passes)
-    for tile, (a, b) in zip(tiles, trace_tiles(tiles)):
+    task_seconds = []
+    for tile, (a, b, *took) in zip(tiles, trace_tiles(tiles)):
+        task_seconds += took
         x, y = tile.pixels[:, 0], tile.pixels[:, 1]
         buffers.sum_a[y, x] += a
         buffers.sum_b[y, x] += b
         buffers.count[y, x] += tile.spp
-    return time.perf_counter() - t0
+    return time.perf_counter() - t0, task_seconds
 
 
 def refine(trace_tiles: Callable[[list], list], buffers: HalfBuffers, hit: np.ndarray,
@@ -232,11 +245,12 @@ def refine(trace_tiles: Callable[[list], list], buffers: HalfBuffers, hit: np.nd
             if buffers.seconds + per_path * 2 * int(add.sum()) > settings.budget_s:
                 return "budget"
         uniform = bool(add[hit].all())
-        seconds = render_pass(trace_tiles, buffers, add, seed=seed)
+        seconds, task_seconds = render_pass(trace_tiles, buffers, add, seed=seed)
         rel = region_rel_se(buffers, labels)
         entry = {"pixels": int((add > 0).sum()), "paths": 2 * int(add.sum()),
                  "seconds": seconds, "worst_rel_se": max(rel.values()) if rel else 0.0,
-                 "uniform": uniform, "spp_min": 2 * int(buffers.count[hit].min())}
+                 "uniform": uniform, "spp_min": 2 * int(buffers.count[hit].min()),
+                 "task_seconds": task_seconds}
         if uniform:   # the noise-vs-samples curve of the whole head (reports/ground_truth.py)
             a, b = buffers.halves()
             entry["noise"] = {f: v["rel"] for f, v in two_seed_noise(a, b, hit).items()}
