@@ -20,6 +20,7 @@ import importlib.util
 import os
 import subprocess
 import sys
+import threading
 
 from dermis.pipeline.errors import ConfigError, DermisError
 
@@ -56,12 +57,23 @@ def _find_libllvm() -> str | None:
     return found[0] if found else None
 
 
+# One import and variant choice at a time: two reference nodes running at once (-j 2) imported
+# Mitsuba concurrently and one saw a half-initialised module (no ``variants``).
+_LOAD_LOCK = threading.RLock()
+
+
 def load_mitsuba(variant: str = "auto"):
     """Import Mitsuba and set a variant; returns the ``mitsuba`` module (``.variant()`` says which).
 
     ``variant = "auto"`` tries :data:`VARIANTS` in order and keeps the first that renders a
     one-pixel test scene.  Raises :class:`MitsubaUnavailable` with the install command.
+    Thread-safe.
     """
+    with _LOAD_LOCK:
+        return _load(variant)
+
+
+def _load(variant: str):
     reason = mitsuba_missing_reason()
     if reason:
         raise MitsubaUnavailable(reason)
@@ -69,7 +81,7 @@ def load_mitsuba(variant: str = "auto"):
         lib = _find_libllvm()
         if lib:
             os.environ["DRJIT_LIBLLVM_PATH"] = lib
-    # optional dependency (the ``reference`` extra): imported only once it is known present
+    # heavy dependency: imported only when a reference is made, once it is known present
     importlib.import_module("drjit")   # before mitsuba, with the libLLVM path set above
     import mitsuba as mi
     _STATE["drjit"] = True
