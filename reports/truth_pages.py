@@ -154,7 +154,8 @@ def _table(fig, rect, gt, light, models):
     ax.axis("off")
     fk = str(gt.get("rank_factor", 4))
     ranked = {r["model"]: (k + 1, r) for k, r in enumerate(gt["ranking"].get(light, []))}
-    header = ["model", "rel RMSE %", "± noise %", "resolved", "rank", "own noise %", "seconds"]
+    header = ["model", "rel RMSE %", "± noise %", "resolved", "rank (range)", "own noise %",
+              "seconds"]
     cells = []
     for m in models:
         rec = gt["models"][f"{m}-{light}"]
@@ -172,7 +173,7 @@ def _table(fig, rect, gt, light, models):
     ref = gt["references"][light]
     cells.append(["reference", "0", _pct((ref.get("noise", {}).get(fk) or {}).get("rel")), "",
                   "", "", f"{ref.get('seconds', 0.0):.0f}"])
-    widths = [0.2, 0.13, 0.12, 0.12, 0.12, 0.17, 0.14]
+    widths = [0.18, 0.13, 0.12, 0.11, 0.15, 0.17, 0.14]
     rows = len(cells) + 1
     height = min(1.0, rows * 0.1)
     tab = ax.table(cellText=cells, colLabels=header, colWidths=widths, cellLoc="center",
