@@ -74,6 +74,8 @@ def noise_reached_text(ref: dict) -> str:
     elif stopped == "max_passes":
         parts.append("stopped at its maximum of passes" + (
             f" before its target of {_pct(target)} %" if target else ""))
+    elif stopped:
+        parts.append(f"stopped: {stopped}")
     else:
         parts.append("a fixed sample count (no stopping rule recorded)")
     parts.append(f"{ref.get('seconds', 0.0):.0f} s")

@@ -321,6 +321,23 @@ def test_metrics_json_ground_truth_keys_and_values():
             assert nr[key] == extra.get(key)                  # None when not recorded
 
 
+def test_the_page_says_which_noise_the_reference_reached():
+    """Passes, stopping rule and target when the reference records them; a fixed sample
+    count said as such when it does not (today's references)."""
+    from dermis.reports.truth_pages import noise_reached_text
+    base = {"width": 40, "height": 40, "spp": 64, "seconds": 12.0,
+            "regions": {"nose": {"mean_rgb": [1.0, 1.0, 1.0], "stderr_rgb": [0.01] * 3}}}
+    text = noise_reached_text(base)
+    assert "fixed sample count" in text and "Worst region: nose" in text
+    for stopped, words in (("target", "stopped at its target (region means to 1.0 %"),
+                           ("budget", "stopped by its time budget (600 s) before its target"),
+                           ("max_passes", "stopped at its maximum of passes before")):
+        text = noise_reached_text(dict(base, passes=6, stopped=stopped, target_rel_se=0.01,
+                                       budget_s=600.0, region_rel_se={"nose": 0.008}))
+        assert "6 passes" in text and words in text, text
+        assert "nose, 0.8 %" in text
+
+
 def test_rendered_image_noise_field_saves_and_loads(tmp_path):
     """The optional field: default None, saved with the arrays, read back (and an artifact
     saved before the field existed loads with None)."""
