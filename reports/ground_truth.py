@@ -1,20 +1,22 @@
 """Distance to ground truth: every model against the Mitsuba 3 path-traced reference.
 
-The reference (:mod:`dermis.stages.reference`) is itself noisy, so every distance here is
-reported at a resolution the reference can resolve, with the reference's own noise at that
-scale beside it (docs/ground-truth.md):
+Both the reference (:mod:`dermis.stages.reference`) and a model image are Monte Carlo
+estimates, so every distance here is reported with the noise of both at the scale it is
+measured (docs/ground-truth.md; the error-bar algebra is :mod:`dermis.reports.truth_noise`;
+a model image without a ``noise`` field counts as noise-free and is said to be so):
 
 * **Blocks.**  A model image (camera size) is averaged over the block of camera pixels
   each reference pixel covers (the reference's box filter), then both are averaged further
   over f x f blocks, f in :data:`dermis.groundtruth.noise.NOISE_FACTORS`.  Only blocks whose
   every camera pixel hits the mesh count.  At each f: the relative RMSE e (the report's
-  ``rel_rmse`` definition), the reference's noise sigma at f, and e_true = sqrt(e^2 -
-  sigma^2) (the model's error and the reference's noise are independent, so their squares
-  add).  A difference counts as **resolved** when e > ``RESOLVE_K`` x sigma.
+  ``rel_rmse`` definition), the reference's noise sigma_ref and the model's own sigma_model
+  at f, sigma = sqrt(sigma_ref^2 + sigma_model^2) (what noise alone gives), and
+  e_true = sqrt(e^2 - sigma^2) (errors and noises independent, so their squares add).  A
+  difference counts as **resolved** when e > ``RESOLVE_K`` x sigma.
 * **Regions** (:mod:`dermis.geometry.regions`): the relative difference of the model's mean
-  over the region's pixels from the reference's, per channel and in luminance, with the
-  reference's standard error of that mean and the albedo tint's calibration error (the
-  flat-slab Rd's standard error) added in quadrature.
+  over the region's pixels from the reference's, per channel and in luminance, with both
+  means' standard errors and the albedo tint's calibration error (the flat-slab Rd's
+  standard error) in quadrature; resolved beyond ``RESOLVE_K`` standard errors.
 * **FLIP** (HDR-FLIP, the ``flip-evaluator`` package; Andersson et al. 2021) and **SSIM**
   (:func:`dermis.reports.diff.difference`) on the reference-grid images.  Both are
   computed against a noisy reference and are floored by its noise: they rank models, they
@@ -25,19 +27,22 @@ scale beside it (docs/ground-truth.md):
   seconds-per-spp.  The speed-up of a model is that time over the model's own time, at
   e = its e_true (an unresolved e_true is replaced by sigma: the speed-up is then a lower
   bound, written with ">=").
-* **Ranking** per light by e at f = ``RANK_FACTOR``: the expected e^2 is e_true^2 + sigma^2
-  with the same sigma for every model, so the order does not depend on the reference's
-  noise; two neighbours are marked tied when their e^2 differ by less than twice the
-  noise of that difference (2 rms(a - b) sigma / sqrt(N) per unit).
+* **Ranking** per light at f = ``RANK_FACTOR`` by s = e^2 - sigma_model^2 (the reference's
+  share of E[e^2] is the same for every model); every pair is compared on its common blocks
+  (:func:`dermis.reports.truth_noise.pair_test`) and counts as resolved beyond
+  ``RESOLVE_K`` standard errors of s_a - s_b; neighbours not resolved are marked tied, and
+  each model gets the range of ranks the comparisons allow.
 
-:func:`ground_truth_metrics` computes all of it (pure), :func:`write_ground_truth` writes
-error maps and ``ground_truth.json``, :func:`ground_truth_pages` adds the report's
-"distance to ground truth" pages to an open matplotlib ``PdfPages``.
+:func:`ground_truth_metrics` computes all of it (pure), :func:`metrics_ground_truth` the
+``ground_truth`` object of ``metrics.json``, :func:`write_ground_truth` writes error maps
+and ``ground_truth.json``, :func:`ground_truth_pages` adds the detail pages to an open
+matplotlib ``PdfPages`` (the opening pages: :mod:`dermis.reports.truth_pages`).
 """
 from __future__ import annotations
 
 import json
 import math
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -48,24 +53,20 @@ from dermis.pipeline.registry import MODEL_NAMES
 from dermis.rendering.color import LUMINANCE
 from dermis.geometry.regions import REGION_LABELS, REGIONS, block_mean, face_regions
 from dermis.groundtruth.noise import NOISE_FACTORS
+from dermis.reports.truth_noise import (RESOLVE_K, compare, mean_se, model_noise_on, pair_test,
+                                        rank_ranges, ref_scale_noise, ref_var_map,
+                                        region_difference, scale_noise)
+from dermis.reports.truth_verdicts import thesis_checks
 
-__all__ = ["region_labels_for", "ground_truth_metrics", "write_ground_truth",
-           "ground_truth_pages", "ground_truth_section", "thesis_checks", "RESOLVE_K",
-           "GEOMETRY"]
+__all__ = ["region_labels_for", "ground_truth_metrics", "metrics_ground_truth",
+           "write_ground_truth", "ground_truth_pages", "ground_truth_section", "thesis_checks",
+           "RESOLVE_K", "GEOMETRY"]
 
-RESOLVE_K = 2.0          # a difference must exceed 2 sigma of the reference to count
 GEOMETRY = "high"        # the references are rendered on the high mesh
 # Models are ranked on 4x4 blocks of reference pixels: at single pixels a CPU reference's
 # noise (~50 % at 128 spp) buries the differences between models (measured, docs/ground-truth.md)
 RANK_FACTOR = 4
 MODEL_ORDER = MODEL_NAMES      # the tables; the ranking is of the thesis's four (THESIS_MODELS)
-# The thesis's qualitative conclusions (Arizpe 2006, ch. 5), checked with numbers.
-THESIS = {
-    "lafortune": "the measured BRDF looks too shiny",
-    "hk93": "Hanrahan-Krueger looks soft (flat, low contrast)",
-    "bssrdf": "the BSSRDF is the most realistic",
-    "asperity": "asperity scattering looks good only under the environment map",
-}
 
 
 def region_labels_for(mesh, camera, *, width: int, height: int, with_faces: bool = False):
@@ -130,22 +131,50 @@ def _block_error(D, M, valid, floor) -> np.ndarray:
     return np.where(valid, out, np.nan)
 
 
-def _contrast(lum: np.ndarray, noise_var: float = 0.0) -> float:
-    """Relative standard deviation of luminance (noise variance removed)."""
-    m = float(lum.mean()) if lum.size else 0.0
-    v = max(float(lum.var()) - noise_var, 0.0) if lum.size else 0.0
-    return math.sqrt(v) / m if m > 0 else 0.0
+def _contrast(lum: np.ndarray, var: np.ndarray | None = None) -> tuple[float, float]:
+    """Relative standard deviation C = sqrt(V) / m of luminance over blocks, each block's
+    noise variance ``var`` removed from V, and C's standard error from that noise (first
+    order in the noise n_i of each block, Gaussian): C (dV / 2V - dm / m) with
+    dV = 2/N sum (x_i - m) n_i + 1/N sum (n_i^2 - v_i) and dm = 1/N sum n_i, so
+    var C = C^2 / N^2 (sum v_i ((x_i - m) / V - 1 / m)^2 + sum v_i^2 / (2 V^2))."""
+    n = lum.size
+    m = float(lum.mean()) if n else 0.0
+    if n == 0 or m <= 0:
+        return 0.0, 0.0
+    v = np.zeros(n) if var is None else np.asarray(var, np.float64)
+    V = float(lum.var()) - float(v.mean())
+    if V > 0:
+        c = math.sqrt(V) / m
+        w = (lum - m) / V - 1.0 / m
+        return c, c / n * math.sqrt(float((v * w * w).sum() + (v * v).sum() / (2 * V * V)))
+    # no variance left above the noise: the bound from the noise of V alone
+    sd_v = math.sqrt(float(4 * ((lum - m) ** 2 * v).sum() + 2 * (v * v).sum())) / n
+    return 0.0, math.sqrt(sd_v) / m
+
+
+def _ref_block_var(ref_var, ref_hd, valid, f: int, Mb, mb, sigma: float) -> np.ndarray:
+    """Per block (f x f reference pixels) and channel, the variance of the reference's block
+    mean: (block-mean half-difference)^2 when the reference has one; else its per-pixel
+    variances / f^2, scaled so that their sum matches the block noise the reference measured
+    at f (``sigma``: its pixels are not independent where its noise is heavy-tailed)."""
+    if ref_hd is not None:
+        return block_mean(ref_hd, valid, f)[0] ** 2
+    vb = block_mean(ref_var, valid, f)[0] / (f * f)
+    have, want = float(vb[mb].sum()), sigma * sigma * float((Mb[mb] ** 2).sum())
+    return vb * (want / have) if have > 0 and want > 0 else vb
 
 
 def ground_truth_metrics(images: dict, references: dict, *, mesh, camera,
-                         extra_seconds: dict | None = None) -> dict:
+                         extra_seconds: dict | None = None,
+                         region_labels: dict | None = None) -> dict:
     """Distances of every model image to the reference of its light (module docstring).
 
     Parameters
     ----------
     images : dict id -> RenderedImage
         Model renders (``info`` model / light / geometry); only ``geometry = "high"``
-        images of a light that has a reference are compared.
+        images of a light that has a reference are compared.  Their ``noise`` (when set)
+        enters every error bar (:mod:`dermis.reports.truth_noise`).
     references : dict light label -> RenderedImage
         The reference stage's artifacts.
     mesh : Mesh
@@ -154,17 +183,22 @@ def ground_truth_metrics(images: dict, references: dict, *, mesh, camera,
         The scene camera (the models' camera; the reference's at its own size).
     extra_seconds : dict (light, mesh node) -> seconds, optional
         Time to add to a BSSRDF image's own (its irradiance pass), as the report does.
+    region_labels : dict (height, width) -> (H, W) int labels, optional
+        The region labels at a reference's size, instead of casting ``camera``'s rays at
+        ``mesh`` (:func:`region_labels_for`).
 
     Returns
     -------
-    dict (JSON-able): ``references`` (per light: size, spp, seconds, noise, noise_fit, slab),
-    ``models`` (per "model-light": errors per factor, regions, flip, ssim, seconds,
-    speed-up), ``ranking`` (per light), ``thesis`` (:func:`thesis_checks`).
+    dict (JSON-able): ``references`` (per light: size, spp, seconds, noise, noise_fit, slab,
+    passes, stopped), ``models`` (per "model-light": errors per factor with both noises,
+    regions, flip, ssim, seconds, speed-up), ``ranking`` and ``comparisons`` (per light),
+    ``thesis`` (:func:`dermis.reports.truth_verdicts.thesis_checks`).
     """
     from dermis.reports.diff import difference
     extra_seconds = extra_seconds or {}
-    out = {"resolve_k": RESOLVE_K, "references": {}, "models": {}, "ranking": {}}
-    labels_cache: dict = {}
+    out = {"resolve_k": RESOLVE_K, "rank_factor": RANK_FACTOR, "references": {}, "models": {},
+           "ranking": {}, "comparisons": {}}
+    labels_cache: dict = dict(region_labels or {})
     for light, ref in sorted(references.items()):
         info = ref.info
         h, w = ref.linear.shape[:2]
@@ -172,18 +206,20 @@ def ground_truth_metrics(images: dict, references: dict, *, mesh, camera,
             labels_cache[(h, w)] = region_labels_for(mesh, camera, width=w, height=h)
         labels = labels_cache[(h, w)]
         M = np.asarray(ref.linear, np.float64)
+        ref_var, ref_hd = ref_var_map(ref, labels)
         # highlights are picked on the models' mean image: picking them on the noisy
         # reference would select its positive noise (regression to the mean)
         mine = [_downsample_to(np.asarray(im.linear, np.float64), np.asarray(im.mask, bool),
                                (h, w))[0] for im in images.values()
                 if _labels(im)[1] == light and _labels(im)[2] == GEOMETRY
                 and _labels(im)[0] in THESIS_MODELS]
-        highlight_basis = {light: np.mean(mine, axis=0) if mine else M}
+        highlight_basis = np.mean(mine, axis=0) if mine else M
         blocks_for_rank: dict = {}
         rmask = np.asarray(ref.mask, bool)
         slab = info.get("slab", {})
         calib = np.asarray(slab.get("Rd_stderr", [0, 0, 0]), np.float64) / np.maximum(
             np.asarray(slab.get("Rd", [1, 1, 1]), np.float64), 1e-30)
+        rel_se = info.get("region_rel_se") or {}
         t_spp = float(ref.timings.get("seconds_per_spp", 0.0) or 0.0)
         out["references"][light] = {
             "width": w, "height": h, "spp": info.get("spp"), "variant": info.get("variant"),
@@ -191,74 +227,61 @@ def ground_truth_metrics(images: dict, references: dict, *, mesh, camera,
             "seconds_per_spp": t_spp, "noise": info.get("noise", {}),
             "noise_fit": info.get("noise_fit", {}), "slab": slab,
             "calibration_rel_rgb": [float(c) for c in calib],
-            "regions": info.get("regions", {}), "env_clamp": info.get("env_clamp", 0.0)}
+            "regions": info.get("regions", {}), "region_rel_se": rel_se,
+            "passes": info.get("passes"), "stopped": info.get("stopped"),
+            "target_rel_se": info.get("target_rel_se"), "budget_s": info.get("budget_s"),
+            "half_difference": ref_hd is not None, "env_clamp": info.get("env_clamp", 0.0)}
         for nid, im in sorted(images.items()):
             model, l, geom = _labels(im)
             if l != light or geom != GEOMETRY or model == "reference":
                 continue
             D, full = _downsample_to(np.asarray(im.linear, np.float64),
                                      np.asarray(im.mask, bool), (h, w))
+            fcam = im.linear.shape[0] // h
+            N = model_noise_on(im, (h, w), fcam)
             valid = full & rmask
-            rec = {"model": model, "light": light, "factor_to_reference": im.linear.shape[0] // h,
-                   "pixels": int(valid.sum()), "scales": {}, "regions": {}}
+            rec = {"model": model, "light": light, "factor_to_reference": fcam,
+                   "pixels": int(valid.sum()), "own_noise": N is not None, "scales": {},
+                   "regions": {}}
             for f in NOISE_FACTORS:
                 Db, mb = block_mean(D, valid, f)
                 Mb, _ = block_mean(M, valid, f)
                 if not mb.any():
                     continue
                 e = _rel_rmse(Db[mb], Mb[mb])
-                sigma = float(info.get("noise", {}).get(str(f), {}).get("rel", 0.0))
+                s_ref = ref_scale_noise(ref, ref_hd, Mb, mb, f, valid)
+                s_mod = scale_noise(N, Mb, mb, f, valid)
+                sigma = math.hypot(s_ref, s_mod or 0.0)
                 true = math.sqrt(max(e * e - sigma * sigma, 0.0))
                 c = float(info.get("noise_fit", {}).get(str(f), 0.0))
                 resolved = e > RESOLVE_K * sigma
                 e_eff = true if resolved else max(sigma, true)
-                t_pt = (c / e_eff) ** 2 * t_spp if e_eff > 0 and c > 0 else float("nan")
-                rec["scales"][str(f)] = {"rel_rmse": e, "ref_noise": sigma, "rel_rmse_true": true,
+                spp_eq = (c / e_eff) ** 2 if e_eff > 0 and c > 0 else float("nan")
+                rec["scales"][str(f)] = {"rel_rmse": e, "ref_noise": s_ref, "model_noise": s_mod,
+                                         "noise": sigma, "rel_rmse_true": true,
                                          "resolved": bool(resolved), "blocks": int(mb.sum()),
-                                         "pt_seconds_same_error": t_pt,
-                                         "pt_spp_same_error": (c / e_eff) ** 2 if e_eff > 0 and c > 0
-                                         else float("nan")}
+                                         "pt_seconds_same_error": spp_eq * t_spp,
+                                         "pt_spp_same_error": spp_eq}
+                if f == RANK_FACTOR:
+                    vD = (block_mean(N, valid, f)[0] ** 2 if N is not None
+                          else np.zeros_like(Db))
+                    blocks_for_rank[model] = (Db, mb, vD)
             # regions: same pixel set for model and reference
             for name in REGIONS:
                 sel = valid & (labels == REGION_LABELS[name])
-                n = int(sel.sum())
                 rr = info.get("regions", {}).get(name, {})
-                if n == 0 or not rr:
+                if not sel.any() or not rr:
                     continue
-                mref = M[sel].mean(axis=0)
-                mmod = D[sel].mean(axis=0)
-                se = np.asarray(rr.get("stderr_rgb", [0, 0, 0]), np.float64) * math.sqrt(
-                    max(rr.get("pixels", n), 1) / n)
-                rel = (mmod - mref) / np.maximum(mref, 1e-30)
-                sig = np.sqrt((se / np.maximum(mref, 1e-30)) ** 2 + calib ** 2)
-                lr, lm = float(mref @ LUMINANCE), float(mmod @ LUMINANCE)
-                sl = math.sqrt(float((se * LUMINANCE) @ (se * LUMINANCE))) / max(lr, 1e-30)
-                sl = math.sqrt(sl * sl + float(calib @ LUMINANCE) ** 2)
-                rec["regions"][name] = {
-                    "pixels": n, "ref_rgb": [float(v) for v in mref],
-                    "model_rgb": [float(v) for v in mmod], "rel_rgb": [float(v) for v in rel],
-                    "sigma_rgb": [float(v) for v in sig], "rel_lum": lm / lr - 1 if lr > 0 else 0.0,
-                    "sigma_lum": sl, "resolved": bool(abs(lm / lr - 1) > RESOLVE_K * sl)
-                    if lr > 0 else False}
+                rec["regions"][name] = region_difference(
+                    D, M, sel, model_hd=N, ref_var=ref_var, ref_hd=ref_hd,
+                    ref_region=dict(rr, rel_se=rel_se.get(name)), calib=calib)
             dr = difference(np.where(valid[..., None], D, 0.0), np.where(valid[..., None], M, 0.0),
                             mask=valid)
             rec["ssim"] = dr.metrics["ssim"]
             rec["bias_rgb"] = dr.metrics["flux_ratio_rgb"]
             rec["flip"], _ = _flip(M, D, valid)
-            # thesis diagnostics: highlight excess (shininess) and contrast (softness)
-            lum_m, lum_r = D[valid] @ LUMINANCE, M[valid] @ LUMINANCE
-            if lum_r.size:
-                sel_img = highlight_basis[light]
-                lum_s = sel_img[valid] @ LUMINANCE
-                top = lum_s >= np.percentile(lum_s, 95.0)
-                overall = lum_m.mean() / lum_r.mean()
-                rec["highlight_excess"] = float(lum_m[top].mean() / lum_r[top].mean() / overall - 1)
-                D4, m4 = block_mean(D, valid, 4)
-                M4, _ = block_mean(M, valid, 4)
-                sig4 = float(info.get("noise", {}).get("4", {}).get("rel", 0.0))
-                nv = (sig4 * math.sqrt(float(((M4[m4] @ LUMINANCE) ** 2).mean()))) ** 2
-                rec["contrast"] = _contrast(D4[m4] @ LUMINANCE)
-                rec["ref_contrast"] = _contrast(M4[m4] @ LUMINANCE, nv)
+            if valid.any():
+                _thesis_numbers(rec, D, M, valid, highlight_basis, N, ref_var, ref_hd, info)
             sec = float((getattr(im, "timings", {}) or {}).get("total", 0.0) or 0.0)
             if catalog.is_bssrdf(model):   # every BSSRDF: with its irradiance pass
                 sec += float(extra_seconds.get((light, "mesh_high"), 0.0))
@@ -269,107 +292,85 @@ def ground_truth_metrics(images: dict, references: dict, *, mesh, camera,
                     s["speedup"] = s["pt_seconds_same_error"] / sec
                     s["speedup_is_lower_bound"] = not s["resolved"]
             out["models"][f"{model}-{light}"] = rec
-            Db, mb = block_mean(D, valid, RANK_FACTOR)
-            blocks_for_rank[model] = (Db, mb)
-        fk = str(RANK_FACTOR)
-        # the thesis's four are ranked; bssrdf_mc (the same BSSRDF, another profile) has
-        # its rows in the tables but would tie with bssrdf and shift the others' ranks
-        recs = sorted((r for r in out["models"].values() if r["light"] == light and
-                       fk in r["scales"] and r["model"] in THESIS_MODELS),
-                      key=lambda r: r["scales"][fk]["rel_rmse"])
-        sigma = float(info.get("noise", {}).get(fk, {}).get("rel", 0.0))
-        Mb, _ = block_mean(M, rmask, RANK_FACTOR)
-        ranking = []
-        for k, r in enumerate(recs):
-            s = r["scales"][fk]
-            tied = False
-            if k:
-                # e_a^2 - e_b^2 = (true difference) + 2 <(a - b) noise>: its noise part has a
-                # standard deviation 2 rms(a - b) sigma / sqrt(N); tied within 2 of those
-                (Da, ma), (Dq, mq) = blocks_for_rank[r["model"]], blocks_for_rank[recs[k - 1]["model"]]
-                m2 = ma & mq
-                d_ab = math.sqrt(float(((Da[m2] - Dq[m2]) ** 2).mean())
-                                 / max(float((Mb[m2] ** 2).mean()), 1e-30))
-                thr = 2.0 * 2.0 * d_ab * sigma / math.sqrt(max(int(m2.sum()), 1))
-                tied = s["rel_rmse"] ** 2 - recs[k - 1]["scales"][fk]["rel_rmse"] ** 2 < thr
-            ranking.append({"model": r["model"], "rel_rmse": s["rel_rmse"],
-                            "rel_rmse_true": s["rel_rmse_true"], "factor": RANK_FACTOR,
-                            "tied_with_previous": bool(tied)})
+        ranking, comparisons = _rank(out["models"], blocks_for_rank, light, M, rmask, ref_var,
+                                     ref_hd, info)
         out["ranking"][light] = ranking
+        out["comparisons"][light] = comparisons
     out["thesis"] = thesis_checks(out)
     return out
 
 
-def thesis_checks(metrics: dict) -> list[dict]:
-    """The thesis's four qualitative conclusions, each with the numbers that test it here."""
-    models, ranking = metrics.get("models", {}), metrics.get("ranking", {})
-    lights = sorted(ranking)
-    checks = []
-
-    def rec(m, l):
-        return models.get(f"{m}-{l}")
-
-    # 1. Lafortune too shiny: its highlights exceed the reference's more than the others'
-    rows = []
-    for l in lights:
-        r = rec("lafortune", l)
-        if r and "highlight_excess" in r:
-            others = [rec(m, l)["highlight_excess"] for m in MODEL_ORDER
-                      if m != "lafortune" and rec(m, l) and "highlight_excess" in rec(m, l)]
-            rows.append((l, r["highlight_excess"], max(others) if others else float("nan")))
-    if rows:
-        holds = [l for l, v, o in rows if v > 0 and v >= o]
-        checks.append({"model": "lafortune", "claim": THESIS["lafortune"],
-                       "measure": "highlight excess: over the brightest 5% of pixels (of the models' "
-                                  "mean), model/reference beyond the overall ratio",
-                       "values": {l: {"lafortune": v, "max_other": o} for l, v, o in rows},
-                       "holds_under": holds, "verdict": _verdict(len(holds), len(rows))})
-    # 2. HK93 soft: lower luminance contrast than the reference (4x4 blocks, noise removed)
-    rows = [(l, rec("hk93", l)["contrast"], rec("hk93", l)["ref_contrast"]) for l in lights
-            if rec("hk93", l) and "contrast" in rec("hk93", l)]
-    if rows:
-        holds = [l for l, c, rc in rows if c < 0.95 * rc]
-        checks.append({"model": "hk93", "claim": THESIS["hk93"],
-                       "measure": "relative std of luminance over the face (4x4 blocks), model "
-                                  "vs reference",
-                       "values": {l: {"hk93": c, "reference": rc} for l, c, rc in rows},
-                       "holds_under": holds, "verdict": _verdict(len(holds), len(rows))})
-    # 3. BSSRDF best: first in the per-light ranking (ties count)
-    rows = []
-    for l in lights:
-        order = [r["model"] for r in ranking[l]]
-        if "bssrdf" in order:
-            k = order.index("bssrdf")
-            best = k == 0 or all(ranking[l][j]["tied_with_previous"] for j in range(1, k + 1))
-            rows.append((l, k + 1, best))
-    if rows:
-        holds = [l for l, _, b in rows if b]
-        checks.append({"model": "bssrdf", "claim": THESIS["bssrdf"],
-                       "measure": "rank by relative RMSE on 4x4 blocks per light (1 = closest)",
-                       "values": {l: {"rank": k} for l, k, _ in rows},
-                       "holds_under": holds, "verdict": _verdict(len(holds), len(rows))})
-    # 4. asperity good only under the environment map: its rank there beats its other ranks
-    rows = {}
-    for l in lights:
-        order = [r["model"] for r in ranking[l]]
-        if "asperity" in order:
-            rows[l] = order.index("asperity") + 1
-    env = [l for l in rows if "sunset" in l or "env" in l]
-    if rows and env:
-        other = [rows[l] for l in rows if l not in env]
-        holds = bool(other) and all(rows[e] < min(other) for e in env)
-        checks.append({"model": "asperity", "claim": THESIS["asperity"],
-                       "measure": "asperity's rank under the environment map vs the others",
-                       "values": {l: {"rank": k} for l, k in rows.items()},
-                       "holds_under": env if holds else [],
-                       "verdict": "holds" if holds else "does not hold"})
-    return checks
+def _thesis_numbers(rec, D, M, valid, basis, N, ref_var, ref_hd, info) -> None:
+    """The thesis's diagnostics with their standard errors: highlight excess (shininess) and
+    luminance contrast on 4x4 blocks (softness)."""
+    lum_m, lum_r = D[valid] @ LUMINANCE, M[valid] @ LUMINANCE
+    lum_s = basis[valid] @ LUMINANCE
+    top = np.zeros_like(valid)
+    top[valid] = lum_s >= np.percentile(lum_s, 95.0)
+    means = [(float(lum_m[top[valid]].mean()), mean_se(top, hd=N)[1] if N is not None else 0.0),
+             (float(lum_r[top[valid]].mean()), mean_se(top, var=ref_var, hd=ref_hd)[1]),
+             (float(lum_m.mean()), mean_se(valid, hd=N)[1] if N is not None else 0.0),
+             (float(lum_r.mean()), mean_se(valid, var=ref_var, hd=ref_hd)[1])]
+    (dt, _), (rt, _), (da, _), (ra, _) = means
+    if min(dt, rt, da, ra) <= 0:
+        return
+    h = dt / rt / (da / ra)
+    rec["highlight_excess"] = float(h - 1)
+    rec["highlight_excess_stderr"] = float(h * math.sqrt(sum((s / m) ** 2 for m, s in means)))
+    f = 4
+    D4, m4 = block_mean(D, valid, f)
+    M4, _ = block_mean(M, valid, f)
+    if not m4.any():
+        return
+    vm = (block_mean(N, valid, f)[0] @ LUMINANCE) ** 2 if N is not None else None
+    if ref_hd is not None:   # the luminance of the half-difference, not per channel
+        vr = (block_mean(ref_hd, valid, f)[0] @ LUMINANCE) ** 2
+    else:
+        sig = float(info.get("noise", {}).get(str(f), {}).get("rel", 0.0))
+        vr = _ref_block_var(ref_var, None, valid, f, M4, m4, sig) @ (LUMINANCE * LUMINANCE)
+    rec["contrast"], rec["contrast_stderr"] = _contrast(D4[m4] @ LUMINANCE,
+                                                        None if vm is None else vm[m4])
+    rec["ref_contrast"], rec["ref_contrast_stderr"] = _contrast(M4[m4] @ LUMINANCE, vr[m4])
 
 
-def _verdict(n: int, of: int) -> str:
-    if n == of:
-        return "holds"
-    return "does not hold" if n == 0 else f"holds under {n} of {of} lights"
+def _rank(models: dict, blocks: dict, light: str, M, rmask, ref_var, ref_hd, info):
+    """The light's ranking of the thesis's models on RANK_FACTOR blocks and every pair's
+    comparison (:func:`dermis.reports.truth_noise.pair_test`)."""
+    fk = str(RANK_FACTOR)
+    # the thesis's four are ranked; bssrdf_mc (the same BSSRDF, another profile) has
+    # its rows in the tables but would tie with bssrdf and shift the others' ranks
+    recs = [r for r in models.values() if r["light"] == light and fk in r["scales"]
+            and r["model"] in THESIS_MODELS and r["model"] in blocks]
+
+    def score(r):
+        s = r["scales"][fk]
+        return s["rel_rmse"] ** 2 - (s["model_noise"] or 0.0) ** 2
+    recs.sort(key=score)
+    sigma = float(info.get("noise", {}).get(fk, {}).get("rel", 0.0))
+    Mb, mref = block_mean(M, rmask, RANK_FACTOR)
+    vM = _ref_block_var(ref_var, ref_hd, rmask, RANK_FACTOR, Mb, mref, sigma)
+    pairs, comparisons = {}, {}
+    for i, ra in enumerate(recs):
+        for rb in recs[i + 1:]:
+            a, b = ra["model"], rb["model"]
+            (Da, ma, va), (Db, mb, vb) = blocks[a], blocks[b]
+            m2 = ma & mb
+            d, se, n = pair_test(Da[m2], va[m2], Db[m2], vb[m2], Mb[m2], vM[m2])
+            pairs[(a, b)], pairs[(b, a)] = compare(d, se), compare(-d, se)
+            comparisons[f"{a} vs {b}"] = {"score_difference": d, "stderr": se, "elements": n,
+                                          "result": pairs[(a, b)]}
+    order = [r["model"] for r in recs]
+    ranges = rank_ranges(order, pairs)
+    ranking = []
+    for k, r in enumerate(recs):
+        s = r["scales"][fk]
+        ranking.append({"model": r["model"], "rel_rmse": s["rel_rmse"],
+                        "rel_rmse_true": s["rel_rmse_true"], "noise": s["noise"],
+                        "score": score(r), "factor": RANK_FACTOR,
+                        "rank_best": ranges[r["model"]][0], "rank_worst": ranges[r["model"]][1],
+                        "tied_with_previous": bool(k and pairs[(r["model"], order[k - 1])]
+                                                   == "tied")})
+    return ranking, comparisons
 
 
 # --------------------------------------------------------------------------- outputs
@@ -410,11 +411,80 @@ def write_ground_truth(metrics: dict, images: dict, references: dict, out_dir) -
     return files
 
 
+def _rel_se_lum(mean_rgb, se_rgb) -> float | None:
+    """Relative standard error of a mean's luminance from per-channel ones (channels
+    independent), None without a mean."""
+    lum = float(np.asarray(mean_rgb, np.float64) @ LUMINANCE)
+    if lum <= 0:
+        return None
+    se = np.asarray(se_rgb, np.float64) * LUMINANCE
+    return math.sqrt(float(se @ se)) / lum
+
+
+def metrics_ground_truth(gt: dict) -> dict:
+    """The ``ground_truth`` object of ``metrics.json``, keyed by lighting condition
+    (docs/ground-truth.md "In metrics.json"): the reference's region means and their
+    relative standard errors, every model's distance at the ranking scale and per region with
+    the standard error of both images' noise, whether it is resolved, its rank range and
+    seconds, and the noise the reference reached."""
+    out = {}
+    fk = str(gt.get("rank_factor", RANK_FACTOR))
+    for light, ref in sorted(gt.get("references", {}).items()):
+        rel_se = ref.get("region_rel_se") or {}
+        regions = {}
+        for name in REGIONS:
+            rr = (ref.get("regions") or {}).get(name)
+            if not rr:
+                continue
+            mean = rr.get("mean_rgb", [0.0, 0.0, 0.0])
+            se = rr.get("stderr_rgb")
+            regions[name] = {
+                "pixels": rr.get("pixels"), "ref_mean_rgb": mean,
+                "ref_rel_se": (float(rel_se[name]) if rel_se.get(name) is not None
+                               else _rel_se_lum(mean, se) if se is not None else None),
+                "ref_rel_se_rgb": ([float(s) / m if m > 0 else None for s, m in zip(se, mean)]
+                                   if se is not None else None)}
+        order = [r["model"] for r in gt.get("ranking", {}).get(light, [])]
+        rows = {r["model"]: r for r in gt.get("ranking", {}).get(light, [])}
+        models = {}
+        for rec in gt.get("models", {}).values():
+            s = rec["scales"].get(fk)
+            if rec["light"] != light or not s:
+                continue
+            m = rec["model"]
+            row = rows.get(m)
+            models[m] = {
+                "distance": s["rel_rmse"], "stderr": s["noise"], "resolved": s["resolved"],
+                "distance_true": s["rel_rmse_true"], "ref_noise": s["ref_noise"],
+                "model_noise": s["model_noise"], "own_noise": rec["own_noise"],
+                "scale": int(fk), "seconds": rec.get("seconds"),
+                "rank": order.index(m) + 1 if row else None,
+                "rank_range": [row["rank_best"], row["rank_worst"]] if row else None,
+                "regions": {name: {"rel_diff": g["rel_lum"], "stderr": g["sigma_lum"],
+                                   "resolved": g["resolved"], "rel_diff_rgb": g["rel_rgb"],
+                                   "stderr_rgb": g["sigma_rgb"], "ref_se": g["ref_se_lum"],
+                                   "model_se": g["model_se_lum"],
+                                   "calibration": g["calibration_lum"]}
+                            for name, g in rec["regions"].items()}}
+        worst = max(((v["ref_rel_se"], k) for k, v in regions.items()
+                     if v["ref_rel_se"] is not None), default=(None, None))
+        out[light] = {"regions": regions, "models": models, "ranking": order,
+                      "noise_reached": {"passes": ref.get("passes"), "spp": ref.get("spp"),
+                                        "stopped": ref.get("stopped"),
+                                        "target_rel_se": ref.get("target_rel_se"),
+                                        "budget_s": ref.get("budget_s"),
+                                        "seconds": ref.get("seconds"),
+                                        "worst_region": worst[1],
+                                        "worst_region_rel_se": worst[0],
+                                        "calibration_rel_rgb": ref.get("calibration_rel_rgb")}}
+    return out
+
+
 def _fmt_e(s: dict | None) -> str:
     if not s:
         return "-"
     mark = "" if s["resolved"] else " (n.r.)"
-    return f"{100 * s['rel_rmse']:.1f} ± {100 * s['ref_noise']:.1f}{mark}"
+    return f"{100 * s['rel_rmse']:.1f} ± {100 * s['noise']:.1f}{mark}"
 
 
 def _fmt_speed(s: dict | None) -> str:
@@ -450,10 +520,11 @@ def ground_truth_pages(pdf, metrics: dict | None, images: dict, references: dict
 
     # page 1: error table per light (rel RMSE at reference pixels and 4x4 blocks, FLIP, SSIM)
     fig = plt.figure(figsize=figsize)
-    fig.suptitle("Distance to ground truth: Mitsuba 3 volumetric path tracing", fontsize=12)
+    fig.suptitle("Ground truth in detail: distance at every scale, FLIP, SSIM, cost",
+                 fontsize=12)
     ax = fig.add_axes([0.03, 0.08, 0.94, 0.8])
     ax.axis("off")
-    header = ["light", "model", "rel RMSE % ± ref noise (px)", "(4×4 blocks)", "FLIP", "SSIM",
+    header = ["light", "model", "rel RMSE % ± noise (px)", "(4×4 blocks)", "FLIP", "SSIM",
               "seconds", "speed-up (px)", "speed-up (4×4)", "rank"]
     cells = []
     for l in lights:
@@ -475,17 +546,18 @@ def ground_truth_pages(pdf, metrics: dict | None, images: dict, references: dict
     notes = [f"Reference: {ref0['width']}×{ref0['height']} px, {ref0['spp']} spp "
              f"(two seeds), {ref0['variant']}, "
              + ", ".join(f"{l} {metrics['references'][l]['seconds']:.0f} s" for l in lights),
-             "n.r. = not resolved: the error is below "
-             f"{RESOLVE_K:g}× the reference's own noise at that scale; speed-ups are then lower "
-             "bounds.  Speed-up = path-tracer time to reach the model's error / model time."]
-    fig.text(0.03, 0.03, "\n".join(notes), fontsize=7)
+             "± = the relative RMSE that noise alone gives at that scale (the reference's and "
+             "the model's own, in quadrature).  n.r. = not resolved: the error is below "
+             f"{RESOLVE_K:g}× that noise; speed-ups are then lower bounds.  Speed-up = "
+             "path-tracer time to reach the model's error / model time."]
+    fig.text(0.03, 0.03, "\n".join(textwrap.fill(n, 200) for n in notes), fontsize=7)
     pdf.savefig(fig)
     plt.close(fig)
     pages += 1
 
     # page 2: region table (relative luminance difference ± sigma per region)
     fig = plt.figure(figsize=figsize)
-    fig.suptitle("Distance to ground truth: region means (model / reference - 1, luminance)",
+    fig.suptitle("Ground truth in detail: region means (model / reference - 1, luminance, %)",
                  fontsize=12)
     ax = fig.add_axes([0.03, 0.08, 0.94, 0.8])
     ax.axis("off")
@@ -508,8 +580,9 @@ def ground_truth_pages(pdf, metrics: dict | None, images: dict, references: dict
         t.set_fontsize(7)
         t.scale(1, 1.25)
     fig.text(0.03, 0.03, "Regions are sets of mesh faces (dermis.geometry.regions): the same "
-             "skin from any camera.  ± = the reference's standard error of the region mean "
-             "and the albedo tint's calibration error.", fontsize=7)
+             "skin from any camera.  ± = one standard error: the reference's and the model's "
+             "own of the region means and the albedo tint's calibration error, in quadrature.",
+             fontsize=7)
     pdf.savefig(fig)
     plt.close(fig)
     pages += 1
@@ -555,22 +628,20 @@ def ground_truth_pages(pdf, metrics: dict | None, images: dict, references: dict
 
     # page 4: the thesis's conclusions, with numbers
     fig = plt.figure(figsize=figsize)
-    fig.suptitle("The thesis's conclusions against the ground truth", fontsize=12)
+    fig.suptitle("Ground truth in detail: the thesis's conclusions, with their numbers",
+                 fontsize=12)
     y = 0.88
     for c in metrics.get("thesis", []):
-        vals = "; ".join(f"{l}: " + ", ".join(f"{k} {v:.3g}" for k, v in d.items())
+        vals = "; ".join(f"{l} ({c.get('per_light', {}).get(l, '-')}): " + _fmt_values(d)
                          for l, d in c["values"].items())
         fig.text(0.04, y, f"- {c['claim']} - {c['verdict']}", fontsize=9, weight="bold")
         fig.text(0.06, y - 0.035, f"measure: {c['measure']}", fontsize=7.5)
         fig.text(0.06, y - 0.07, vals, fontsize=7.5, wrap=True)
         y -= 0.16
-    lines = []
-    for l in lights:
-        order = metrics["ranking"].get(l, [])
-        lines.append(f"{l}: " + " < ".join(
-            ("~ " if r["tied_with_previous"] else "") + f"{r['model']} ({100 * r['rel_rmse']:.1f} %)"
-            for r in order))
-    fig.text(0.04, max(y, 0.1), "Ranking per light (closest first):\n" + "\n".join(lines),
+    from dermis.reports.truth_pages import ranking_text
+    lines = [f"{l}: {ranking_text(metrics, l)}" for l in lights]
+    fig.text(0.04, max(y, 0.1), "Ranking per light (relative RMSE % on 4×4 blocks, closest "
+             "first; '<' resolved apart, '~' not resolved at this noise):\n" + "\n".join(lines),
              fontsize=8)
     pdf.savefig(fig)
     plt.close(fig)
@@ -578,22 +649,54 @@ def ground_truth_pages(pdf, metrics: dict | None, images: dict, references: dict
     return pages
 
 
+def _fmt_values(d: dict) -> str:
+    """"name value ± stderr" for each number of a thesis check's values."""
+    parts = []
+    for k, v in d.items():
+        if k.endswith("_stderr"):
+            continue
+        se = d.get(f"{k}_stderr")
+        if isinstance(v, float):
+            parts.append(f"{k} {v:.3g}" + (f" ± {se:.2g}" if se is not None and
+                                            math.isfinite(se) else ""))
+        else:
+            parts.append(f"{k} {v}")
+    return ", ".join(parts)
+
+
 def ground_truth_section(images: dict, references: dict, out_dir, files: list, *, mesh, camera,
-                         extra_seconds: dict, skip_reason: str | None):
+                         extra_seconds: dict, skip_reason: str | None,
+                         differences: dict | None = None, tiles: dict | None = None):
     """The report's distance-to-ground-truth section: metrics and files of ``references``
     (light -> RenderedImage; ``mesh`` and ``camera`` as :func:`ground_truth_metrics`, unused
-    when there are none), and a function adding its pages to the open PDF.
+    when there are none) and two functions adding pages to the open PDF: the opening pages
+    (:func:`dermis.reports.truth_pages.opening_pages`, right after the title page; with
+    ``differences``, the metrics of the differences against the BSSRDF, and their ``tiles``
+    {(model, light, geometry): image} beside the ones against the reference) and the
+    detail pages (:func:`ground_truth_pages`, at the end).
 
-    Its files are appended to ``files``.  Returns that function and an info dict whose
-    ``pages`` is filled in when the function has run."""
-    info = {"references": sorted(references), "pages": 0}
+    Its files are appended to ``files``.  Returns (opening, details, info): info's ``pages``
+    is filled in when the functions have run, ``metrics`` is the ``ground_truth`` object of
+    ``metrics.json`` ({} without references), ``title`` the title page's lines
+    (:func:`dermis.reports.truth_pages.title_lines`)."""
+    from dermis.reports.truth_pages import opening_pages, title_lines
+    info = {"references": sorted(references), "pages": 0, "metrics": {}}
     gt = None
     if references:
         gt = ground_truth_metrics(images, references, mesh=mesh, camera=camera,
                                   extra_seconds=extra_seconds)
         files.extend(write_ground_truth(gt, images, references, out_dir))
         info["ranking"] = gt["ranking"]
+        info["metrics"] = metrics_ground_truth(gt)
+        info["thesis"] = [{k: c[k] for k in ("model", "claim", "verdict", "per_light")}
+                          for c in gt["thesis"]]
+    info["title"] = title_lines(gt, skip_reason)
 
-    def add_pages(pdf):
-        info["pages"] = ground_truth_pages(pdf, gt, images, references, skip_reason=skip_reason)
-    return add_pages, info
+    def opening(pdf):
+        info["pages"] += opening_pages(pdf, gt, images, references, differences=differences,
+                                    tiles=tiles)
+
+    def details(pdf):
+        if gt:
+            info["pages"] += ground_truth_pages(pdf, gt, images, references)
+    return opening, details, info

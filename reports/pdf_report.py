@@ -3,18 +3,22 @@
 Pages, in order (Arizpe 2006 compares images, difference images and timings; this adds
 measured errors):
 
-1. title page: scene, device, date and a summary generated from the numbers;
-2. per geometry: images, rows models x columns lights, ONE exposure per light shared by all
+1. title page: scene, device, date and a summary generated from the numbers: first the
+   distance of every model to the path-traced reference and the thesis's verdicts
+   (:func:`dermis.reports.truth_pages.title_lines`), or why there is no reference;
+2. the caller's opening pages (``opening_pages``): the distance to ground truth per lighting
+   condition (:func:`dermis.reports.truth_pages.opening_pages`);
+3. per geometry: images, rows models x columns lights, ONE exposure per light shared by all
    models and geometries (:func:`dermis.reports.tonemap.shared_exposure`), seconds under each;
-3. per geometry with reference renders: difference images vs the reference (BSSRDF), one
+4. per geometry with reference renders: difference images vs the reference (BSSRDF), one
    symmetric colour scale per light (the scales of :func:`reports.diff.write_differences`),
    relative RMSE and SSIM under each;
-4. timing table (seconds per image; BSSRDF plus its irradiance pass) beside the thesis's
+5. timing table (seconds per image; BSSRDF plus its irradiance pass) beside the thesis's
    table (docs/science.md §7);
-5. error vs time scatter plot -- users trade speed for accuracy;
-6. geometry page: relative RMSE of the low mesh + bump maps vs the ~1M-triangle mesh;
-7. pages the caller adds (``extra_pages``): the report node's layer-profile page
-   (:mod:`dermis.reports.profile_pages`) and the distance-to-ground-truth section.
+6. error vs time scatter plot -- users trade speed for accuracy;
+7. geometry page: relative RMSE of the low mesh + bump maps vs the ~1M-triangle mesh;
+8. pages the caller adds (``extra_pages``): the report node's layer-profile page
+   (:mod:`dermis.reports.profile_pages`) and the ground truth's detail pages.
 """
 from __future__ import annotations
 
@@ -193,7 +197,19 @@ def _grid_axes(fig, nrows: int, ncols: int, *, top=0.91, bottom=0.02, left=0.02,
     return axes
 
 
-def _title_page(plt, images, metrics, *, scene_name, device, timings_extra, credits=()):
+def _truth_text(truth: dict) -> str:
+    """The title page's ground-truth block, wrapped."""
+    wrap = lambda s: textwrap.fill(s, 150, initial_indent="- ", subsequent_indent="  ")
+    lines = [textwrap.fill(truth["note"], 155)]
+    lines += [wrap(s) for s in truth.get("lines", [])]
+    if truth.get("thesis"):
+        lines.append("The thesis's conclusions against the reference:")
+        lines += [wrap(f"{claim}: {verdict}") for claim, verdict in truth["thesis"]]
+    return "\n".join(lines)
+
+
+def _title_page(plt, images, metrics, *, scene_name, device, timings_extra, credits=(),
+                truth=None):
     idx = _index(images)
     fig = _new_page(plt, "")
     fig.text(0.5, 0.88, "dermis: skin rendering comparison", ha="center", fontsize=20)
@@ -205,14 +221,22 @@ def _title_page(plt, images, metrics, *, scene_name, device, timings_extra, cred
         f"images: {len(idx)}   models: {', '.join(_ordered_models(m for m, _, _ in idx))}",
         f"lights: {', '.join(sorted({l for _, l, _ in idx}))}",
         f"geometries: {', '.join(_ordered_geoms(g for _, _, g in idx))}",
-        f"reference model for differences: {metrics.get('reference_model', '-')}",
+        f"ground truth: {'Mitsuba 3 path-traced reference' if truth and truth['truth'] else 'none'}"
+        f";  model differences also against: {metrics.get('reference_model', '-')}",
     ]
-    fig.text(0.08, 0.74, "\n".join(facts), va="top", fontsize=10, family="monospace")
+    y = _place(fig, 0.77, "\n".join(facts), fontsize=9, family="monospace") - 0.035
+    small = bool(truth)   # the ground truth leads: the rest is set smaller
+    if truth:
+        y = _place(fig, y, "Summary: distance to ground truth" if truth["truth"] else
+                   "Summary: no ground truth", fontsize=11, weight="bold") - 0.01
+        y = _place(fig, y, _truth_text(truth), fontsize=8.5, linespacing=1.35) - 0.03
     summary = summary_text(images, metrics, timings_extra=timings_extra)
-    fig.text(0.08, 0.53, "Summary", fontsize=12, weight="bold")
-    text = "\n".join(textwrap.fill(line, 140, initial_indent="- ", subsequent_indent="  ")
-                     for line in summary.splitlines())
-    fig.text(0.08, 0.50, text, va="top", fontsize=9, linespacing=1.5)
+    y = _place(fig, y, "Against the BSSRDF (a model, not the truth)" if truth and truth["truth"]
+               else "Summary", fontsize=11 if small else 12, weight="bold") - 0.01
+    text = "\n".join(textwrap.fill(line, 165 if small else 140, initial_indent="- ",
+                                   subsequent_indent="  ") for line in summary.splitlines())
+    y = _place(fig, y, text, fontsize=7.5 if small else 9,
+               linespacing=1.3 if small else 1.5) - 0.025
     floor = metrics.get("rel_floor_fraction")
     howto = (
         "Relative RMSE = RMSE / RMS of the reference over the pixels both renders cover. "
@@ -221,11 +245,18 @@ def _title_page(plt, images, metrics, *, scene_name, device, timings_extra, cred
         "percentile use it. Difference images: red = brighter than the reference, blue = "
         "darker, one symmetric scale per light. Reproduces and extends A. Arizpe, A Critical "
         "Comparison of Human Face Rendering Techniques, MIT MEng thesis, 2006.")
-    fig.text(0.08, 0.12, textwrap.fill(howto, 150), va="top", fontsize=7.5, color="0.3")
+    y = _place(fig, min(y, 0.12), textwrap.fill(howto, 160), fontsize=7, color="0.3") - 0.01
     if credits:  # the scan's CC BY attribution goes wherever the scan appears
-        fig.text(0.08, 0.05, "\n".join(textwrap.fill(c, 150) for c in credits), va="top",
-                 fontsize=7.5, color="0.3")
+        _place(fig, min(y, 0.05), "\n".join(textwrap.fill(c, 160) for c in credits),
+               fontsize=7, color="0.3")
     return fig
+
+
+def _place(fig, y: float, text: str, **kw) -> float:
+    """Draw ``text`` with its top at ``y`` (figure fraction, x = 0.08); returns its bottom."""
+    t = fig.text(0.08, y, text, va="top", **kw)
+    box = t.get_window_extent(renderer=fig.canvas.get_renderer())
+    return y - box.height / fig.bbox.height
 
 
 def _mosaic_page(plt, title: str, mosaic: np.ndarray, *, bottom: float = 0.01):
@@ -470,9 +501,16 @@ def _geometry_page(plt, metrics):
     return fig
 
 
+def _opening(pdf, opening_pages) -> list:
+    if opening_pages is not None:
+        opening_pages(pdf)
+    return []
+
+
 def write_report(images: dict, metrics: dict, out_pdf, *, scene_name: str, device: str,
                  timings_extra: dict | None = None, credits=(), tiles: dict | None = None,
-                 image_tiles: dict | None = None, extra_pages=None) -> Path:
+                 image_tiles: dict | None = None, extra_pages=None, opening_pages=None,
+                 truth: dict | None = None) -> Path:
     """Write the multi-page comparison PDF.
 
     Parameters
@@ -494,7 +532,11 @@ def write_report(images: dict, metrics: dict, out_pdf, *, scene_name: str, devic
         The BSSRDF's irradiance pass per lighting condition and mesh ("mesh_high"/"mesh_low",
         or "high"/"low"); added to the BSSRDF's time in the table, summary and scatter plot.
     extra_pages : callable(PdfPages), optional
-        Adds further pages at the end (the distance-to-ground-truth section).
+        Adds further pages at the end (the profile page, the ground truth's details).
+    opening_pages : callable(PdfPages), optional
+        Adds pages right after the title page (the distance to ground truth).
+    truth : dict, optional
+        The title page's ground-truth summary (:func:`dermis.reports.truth_pages.title_lines`).
 
     Returns
     -------
@@ -516,16 +558,18 @@ def write_report(images: dict, metrics: dict, out_pdf, *, scene_name: str, devic
     import logging
     logging.getLogger("matplotlib.font_manager").setLevel(logging.ERROR)
     # zlib level 1 for the page images: ~3x faster than 6 for a slightly larger file.
+    # ASCII minus signs on the axes: U+2212 is outside the standard fonts' Latin-1.
     # Titles at the top of their axes (axes.titley = 1, where matplotlib's automatic placement
     # puts them when no tick labels sit on top): the automatic placement measures every tick
     # label of the axes first, ~0.1 s per log-scaled axes on this report's pages.
     with plt.rc_context({"font.size": FONT_PT, "pdf.use14corefonts": True,
                          "font.family": "sans-serif", "pdf.compression": 1,
-                         "axes.titley": 1.0}), \
+                         "axes.titley": 1.0, "axes.unicode_minus": False}), \
             PdfPages(out_pdf) as pdf:
         builders = [lambda: [_title_page(plt, images, metrics, scene_name=scene_name,
                                          device=device, timings_extra=timings_extra,
-                                         credits=credits)],
+                                         credits=credits, truth=truth)],
+                    lambda: _opening(pdf, opening_pages),
                     lambda: _image_pages(plt, images, image_tiles),
                     lambda: _diff_pages(plt, images, metrics, (tiles or {}).get("model")),
                     lambda: [_timing_page(plt, images, metrics, device=device,

@@ -15,8 +15,9 @@ NAME = "differences"
 VERSION = 1
 KERNELS = ()
 OUTPUT_FOLDER = "report"      # the difference PNGs go beside the report
-# the model every other is compared with (the thesis's most complete model), while no
-# path-traced reference is rendered
+# the model every other is compared with here (the thesis's most complete model); the
+# distance to the path-traced reference, when there is one, is the report's
+# (reports/ground_truth.py), whose pages show these differences beside it
 BASELINE = "bssrdf"
 
 

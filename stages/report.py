@@ -1,12 +1,18 @@
-"""Stage ``report``: difference images against the BSSRDF (and low vs high geometry), metrics,
-and the multi-page PDF (:mod:`dermis.reports.diff`, :mod:`dermis.reports.pdf_report`).
+"""Stage ``report``: every model's distance to the path-traced reference, difference images
+against the BSSRDF (and low vs high geometry), metrics, and the multi-page PDF
+(:mod:`dermis.reports.ground_truth`, :mod:`dermis.reports.diff`,
+:mod:`dermis.reports.pdf_report`).
 
 The differences themselves are the ``differences`` nodes' (one per lighting condition,
 :mod:`dermis.reports.light_differences`); this node merges their metrics, draws the grids
 from their thumbnails and writes the PDF, so a changed light recomputes one light's
-comparisons, not all of them."""
+comparisons, not all of them.  With references the PDF leads with the distance to them
+(title page and the pages after it) and ``metrics.json`` gains ``ground_truth`` (per
+lighting condition) and ``thesis`` (docs/ground-truth.md "In metrics.json"); without,
+``ground_truth`` is empty and ``ground_truth_skipped`` says why, as the title page does."""
 from __future__ import annotations
 
+import json
 from dataclasses import asdict
 from pathlib import Path
 
@@ -20,7 +26,7 @@ from dermis.reports.light_differences import merge_light_differences
 from dermis.reports.profile_pages import profile_pages
 
 NAME = "report"
-VERSION = 3
+VERSION = 4
 KERNELS = ()
 GROUND_TRUTH_MESH = "mesh_high"   # the references are of the high mesh; regions are on it
 
@@ -81,21 +87,33 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     if params.get("images"):   # the images stage's tone-mapped thumbnails for the image pages
         thumbs, _ = load_thumbnails(inputs[params["images"]])
     refs = {inputs[nid].info["light"]: inputs[nid] for nid in params.get("references", ())}
-    gt_pages, gt_info = ground_truth_section(
+    opening, details, gt_info = ground_truth_section(
         images, refs, ctx.out_dir, files, mesh=inputs[GROUND_TRUTH_MESH] if refs else None,
         camera=CameraConfig(**params["camera"]) if refs else None, extra_seconds=extra,
-        skip_reason=params.get("reference_skipped"))
+        skip_reason=params.get("reference_skipped"), differences=metrics,
+        tiles=tiles.get("model"))
+    metrics["ground_truth"] = gt_info["metrics"]
+    if refs:
+        metrics["thesis"] = gt_info["thesis"]
+    else:
+        metrics["ground_truth_skipped"] = gt_info["title"]["note"]
+    mpath = ctx.out_dir / "metrics.json"
+    mpath.write_text(json.dumps(metrics, indent=1, sort_keys=True, default=float))
+    if mpath.name not in {Path(f).name for f in files}:
+        files.append(mpath)
     profiles = {nid: inputs[nid] for nid in params.get("profiles", ())}
     added = {"profiles": 0}
 
-    def extra_pages(pdf):   # the profile page, then the ground-truth section
+    def extra_pages(pdf):   # the profile page, then the ground truth's details
         added["profiles"] = profile_pages(pdf, profiles)
-        gt_pages(pdf)
+        details(pdf)
     pdf = pdf_report.write_report(images, metrics, ctx.out_dir / "report.pdf",
                                   scene_name=params["scene_name"], device=ctx.cl.description,
                                   timings_extra=extra, credits=params["credits"], tiles=tiles,
-                                  image_tiles=thumbs, extra_pages=extra_pages)
+                                  image_tiles=thumbs, extra_pages=extra_pages, opening_pages=opening,
+                                  truth=gt_info["title"])
     names = [Path(f).name for f in files] + [pdf.name]
     pages = (pdf_report.report_page_count(images, metrics) + added["profiles"]
              + gt_info["pages"])
-    return StageResult(files=names, info={"pages": pages, "ground_truth": gt_info})
+    summary = {k: gt_info[k] for k in ("references", "pages", "ranking", "thesis") if k in gt_info}
+    return StageResult(files=names, info={"pages": pages, "ground_truth": summary})
