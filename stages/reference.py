@@ -76,7 +76,7 @@ def node(scene, label: str, lights: tuple) -> Node:
               "optics": scene.optics.to_dict(),
               "reference": {**asdict(scene.reference), "width": w, "height": h}}
     return Node(node_id(label), NAME, __name__, params, {"mesh": MESH_NODE},
-                label=f"reference / {label} (Mitsuba)",
+                label=f"reference / {label} (Mitsuba)", locations=("lights[].map",),
                 resumable=("reference.budget_s", "reference.max_passes"))
 
 

@@ -99,11 +99,12 @@ REFUSED_AT_LOAD = {  # id: (overrides, substrings the message must hold)
                                                                  "look_at": [0.0, 0.0, 0.0]},
                               "lights": [dict(POINT, position=[0.35, 0.45, 0.6])]},
                              ["camera.position[2] = 1e+306 (m)", "at most 1e+18 mm"]),
-    "reference_size_while_disabled": ({"reference": {"width": 3}},
-                                      ["reference.width x height = 3 x 100",
+    "reference_size_while_disabled": ({"reference": {"width": 3, "height": 3,
+                                                     "enabled": False}},
+                                      ["reference.width x height = 3 x 3",
                                        "must divide the camera's 32 x 32"]),
     "reference_lights_while_disabled": ({"reference": {"width": 16, "height": 16,
-                                                       "lights": ["nope"]}},
+                                                       "enabled": False, "lights": ["nope"]}},
                                         ['reference.lights: "nope" is not a lighting condition']),
 }
 
