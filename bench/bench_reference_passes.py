@@ -48,7 +48,6 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=str(REPO / "bench" / "results" / "reference_passes.json"))
     args = ap.parse_args(argv)
 
-    import numpy as np
     from dermis.pipeline import api, artifacts
     from dermis.pipeline.config import load_scene
     over = {"render": {"geometries": ["high"], "models": []}, "output": {"previews": False},
@@ -64,10 +63,12 @@ def main(argv=None) -> int:
            "max_spp": args.max_spp, "wall_seconds": wall, "cpu_seconds": cpu,
            "loadavg_before": load0, "loadavg_after": os.getloadavg(), "cpus": os.cpu_count(),
            "lights": {}}
+    from dermis.pipeline.graph import restore_measurements
     for rep in summary.nodes:
         if rep.stage != "reference":
             continue
-        ref = artifacts.load(rep.path)
+        meta = json.loads((Path(rep.path) / "meta.json").read_text())
+        ref = restore_measurements(artifacts.load(rep.path), meta.get("measurements", {}))
         info = ref.info
         log = info["pass_log"]
         uniform = [p for p in log if p.get("uniform")]
