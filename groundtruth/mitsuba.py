@@ -19,6 +19,7 @@ import importlib.util
 import os
 import subprocess
 import sys
+import threading
 
 from dermis.pipeline.errors import ConfigError, DermisError
 
@@ -35,6 +36,7 @@ class MitsubaUnavailable(DermisError):
 
 
 _STATE: dict = {}
+_LOAD_LOCK = threading.RLock()
 
 
 def mitsuba_missing_reason() -> str | None:
@@ -60,7 +62,13 @@ def load_mitsuba(variant: str = "auto"):
 
     ``variant = "auto"`` tries :data:`VARIANTS` in order and keeps the first that renders a
     one-pixel test scene.  Raises :class:`MitsubaUnavailable` with the install command.
+    Thread-safe: two nodes of a run may ask at once (the first import is not).
     """
+    with _LOAD_LOCK:
+        return _load_mitsuba(variant)
+
+
+def _load_mitsuba(variant: str):
     reason = mitsuba_missing_reason()
     if reason:
         raise MitsubaUnavailable(reason)
