@@ -155,6 +155,7 @@ def test02_reciprocal_slab_agrees_with_slab_py_and_the_smooth_one_with_monte_car
                                                                        recip.Rd_stderr))
 
 
+@pytest.mark.slow
 def test03_boundary_variant_of_a_flat_slab_reads_the_slab_numbers(mi, tmp_path):
     """The boundary variant on a flat, uniformly textured slab seen straight down under a
     uniform sky: each boundary reads albedo + its own specular reflection (the rough one
@@ -285,6 +286,7 @@ def test06_the_causes_page_draws(tmp_path):
 
 
 # ------------------------------------------------------------------------ the stage
+@pytest.mark.slow
 def test07_stage_plan_settings_and_cache(mi, tmp_path):
     """One causes node per referenced lighting condition when the reference is on (none
     when it or [causes] is off), the boundary variant only under disc lights, a point light
