@@ -29,6 +29,7 @@ STAGES = (
     ("render", "dermis.stages.render"),
     ("bssrdf", "dermis.stages.bssrdf"),
     ("reference", "dermis.stages.reference"),
+    ("causes", "dermis.stages.causes"),
     ("images", "dermis.stages.images"),
     ("differences", "dermis.stages.differences"),
     ("report", "dermis.stages.report"),

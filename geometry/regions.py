@@ -13,7 +13,12 @@ of the nose tip (largest |x| within 15 mm of that height).  Rules on a face's ce
 (x, y, z relative to the nose tip) and its unit normal n, in this order (first match wins,
 so the regions are disjoint):
 
-* ``nose``: |x| < 0.2 w, -0.15 w < y < 0.45 w, z > -0.3 w;
+* ``nostril``: the thin parts of the nose's base -- the alae (0.07 w < |x| < 0.2 w,
+  -0.18 w < y < 0.06 w, -0.3 w < z < -0.05 w) and, between them, the columella and the
+  nostrils' openings (|x| <= 0.07 w, -0.18 w < y < -0.03 w, z > -0.3 w, facing down:
+  n_y < -0.3);
+* ``nose``: |x| < 0.2 w, -0.15 w < y < 0.45 w, z > -0.3 w (what ``nostril`` left: the
+  bridge, the sides and the tip);
 * ``ear``: |x| > 0.82 w, -0.45 w < y < 0.55 w, z < -0.7 w (the lateral protrusions
   behind the cheeks; the shoulders of a scan are below -0.45 w);
 * ``forehead``: 0.7 w < y < 1.15 w, |x| < 0.45 w, n_z > 0.35;
@@ -25,8 +30,11 @@ so the regions are disjoint):
   sunset (sun 36 deg towards -x) this cheek is the lit one.
 
 The fractions were chosen by looking at label images of the Lee Perry-Smith scan and of the
-procedural head from the front and from the side (tests/test_reference.py checks that
-every region is non-empty on both heads and that two cameras see the same faces).
+procedural head from the front, from below and from the side (tests/test_reference.py checks
+that every region is non-empty on both heads and that two cameras see the same faces).
+``ear`` and ``nostril`` are the thin parts, where light crosses the tissue: a model of a
+locally flat surface misses that light, so they are measured apart.  Labels keep their
+numbers as regions are added (``nostril`` is the last).
 
 Pure functions only; numpy.
 """
@@ -36,11 +44,16 @@ import numpy as np
 
 from dermis.pipeline.errors import DermisError
 
-__all__ = ["REGIONS", "REGION_PALETTE", "region_colours", "landmarks", "face_regions",
-           "block_mean", "region_stats", "REGION_LABELS"]
+__all__ = ["REGIONS", "REGION_COLOURS", "region_colours", "landmarks", "face_regions",
+           "block_mean", "region_stats", "REGION_LABELS", "THIN_REGIONS"]
 
-REGIONS = ("forehead", "cheek", "nose", "ear", "shadowed_side")
+REGIONS = ("forehead", "cheek", "nose", "ear", "shadowed_side", "nostril")
 REGION_LABELS = {name: i + 1 for i, name in enumerate(REGIONS)}
+THIN_REGIONS = ("ear", "nostril")
+# Label-image colours (sRGB 8-bit): index 0 = no hit, k = REGIONS[k - 1], the last = a hit
+# outside every region.
+REGION_COLOURS = ((0, 0, 0), (230, 60, 60), (60, 200, 60), (60, 60, 230), (230, 200, 40),
+                  (160, 60, 200), (40, 210, 210), (128, 128, 128))
 # Height band (mm) around the nose tip in which the half-width w is measured.
 _WIDTH_BAND_MM = 15.0
 
@@ -69,6 +82,10 @@ def face_regions(vertices, faces) -> np.ndarray:
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
     x, y, z = c[:, 0] / w, c[:, 1] / w, c[:, 2] / w
     rules = {
+        "nostril": (((np.abs(x) > 0.07) & (np.abs(x) < 0.2) & (y > -0.18) & (y < 0.06)
+                     & (z > -0.3) & (z < -0.05))
+                    | ((np.abs(x) <= 0.07) & (y > -0.18) & (y < -0.03) & (z > -0.3)
+                       & (n[:, 1] < -0.3))),
         "nose": (np.abs(x) < 0.2) & (y > -0.15) & (y < 0.45) & (z > -0.3),
         "ear": (np.abs(x) > 0.82) & (y > -0.45) & (y < 0.55) & (z < -0.7),
         "forehead": (y > 0.7) & (y < 1.15) & (np.abs(x) < 0.45) & (n[:, 2] > 0.35),
@@ -78,23 +95,16 @@ def face_regions(vertices, faces) -> np.ndarray:
                          & (n[:, 2] > 0.15),
     }
     out = np.zeros(len(f), np.int8)
-    for name in ("nose", "ear", "forehead", "cheek", "shadowed_side"):  # first match wins
+    for name in ("nostril", "nose", "ear", "forehead", "cheek", "shadowed_side"):  # first wins
         out[(out == 0) & rules[name]] = REGION_LABELS[name]
     return out
-
-
-# One colour per label of :func:`region_colours`: none (black), each region, then grey for a
-# pixel that sees the head outside every region.
-REGION_PALETTE = np.array([[0, 0, 0], [230, 60, 60], [60, 200, 60], [60, 60, 230],
-                           [230, 200, 40], [160, 60, 200], [40, 200, 200], [128, 128, 128]],
-                          np.uint8)
 
 
 def region_colours(labels: np.ndarray, hit: np.ndarray) -> np.ndarray:
     """(H, W, 3) uint8 picture of per-pixel region ``labels`` (0: none) where ``hit``: a
     colour per region, grey for head pixels in no region, black off the head."""
-    other = len(REGION_PALETTE) - 1
-    return REGION_PALETTE[np.where(np.asarray(hit, bool) & (labels == 0), other, labels)]
+    palette = np.array(REGION_COLOURS, np.uint8)
+    return palette[np.where(np.asarray(hit, bool) & (labels == 0), len(palette) - 1, labels)]
 
 
 def block_mean(image: np.ndarray, mask: np.ndarray, factor: int

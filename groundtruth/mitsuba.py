@@ -67,13 +67,13 @@ def load_mitsuba(variant: str = "auto"):
 
     ``variant = "auto"`` tries :data:`VARIANTS` in order and keeps the first that renders a
     one-pixel test scene.  Raises :class:`MitsubaUnavailable` with the install command.
-    Thread-safe.
+    Thread-safe: two nodes of a run may ask at once (the first import is not).
     """
     with _LOAD_LOCK:
-        return _load(variant)
+        return _load_mitsuba(variant)
 
 
-def _load(variant: str):
+def _load_mitsuba(variant: str):
     reason = mitsuba_missing_reason()
     if reason:
         raise MitsubaUnavailable(reason)

@@ -26,14 +26,15 @@ MAX_LANES = 1 << 21
 
 
 def render_passes(mi, scene, *, spp: int, seed: int, checkpoints=(),
-                  progress: Callable[[int], None] | None = None
+                  progress: Callable[[int], None] | None = None, integrator=None
                   ) -> tuple[np.ndarray, list, float]:
     """Render ``spp`` samples per pixel in calls of at most :data:`MAX_LANES` samples.
 
     Returns the (H, W, 3) float64 mean image, a list of (spp so far, mean image so far) at
     each of ``checkpoints`` (sample counts; the final count is always included) and the
     seconds spent.  Call k uses seed ``seed * 65536 + k`` (independent streams; seeds < 65536).
-    ``progress(samples_done)`` is called after every call.
+    ``progress(samples_done)`` is called after every call.  ``integrator``: a loaded Mitsuba
+    integrator replacing the scene's own (None: the scene's).
     """
     film = scene.sensors()[0].film()
     w, h = (int(c) for c in film.crop_size())
@@ -45,8 +46,8 @@ def render_passes(mi, scene, *, spp: int, seed: int, checkpoints=(),
     for mark in marks:
         while done < mark:
             n = min(per_call, mark - done)
-            img = np.asarray(mi.render(scene, spp=n, seed=int(seed) * 65536 + k),
-                             dtype=np.float64)
+            img = np.asarray(mi.render(scene, spp=n, seed=int(seed) * 65536 + k,
+                                       integrator=integrator), dtype=np.float64)
             acc += img[..., :3] * n
             done += n
             k += 1

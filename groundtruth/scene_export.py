@@ -25,11 +25,12 @@ are :mod:`dermis.groundtruth.passes`):
   model), no rotation needed at ``rotation_deg = 0`` (Mitsuba's lat-long convention equals
   dermis's: centre along +z, u growing towards -x, measured) and ``rotate(+y, -rotation_deg)``
   otherwise.
-* **Skin**: a ``roughdielectric`` boundary (GGX, alpha ``roughness``) with the stack's
-  relative index; inside it the layer stack as homogeneous media with sigma_s =
-  sigma_s' / (1 - g), sigma_a and a Henyey-Greenstein phase function of mean cosine g,
-  exactly as the Monte Carlo slab and HK93 use them.  Medium colours are sigma_t / max
-  sigma_t with ``scale`` = max sigma_t (trap 1).  A finite layer k is the shell between
+* **Skin**: a ``roughdielectric`` boundary (GGX, alpha ``roughness``; roughness 0: the
+  smooth ``dielectric``, the models' Fresnel boundary) with the stack's relative index;
+  inside it the layer stack as homogeneous media with sigma_s = sigma_s' / (1 - g),
+  sigma_a and a Henyey-Greenstein phase function of mean cosine g, exactly as the Monte
+  Carlo slab and HK93 use them.  Medium colours are sigma_t / max sigma_t with ``scale`` =
+  max sigma_t (trap 1).  A finite layer k is the shell between
   the surface offset inwards by the thickness of the layers above it and the surface offset
   by that plus its own thickness (vertex normals); index-matched interfaces are ``null``
   BSDFs, others rough dielectrics.  The media do not sample emitters (trap 6: a shadow ray
@@ -64,8 +65,9 @@ from dermis.rendering.color import srgb_to_linear
 from dermis.geometry.normals import vertex_normals
 
 __all__ = ["unweld", "write_ply", "offset_surface", "camera_dict", "light_dicts",
-           "environment_radiance", "medium_dict", "boundary_bsdf", "rgb_spectrum",
-           "tint_texture", "HeadScene", "HeadSceneOptions", "head_scene", "release"]
+           "environment_radiance", "medium_dict", "dielectric_bsdf", "boundary_bsdf",
+           "rgb_spectrum", "tint_texture", "HeadScene", "HeadSceneOptions", "head_scene",
+           "release"]
 
 
 # --------------------------------------------------------------------------- mesh
@@ -216,16 +218,26 @@ def medium_dict(layer) -> dict:
             "phase": {"type": "hg", "g": float(layer.g)}, "sample_emitters": False}
 
 
-def boundary_bsdf(eta_in: float, eta_out: float, roughness: float, tint=None) -> dict:
-    """The interface between two media: ``null`` where index-matched and untinted, else a GGX
-    rough dielectric of relative index ``eta_in`` / ``eta_out`` (``tint``: its transmittance)."""
-    if abs(eta_in - eta_out) < 1e-9 and tint is None:
-        return {"type": "null"}
-    b = {"type": "roughdielectric", "distribution": "ggx", "alpha": float(roughness),
-         "int_ior": float(eta_in), "ext_ior": float(eta_out)}
+def dielectric_bsdf(eta_in: float, eta_out: float, roughness: float, tint=None) -> dict:
+    """A dielectric interface of relative index ``eta_in`` / ``eta_out``: GGX rough of alpha
+    ``roughness``, or Mitsuba's smooth ``dielectric`` at roughness 0 (``tint``: its
+    transmittance)."""
+    if roughness > 0:
+        b = {"type": "roughdielectric", "distribution": "ggx", "alpha": float(roughness),
+             "int_ior": float(eta_in), "ext_ior": float(eta_out)}
+    else:
+        b = {"type": "dielectric", "int_ior": float(eta_in), "ext_ior": float(eta_out)}
     if tint is not None:
         b["specular_transmittance"] = tint
     return b
+
+
+def boundary_bsdf(eta_in: float, eta_out: float, roughness: float, tint=None) -> dict:
+    """The interface between two media: ``null`` where index-matched and untinted, else
+    :func:`dielectric_bsdf`."""
+    if abs(eta_in - eta_out) < 1e-9 and tint is None:
+        return {"type": "null"}
+    return dielectric_bsdf(eta_in, eta_out, roughness, tint)
 
 
 def tint_texture(mi, texture_srgb, rd) -> dict:
@@ -255,12 +267,14 @@ class HeadScene:
 class HeadSceneOptions:
     """How :func:`head_scene` exports the head: its material, boundary and integrator.
 
-    roughness : GGX alpha of the skin's boundary (and of every index-mismatched interface)
+    roughness : GGX alpha of the skin's boundary (and of every index-mismatched interface);
+        0: smooth (:func:`dielectric_bsdf`)
     tint_rd : (3,) the path tracer's Rd of the stack (:func:`dermis.groundtruth.slab.
         slab_reflectance`) normalising the albedo tint; None: no tint
     env_clamp : environment radiance above this is cut (0: none; :func:`environment_radiance`)
     integrator : Mitsuba integrator of the skin (``volpathmis``: trap 4, spectral MIS)
-    max_depth, rr_depth : path length limit (-1: none) and the depth Russian roulette starts at
+    max_depth, rr_depth : path length limit (-1: none; 2: direct light only) and the depth
+        Russian roulette starts at (``"lambert"``: Mitsuba's default)
     material : ``"skin"`` (the layer stack, module docstring) or ``"lambert"`` (a diffuse
         surface of the texture's linear albedo, the export round-trip test's material,
         rendered with the ``path`` integrator)
@@ -307,7 +321,7 @@ def head_scene(mi, mesh, stack, camera, lights, *, width: int, height: int,
             refl = rgb_spectrum(lambert_albedo)
         d["head"] = {"type": "ply", "filename": str(outer), "face_normals": False,
                      "bsdf": {"type": "diffuse", "reflectance": refl}}
-        d["integrator"] = {"type": "path", "max_depth": -1, "hide_emitters": True}
+        d["integrator"] = {"type": "path", "max_depth": int(max_depth), "hide_emitters": True}
     elif material == "skin":
         _check_stack(stack)
         layers = stack.layers
@@ -315,10 +329,8 @@ def head_scene(mi, mesh, stack, camera, lights, *, width: int, height: int,
             else None
         media = [medium_dict(l) for l in layers]
         d["head"] = {"type": "ply", "filename": str(outer), "face_normals": False,
-                     "bsdf": {"type": "roughdielectric", "distribution": "ggx",
-                              "alpha": float(roughness), "int_ior": float(layers[0].eta),
-                              "ext_ior": float(stack.eta_above),
-                              **({"specular_transmittance": tint} if tint else {})},
+                     "bsdf": dielectric_bsdf(layers[0].eta, stack.eta_above, roughness,
+                                             tint),
                      "interior": media[0]}
         depth = 0.0
         wv = np.asarray(mesh.vertices, np.float64)

@@ -15,10 +15,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dermis.groundtruth.pixel_tracing import sensor_mean
-from dermis.groundtruth.scene_export import boundary_bsdf, medium_dict, rgb_spectrum
+from dermis.groundtruth.scene_export import (boundary_bsdf, dielectric_bsdf, medium_dict,
+                                              rgb_spectrum)
 from dermis.pipeline.shared import Shared
 
-__all__ = ["SlabResult", "slab_reflectance", "SLAB_HALF_WIDTH_MM", "SLAB_DEPTH_MM", "SLABS"]
+__all__ = ["SlabResult", "slab_reflectance", "slab_boxes", "SLAB_HALF_WIDTH_MM", "SLAB_DEPTH_MM",
+           "SLABS"]
 
 # one slab per stack and boundary in a run: every lighting condition's reference reads it
 SLABS = Shared("reference_slab")
@@ -51,13 +53,15 @@ SLAB_HALF_WIDTH_MM = 50.0
 SLAB_DEPTH_MM = 50.0
 
 
-def _slab_scene(mi, stack, roughness: float, *, black: bool, incidence_deg: float = 0.0,
-                max_depth: int = -1, rr_depth: int = 1024):
-    """Scene: stacked boxes (top at z = 0), an irradiance meter just above, a directional light."""
+def slab_boxes(mi, stack, roughness: float, *, black: bool = False) -> dict:
+    """The stack as nested boxes (top at z = 0), keys ``layer<k>``: a Mitsuba scene's shapes.
+
+    ``roughness`` 0: a smooth boundary (:func:`dermis.groundtruth.scene_export.
+    dielectric_bsdf`).  ``black``: the top layer only, purely absorbing (only the boundary's
+    own reflection returns)."""
     T = mi.ScalarTransform4f
     layers = stack.layers
-    d: dict = {"type": "scene", "integrator": {"type": "volpathmis", "max_depth": int(max_depth),
-                                               "rr_depth": int(rr_depth)}}
+    d: dict = {}
     W = SLAB_HALF_WIDTH_MM
     finite = not math.isinf(layers[-1].thickness_mm)
     total = sum(l.thickness_mm for l in layers) if finite else SLAB_DEPTH_MM
@@ -74,15 +78,23 @@ def _slab_scene(mi, stack, roughness: float, *, black: bool, incidence_deg: floa
         eta_out = stack.eta_above if k == 0 else layers[k - 1].eta
         box = {"type": "cube", "to_world": xf, "interior": med,
                "bsdf": (boundary_bsdf(lay.eta, eta_out, roughness) if k else
-                        {"type": "roughdielectric", "distribution": "ggx",
-                         "alpha": float(roughness), "int_ior": float(lay.eta),
-                         "ext_ior": float(stack.eta_above)})}
+                        dielectric_bsdf(lay.eta, stack.eta_above, roughness))}
         if k:
             box["exterior"] = medium_dict(layers[k - 1])
         d[f"layer{k}"] = box
         if black or math.isinf(lay.thickness_mm):
             break
         top -= lay.thickness_mm
+    return d
+
+
+def _slab_scene(mi, stack, roughness: float, *, black: bool, incidence_deg: float = 0.0,
+                max_depth: int = -1, rr_depth: int = 1024):
+    """Scene: stacked boxes (top at z = 0), an irradiance meter just above, a directional light."""
+    T = mi.ScalarTransform4f
+    d: dict = {"type": "scene", "integrator": {"type": "volpathmis", "max_depth": int(max_depth),
+                                               "rr_depth": int(rr_depth)}}
+    d.update(slab_boxes(mi, stack, roughness, black=black))
     th = math.radians(incidence_deg)
     d["light"] = {"type": "directional", "direction": [math.sin(th), 0.0, -math.cos(th)],
                   "irradiance": rgb_spectrum((1.0, 1.0, 1.0))}

@@ -213,6 +213,35 @@ class ReferenceConfig:
 
 
 @dataclass(frozen=True)
+class CausesConfig:
+    # The reference's controlled variants (stages/causes.py, groundtruth/variants.py,
+    # docs/ground-truth.md "Causes of the distance"), one node per referenced lighting
+    # condition at the reference's size.  Samples are per half-buffer; the default scan,
+    # 100x100, 2 cores at load 5-9: the diffuse head 0.009 s/spp, the rough skin 0.8-0.9,
+    # the smooth 0.7-0.8 s/spp with 9x the rough one's variance per sample (so 3x its
+    # samples); this budget: 9-10 s per lighting condition, 59 s with the boundary variant
+    # (bench/results/causes.json)
+    enabled: bool = spec(True, doc="measure interreflection and boundary effects on the "
+                                   "reference (only when [reference] is enabled)")
+    diffuse_spp: int = spec(64, lo=1, hi=1 << 20,
+                            doc="samples per pixel of each half of the diffuse head (direct "
+                                "and all bounces)")
+    rough_spp: int = spec(4, lo=1, hi=1 << 20,
+                          doc="samples per pixel of each half of the rough-boundary skin head")
+    smooth_spp: int = spec(12, lo=1, hi=1 << 20,
+                           doc="samples per pixel of each half of the smooth-boundary skin head")
+    smooth_roughness: float = spec(0.0, lo=0.0, hi=1.0,
+                                   doc="GGX alpha of the smooth variant (0 = smooth dielectric, "
+                                       "the models' Fresnel boundary)")
+    boundary_lights: tuple = spec((), names=True,
+                                  doc="lighting conditions of the boundary variant (disc or "
+                                      "environment lights); empty = those of disc lights only")
+    slab_samples: int = spec(1 << 14, lo=1024, hi=1 << 26,
+                             doc="paths of each flat-slab Rd normalising a boundary variant")
+    seed: int = spec(1, lo=0, hi=30000, doc="half-buffers use seeds 2 seed and 2 seed + 1")
+
+
+@dataclass(frozen=True)
 class OutputConfig:
     cache_dir: str = spec("", doc="empty: $DERMIS_CACHE or ./.dermis-cache")
     output_dir: str = spec("out", doc="outputs go to output_dir/<scene name>/")
@@ -232,6 +261,7 @@ class Scene:
     optics: Any = spec(None, doc='layer stack: preset = "two_layer" or [[optics.layers]]')
     bssrdf: BssrdfConfig = spec(factory=BssrdfConfig)
     reference: ReferenceConfig = spec(factory=ReferenceConfig)
+    causes: CausesConfig = spec(factory=CausesConfig)
     output: OutputConfig = spec(factory=OutputConfig)
     path: str = ""
 
@@ -430,7 +460,7 @@ def _fmt_rule(meta) -> str:
 SCHEMA_TABLES = (("scene", SceneInfo), ("mesh", MeshConfig), ("bake", BakeConfig),
                  ("camera", CameraConfig), ("[lights]", LightConfig), ("render", RenderConfig),
                  ("bssrdf", BssrdfConfig), ("reference", ReferenceConfig),
-                 ("output", OutputConfig))
+                 ("causes", CausesConfig), ("output", OutputConfig))
 
 
 def schema_markdown() -> str:
