@@ -138,6 +138,12 @@ class RenderConfig:
     spp: int = spec(4, lo=1, hi=256,
                     doc="camera samples per pixel, stratified (anti-aliasing); a pixel's disc "
                         "and environment light samples are spread over them")
+    # the thesis shades with direct light only; true adds one diffuse bounce (lighting/indirect.py)
+    indirect: bool = spec(False, doc="add one bounce of indirect light (Lambertian, the skin's "
+                                     "albedo) to every model")
+    # MEASURED-SAMPLES
+    indirect_samples: int = spec(64, lo=1, hi=4096,
+                                 doc="bounce rays per vertex of the indirect light")
 
 
 @dataclass(frozen=True)

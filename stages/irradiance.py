@@ -18,6 +18,7 @@ from dermis.pipeline.config import LightConfig
 from dermis.pipeline.graph import Node, StageResult
 from dermis.pipeline.registry import stage
 from dermis.lighting.emitters import SamplingOptions, light_params
+from dermis.lighting.indirect import at_points
 from dermis.lighting.irradiance import irradiance
 from dermis.lighting.visibility import EMBREE_SCENES, embree_scene
 from dermis.optics.transmittance import Transmittance
@@ -39,7 +40,8 @@ def node(scene, mesh_node: str, label: str, lights: tuple) -> Node:
               "entry": {"eta": scene.optics.layers[0].eta / scene.optics.eta_above,
                         "surface_reflection": scene.bssrdf.surface_reflection}}
     return Node(node_id(mesh_node, label), NAME, __name__, params,
-                {"points": stage("samples").node_id(mesh_node), "mesh": mesh_node}, label=f"irradiance {label}",
+                {"points": stage("samples").node_id(mesh_node), "mesh": mesh_node,
+                 **stage("indirect").inputs(scene, mesh_node, label)}, label=f"irradiance {label}",
                 locations=("lights[].map",))
 
 
@@ -52,6 +54,8 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     transmit = Transmittance(entry["eta"], entry["surface_reflection"])
     E = irradiance(pts.positions, pts.normals, lights, vis.occluded, seed=params["seed"],
                    options=SamplingOptions(samples=params["samples"]), transmittance=transmit)
+    if "indirect" in inputs:   # one diffuse bounce (lighting/indirect.py): its entering part
+        E += at_points(inputs["indirect"].irradiance, mesh, pts.positions, vis) * transmit.mean
     info = {"seconds": time.perf_counter() - t0, "points": int(len(E)),
             "samples": params["samples"], "entry_transmittance": repr(transmit)}
     return StageResult(PointIrradiance(E, info), info=info)
