@@ -252,7 +252,8 @@ def render(mesh, light, model: Model, params, camera, options: RenderOptions = R
     shader = _Shader(env_cl, base, bparams, term, asp, px)
     radiance, stats = shade(px, shader, progress)
     if options.indirect is not None:   # one diffuse bounce (rendering/indirect_shading.py)
-        radiance += indirect_radiance(px, shader, mesh.faces, options.indirect, seed=options.seed)
+        radiance += indirect_radiance(px, lambda hits: _Shader(env_cl, base, bparams, term, asp,
+                                                               hits), mesh.faces, options.indirect)
     image, nonfinite = _image(radiance, px)
     t_shading = time.perf_counter() - t0
     if progress is not None:

@@ -157,6 +157,9 @@ def test04_lambert_response_is_albedo_e_over_pi(cl_env):
 
 
 def test05_lafortune_response_is_its_directional_albedo(cl_env):
+    """rho_dh = L(mu_o) + a (1 - L(mu_o)) (models/lafortune.py, the coupled matte term; L by
+    its own quadrature): the table's Monte Carlo error is <= 4e-3 of L (~0.03) and the
+    interpolation's <= 2.2e-4 of rho_dh (rendering/indirect_shading.py), so 1e-3 bounds it."""
     mesh, cam, light, e_ind = _flat_scene((1.0, 1.0, 1.0))
     p = LafortuneParams()
     base, more = _two(mesh, light, lafortune.MODEL, p, cam, e_ind, cl_env, textured=False)
@@ -164,8 +167,9 @@ def test05_lafortune_response_is_its_directional_albedo(cl_env):
     got = (more.linear - base.linear)[full].astype(np.float64)
     lobe = lafortune_lobe_albedo(np.array([1.0]), p)[0]
     expect = (lobe + p.rho_d * (1.0 - lobe)) / math.pi      # view cosine 0.9999+
-    tol = N_SIGMA * got.std(axis=0) / math.sqrt(len(got)) + expect * 2e-4   # + its 1e-4 drift
-    np.testing.assert_array_less(np.abs(got.mean(axis=0) - expect), tol)
+    np.testing.assert_allclose(got, np.broadcast_to(expect, got.shape), rtol=1e-3)
+    # the lobes: 1 - a of the light not taken by the matte term
+    assert np.all(got.mean(axis=0) > p.rho_d / math.pi * 1.01)
 
 
 @pytest.mark.parametrize("model,params", [(hk93.MODEL, None), (asperity.MODEL, None),
