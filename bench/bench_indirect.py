@@ -14,8 +14,9 @@ Three parts (``--parts``), on the default scan (scenes/default.toml, high mesh, 
   kernel (two seeds): the per-hit estimate's noise relative to the pixel, over the face
   regions' pixels, and its mean against the table's.
 * ``scene`` - the pipeline at 200 x 200 with ``indirect`` false and true (same cache): per
-  model and face region (geometry/regions.py) the brightening of the region mean and the
-  percentiles of the per-pixel brightening; with ``--reference`` the Mitsuba reference
+  model and face region (geometry/regions.py) the brightening of the region mean, the
+  percentiles of the per-pixel brightening over its lit pixels (>= 5 % of the head's mean)
+  and what the term adds to the unlit ones (in units of the head's mean); with ``--reference`` the Mitsuba reference
   (100 x 100, 64 spp per seed) and each model's region distance to it
   (reports/ground_truth.py) without and with the term.
 
@@ -39,6 +40,8 @@ from labelled import read_labelled, save_labelled
 
 REPO = Path(__file__).resolve().parents[1]
 SIZE = 200
+# "Lit" pixels: at least this fraction of the head's mean luminance without the term.
+LIT_FRACTION = 0.05
 SAMPLES = tuple(int(s) for s in os.environ.get("BENCH_INDIRECT_SAMPLES", "16,32,64,128,256").split(","))
 
 
@@ -60,7 +63,8 @@ def _artifacts(scene, cache, until=None):
     from dermis.pipeline.store import Store
     summary = api.run(scene, cache=cache, until=until, export=False)
     store = Store(cache)
-    seconds = {n.id: n.seconds for n in summary.nodes}
+    # each node's seconds when it was built (a cached node's from its cache entry)
+    seconds = {n.id: float(store.meta(n.id, n.key).get("seconds", 0.0)) for n in summary.nodes}
     return ({n.id: (lambda nid=n.id, key=n.key: load(store.artifact_dir(nid, key)))
              for n in summary.nodes}, seconds, summary)
 
@@ -130,7 +134,7 @@ def _per_hit_mc(directions: int, seed: int):
     """The alternative to the albedo table: each hit's rho_dh E_ind / pi from ``directions``
     cosine-weighted directions about its shading normal through the model's kernel
     (weights E_ind / (S cos)), with the signature of ``indirect_radiance``."""
-    from dermis.lighting.indirect import interpolate
+    from dermis.lighting.visibility import interpolate
     from dermis.lighting.strata import stratified_2d
     from dermis.lighting.warps import cosine_hemisphere
 
@@ -215,9 +219,8 @@ def part_scene(cache, res, samples: int, reference: bool):
     runs = {}
     for on in (False, True):
         scene = _scene(cache, on, samples, reference)
-        t0 = time.perf_counter()
         arts, seconds, _ = _artifacts(scene, cache)
-        out[f"seconds_{'on' if on else 'off'}"] = time.perf_counter() - t0
+        out[f"node_seconds_{'on' if on else 'off'}"] = sum(seconds.values())
         if on:
             out["node_seconds"] = {k: v for k, v in seconds.items()
                                    if k.startswith(("indirect", "irradiance", "render"))}
@@ -230,17 +233,26 @@ def part_scene(cache, res, samples: int, reference: bool):
     off, on = _region_table(runs[False][2], labels), _region_table(runs[True][2], labels)
     for m in off:
         rec = {}
+        # lit pixels: at least LIT_FRACTION of the head's mean without the term (the per-pixel
+        # ratio is meaningless where a pixel was ~0: in a BRDF model's point-light shadow)
+        lit_level = LIT_FRACTION * off[m]["head"].mean()
         for r in off[m]:
             a, b = off[m][r], on[m][r]
             if not len(a):
                 continue
-            ok = a > 0
+            ok = a >= lit_level
             ratio = b[ok] / a[ok] - 1.0
             rec[r] = {"pixels": int(len(a)), "mean_off": float(a.mean()),
                       "mean_on": float(b.mean()), "brighter": float(b.mean() / a.mean() - 1),
-                      "pixel_p50": float(np.percentile(ratio, 50)),
-                      "pixel_p90": float(np.percentile(ratio, 90)),
-                      "pixel_p99": float(np.percentile(ratio, 99))}
+                      "lit_pixels": int(ok.sum()),
+                      "lit_mean_brighter": float(b[ok].mean() / a[ok].mean() - 1)
+                      if ok.any() else 0.0,
+                      "lit_pixel_p50": float(np.percentile(ratio, 50)) if ok.any() else 0.0,
+                      "lit_pixel_p90": float(np.percentile(ratio, 90)) if ok.any() else 0.0,
+                      "lit_pixel_p99": float(np.percentile(ratio, 99)) if ok.any() else 0.0,
+                      "unlit_added_vs_head_mean": float((b[~ok] - a[~ok]).mean()
+                                                        / off[m]["head"].mean())
+                      if (~ok).any() else 0.0}
         out["models"][m] = {"regions": rec}
     if reference:
         refs = {"point": arts["reference-point"]()}

@@ -42,27 +42,15 @@ from dermis.geometry.texture_lookup import SRGB8_TO_LINEAR, bilinear
 from dermis.lighting.emitters import SamplingOptions
 from dermis.lighting.irradiance import IRRADIANCE_THREADS, irradiance
 from dermis.lighting.strata import stratified_2d
+from dermis.lighting.visibility import interpolate
 from dermis.lighting.warps import cosine_hemisphere
 from dermis.pipeline.errors import DermisError
 
-__all__ = ["interpolate", "at_points", "surface_albedo", "bounce_irradiance", "one_bounce", "CHUNK_RAYS"]
+__all__ = ["at_points", "surface_albedo", "bounce_irradiance", "one_bounce", "CHUNK_RAYS"]
 
 # Rays per batch: the batch's arrays (origins, directions, hits, the hit's albedo and E_dir,
 # ~100 bytes a ray) stay ~50 MB.
 CHUNK_RAYS = 1 << 19
-
-
-def interpolate(values: np.ndarray, faces: np.ndarray, tri: np.ndarray,
-                bary: np.ndarray) -> np.ndarray:
-    """(M, C) float32 per-vertex ``values`` (V, C) at points given by triangle ``tri`` (M,)
-    and Embree barycentrics ``bary`` (M, 2): (1 - b1 - b2) v0 + b1 v1 + b2 v2."""
-    f = np.asarray(faces)[np.asarray(tri)]
-    b = np.asarray(bary, np.float32)
-    vals = np.asarray(values, np.float32)
-    out = vals[f[:, 0]] * (1.0 - b[:, 0] - b[:, 1])[:, None]
-    out += vals[f[:, 1]] * b[:, 0:1]
-    out += vals[f[:, 2]] * b[:, 1:2]
-    return out
 
 
 def at_points(values: np.ndarray, mesh, points: np.ndarray, visibility) -> np.ndarray:

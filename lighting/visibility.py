@@ -10,6 +10,8 @@ One :class:`Visibility` is built per mesh and answers these questions, batched:
 * :meth:`Visibility.closest` - the closest surface point to each query point (triangle id
   and barycentrics, as a hit).
 
+:func:`interpolate` reads per-vertex values at hits in Embree's barycentric convention.
+
 Why Embree through open3d: docs/software.md "Where the work runs" (a well-kept BVH, ~2M
 rays/s per core measured here; no home-made BVH).
 
@@ -32,7 +34,7 @@ from dermis.pipeline.errors import DermisError
 from dermis.pipeline.reuse import content_key
 from dermis.pipeline.shared import RunCache, Shared
 
-__all__ = ["Visibility", "Hits", "OFFSET_FRACTION", "MISS", "EMBREE_SCENES", "embree_scene"]
+__all__ = ["Visibility", "Hits", "interpolate", "OFFSET_FRACTION", "MISS", "EMBREE_SCENES", "embree_scene"]
 
 # Shadow-ray origin offset and end shortening, as a fraction of the bounding-box diagonal
 # (derivation in the module docstring).
@@ -176,6 +178,19 @@ class Visibility:
     def occlusion_fn(self):
         """``occluded`` with the signature expected by :func:`lighting.irradiance.irradiance`."""
         return self.occluded
+
+
+def interpolate(values: np.ndarray, faces: np.ndarray, tri: np.ndarray,
+                bary: np.ndarray) -> np.ndarray:
+    """(M, C) float32 per-vertex ``values`` (V, C) at hits on triangles ``tri`` (M,) with
+    barycentrics ``bary`` (M, 2) in Embree's convention: (1 - b1 - b2) v0 + b1 v1 + b2 v2."""
+    f = np.asarray(faces)[np.asarray(tri)]
+    b = np.asarray(bary, np.float32)
+    vals = np.asarray(values, np.float32)
+    out = vals[f[:, 0]] * (1.0 - b[:, 0] - b[:, 1])[:, None]
+    out += vals[f[:, 1]] * b[:, 0:1]
+    out += vals[f[:, 2]] * b[:, 1:2]
+    return out
 
 
 def _ray_buffer(origins: np.ndarray, directions: np.ndarray) -> np.ndarray:

@@ -33,8 +33,8 @@ from typing import Callable
 
 import numpy as np
 
-from dermis.lighting.indirect import interpolate
 from dermis.lighting.strata import stratified_2d
+from dermis.lighting.visibility import interpolate
 from dermis.lighting.warps import cosine_hemisphere
 
 __all__ = ["TABLE_NODES", "TABLE_DIRECTIONS", "albedo_table", "indirect_radiance"]

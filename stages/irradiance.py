@@ -6,7 +6,9 @@ lights).  One node per mesh and lighting condition.  The irradiance stored is th
 enters the skin: each light sample is weighted by the entry transmittance
 :class:`dermis.optics.transmittance.Transmittance` at its cosine (Fresnel, and with the BSSRDF's
 surface term min(Fresnel, 1 - the lobes' albedo); docs/science.md §4), because the
-profile's Rd is per entering photon.  Cost per mesh and light (64 samples, ~241k points):
+profile's Rd is per entering photon.  With ``[render] indirect`` the points also receive one
+bounce of indirect light (stage ``indirect``, interpolated from the mesh's vertices) times the
+entry transmittance of diffuse light, the hemispherical mean of T.  Cost per mesh and light (64 samples, ~241k points):
 ``bench/bench_irradiance.py`` -> ``bench/results/irradiance.json`` (docs/science.md §4).
 """
 from __future__ import annotations

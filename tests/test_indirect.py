@@ -25,8 +25,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dermis.lighting.indirect import at_points, bounce_irradiance, interpolate, one_bounce
-from dermis.lighting.visibility import Visibility
+from dermis.lighting.indirect import at_points, bounce_irradiance, one_bounce
+from dermis.lighting.visibility import Visibility, interpolate
 from dermis.models import asperity, hk93, lafortune, lambert
 from dermis.models.lafortune import LafortuneParams, lafortune_lobe_albedo
 from dermis.models.lambert import LambertParams
