@@ -6,7 +6,8 @@
   Tolerance: 5 standard errors of independent samples, a E_wall sqrt(F (1 - F) / S) (a hit
   is a Bernoulli trial of probability F; the stratified estimate's variance is at most
   that), a false-failure rate below 1e-6 per point.
-* A sphere (convex) sees nothing of itself: E_ind = 0 exactly.
+* A lit surface seen from behind re-emits nothing; a sphere (convex) sees nothing of itself:
+  E_ind = 0 exactly.
 * A Lambertian BRDF's response is albedo E_ind / pi at every hit, exactly (its f is
   constant, so the cosine-weighted directions carry no variance): float32 tolerance.
 * Lafortune's response is rho_dh(wo) E_ind / pi, rho_dh = L(mu_o) + a (1 - L(mu_o)) (the
@@ -14,7 +15,9 @@
   pixels' own spread.
 * ``[render] indirect = false`` plans exactly the nodes of a scene without the key; with
   true, every image of a mesh and light reads one indirect node, radiance stays finite and
-  non-negative, and the BSSRDF keeps its point light's shadow edges.
+  non-negative, the BSSRDF's points gain E_ind times the diffuse entry transmittance, and
+  its exitance grows by the gather of that light alone, keeping the point light's shadow
+  edges (which reading it as the light's own irradiance would lose).
 """
 from __future__ import annotations
 
@@ -30,6 +33,7 @@ from dermis.lighting.visibility import Visibility, interpolate
 from dermis.models import asperity, hk93, lafortune, lambert
 from dermis.models.lafortune import LafortuneParams, lafortune_lobe_albedo
 from dermis.models.lambert import LambertParams
+from dermis.optics.transmittance import Transmittance
 from dermis.pipeline.artifacts import Mesh
 from dermis.pipeline.config import CameraConfig, LightConfig
 from dermis.rendering.color import srgb_to_linear
@@ -99,7 +103,26 @@ def test01_floor_beside_lit_wall_matches_form_factor():
     assert np.all(e_ind[n_floor:][above] > 0)
 
 
-def test02_convex_sphere_sees_nothing():
+def test02_a_wall_lit_on_its_far_side_sends_nothing():
+    """The wall turned round (facing -y, lit from -y): the floor sees only its unlit back,
+    which re-emits nothing (a ray into a mesh through an opening)."""
+    mesh, n_floor = _wall_and_floor(8)
+    normals = np.array(mesh.normals)
+    normals[n_floor:] *= -1.0
+    faces = np.array(mesh.faces)
+    wall = np.arange(len(faces)) >= len(faces) // 2
+    faces[wall] = faces[wall][:, ::-1]
+    turned = Mesh(vertices=mesh.vertices, faces=faces, normals=normals, uv=mesh.uv,
+                  uv_faces=faces.copy(), texture_srgb=mesh.texture_srgb)
+    vis = Visibility(turned.vertices, turned.faces)
+    light = LightConfig(name="d", type="directional", direction=(0.0, -1.0, 1.0),
+                        intensity=(1.0, 1.0, 1.0))
+    e_ind, e_dir = one_bounce(turned, [light], vis, samples=256, direct_samples=1)
+    np.testing.assert_allclose(e_dir[n_floor:], math.sqrt(0.5), rtol=F32_RTOL)   # lit
+    assert np.all(e_ind[:n_floor] == 0.0)
+
+
+def test03_convex_sphere_sees_nothing():
     mesh = icosphere(50.0, 4)
     vis = Visibility(mesh.vertices, mesh.faces)
     light = LightConfig(name="p", type="point", position=(200.0, 100.0, 300.0),
@@ -109,7 +132,7 @@ def test02_convex_sphere_sees_nothing():
     assert np.all(e_ind == 0.0)
 
 
-def test03_interpolation_and_closest_points_reproduce_a_linear_field(rng):
+def test04_interpolation_and_closest_points_reproduce_a_linear_field(rng):
     mesh = plane(100.0, 7)
     vis = Visibility(mesh.vertices, mesh.faces)
     v = np.asarray(mesh.vertices)
@@ -141,7 +164,7 @@ def _two(mesh, light, model, params, cam, e_ind, cl_env, **opts):
     return base, more
 
 
-def test04_lambert_response_is_albedo_e_over_pi(cl_env):
+def test05_lambert_response_is_albedo_e_over_pi(cl_env):
     mesh, cam, light, e_ind = _flat_scene((0.3, 0.2, 0.1))
     albedo = np.array([0.6, 0.5, 0.4])
     base, more = _two(mesh, light, lambert.MODEL, LambertParams(albedo), cam, e_ind, cl_env)
@@ -156,7 +179,7 @@ def test04_lambert_response_is_albedo_e_over_pi(cl_env):
     assert none.linear.tobytes() == base.linear.tobytes()
 
 
-def test05_lafortune_response_is_its_directional_albedo(cl_env):
+def test06_lafortune_response_is_its_directional_albedo(cl_env):
     """rho_dh = L(mu_o) + a (1 - L(mu_o)) (models/lafortune.py, the coupled matte term; L by
     its own quadrature): the table's Monte Carlo error is <= 4e-3 of L (~0.03) and the
     interpolation's <= 2.2e-4 of rho_dh (rendering/indirect_shading.py), so 1e-3 bounds it."""
@@ -174,7 +197,7 @@ def test05_lafortune_response_is_its_directional_albedo(cl_env):
 
 @pytest.mark.parametrize("model,params", [(hk93.MODEL, None), (asperity.MODEL, None),
                                           (lafortune.MODEL, None)])
-def test06_radiance_finite_and_not_negative(cl_env, model, params):
+def test07_radiance_finite_and_not_negative(cl_env, model, params):
     mesh, n_floor = _wall_and_floor(8)
     vis = Visibility(mesh.vertices, mesh.faces)
     light = LightConfig(name="p", type="point", position=(60.0, 300.0, 250.0),
@@ -189,7 +212,7 @@ def test06_radiance_finite_and_not_negative(cl_env, model, params):
     assert (more.linear > base.linear).any()
 
 
-def test07_bounce_checks_its_inputs():
+def test08_bounce_checks_its_inputs():
     mesh = plane(10.0, 2)
     vis = Visibility(mesh.vertices, mesh.faces)
     from dermis.pipeline.errors import DermisError
@@ -212,7 +235,7 @@ def _graph(tmp_path, render_over):
     return scene, build_graph(scene)[0]
 
 
-def test08_off_plans_the_nodes_of_a_scene_without_it(tmp_path):
+def test09_off_plans_the_nodes_of_a_scene_without_it(tmp_path):
     _, without = _graph(tmp_path, {})
     _, off = _graph(tmp_path, {"indirect": False})
     assert list(without) == list(off)
@@ -231,7 +254,7 @@ def test08_off_plans_the_nodes_of_a_scene_without_it(tmp_path):
             assert "indirect" not in node.deps      # it reads the irradiance that holds it
 
 
-def test09_pipeline_images_brighter_and_finite(tmp_path):
+def test10_pipeline_images_brighter_and_finite(tmp_path):
     from dermis.pipeline import api
     from dermis.pipeline.artifacts import load
     from dermis.pipeline.store import Store
@@ -242,13 +265,21 @@ def test09_pipeline_images_brighter_and_finite(tmp_path):
         summary = api.run(scene, cache=tmp_path / "cache", export=False)
         store = Store(tmp_path / "cache")
         keys = {n.id: n.key for n in summary.nodes}
+        art = lambda nid: load(store.artifact_dir(nid, keys[nid]))  # noqa: E731
         for model in ("lafortune", "bssrdf"):
-            nid = f"render-{model}-point-high"
-            images[model, on] = load(store.artifact_dir(nid, keys[nid])).linear
+            images[model, on] = art(f"render-{model}-point-high").linear
+        images["points", on] = art("irradiance-mesh_high-point").irradiance
         if on:
-            ind = load(store.artifact_dir("indirect-mesh_high-point",
-                                          keys["indirect-mesh_high-point"])).irradiance
+            ind = art("indirect-mesh_high-point").irradiance
             assert np.all(np.isfinite(ind)) and np.all(ind >= 0) and ind.max() > 0
+            mesh, pts = art("mesh_high"), art("samples-mesh_high")
+            entry = Transmittance(scene.optics.layers[0].eta / scene.optics.eta_above,
+                                  scene.bssrdf.surface_reflection)
+            # the points gain E_ind times the entry transmittance of diffuse light
+            added = at_points(ind, mesh, pts.positions, Visibility(mesh.vertices, mesh.faces))
+            np.testing.assert_allclose(images["points", True] - images["points", False],
+                                       added * entry.mean, rtol=1e-4,
+                                       atol=1e-6 * float(images["points", False].max()))
     for model in ("lafortune", "bssrdf"):
         off, on = images[model, False], images[model, True]
         assert np.all(np.isfinite(on)) and np.all(on >= 0), model
@@ -256,7 +287,7 @@ def test09_pipeline_images_brighter_and_finite(tmp_path):
     assert np.all(images["lafortune", True] >= images["lafortune", False])
 
 
-def test10_bssrdf_gathers_the_extra_light_whole_and_keeps_shadow_edges(cl_env):
+def test11_bssrdf_gathers_the_extra_light_whole_and_keeps_shadow_edges(cl_env):
     """A point light's shadow edge across a sphere, plus a uniform extra irradiance c at every
     point (what the indirect term adds): with ``indirect`` the exitance grows by exactly the
     gather of c alone (brute-force gathers: the same sums, float32 tolerance 1e-4) and the
