@@ -29,7 +29,6 @@ Writes (merging) bench/results/indirect.json under ``--label``.  Timings on the 
 from __future__ import annotations
 
 import argparse
-import functools
 import os
 import time
 from pathlib import Path
