@@ -26,6 +26,7 @@ STAGES = (
     ("samples", "dermis.stages.samples"),
     ("irradiance", "dermis.stages.irradiance"),
     ("visibility", "dermis.stages.visibility"),
+    ("indirect", "dermis.stages.indirect"),
     ("render", "dermis.stages.render"),
     ("bssrdf", "dermis.stages.bssrdf"),
     ("reference", "dermis.stages.reference"),

@@ -1,12 +1,16 @@
 """Ray casting through Embree (open3d ``RaycastingScene``): primary hits and shadow rays.
 
-One :class:`Visibility` is built per mesh and answers two questions, both batched:
+One :class:`Visibility` is built per mesh and answers these questions, batched:
 
 * :meth:`Visibility.intersect` - the first hit of each ray: triangle id, barycentrics
   ``(b1, b2)`` (point = (1 - b1 - b2) p0 + b1 p1 + b2 p2, Embree's convention) and the hit
   distance;
 * :meth:`Visibility.occluded` - whether anything lies between a surface point and a light
-  sample at a given distance (Embree's any-hit occlusion query, cheaper than a closest hit).
+  sample at a given distance (Embree's any-hit occlusion query, cheaper than a closest hit);
+* :meth:`Visibility.closest` - the closest surface point to each query point (triangle id
+  and barycentrics, as a hit).
+
+:func:`interpolate` reads per-vertex values at hits in Embree's barycentric convention.
 
 Why Embree through open3d: docs/software.md "Where the work runs" (a well-kept BVH, ~2M
 rays/s per core measured here; no home-made BVH).
@@ -30,7 +34,7 @@ from dermis.pipeline.errors import DermisError
 from dermis.pipeline.reuse import content_key
 from dermis.pipeline.shared import RunCache, Shared
 
-__all__ = ["Visibility", "Hits", "OFFSET_FRACTION", "MISS", "EMBREE_SCENES", "embree_scene"]
+__all__ = ["Visibility", "Hits", "interpolate", "OFFSET_FRACTION", "MISS", "EMBREE_SCENES", "embree_scene"]
 
 # Shadow-ray origin offset and end shortening, as a fraction of the bounding-box diagonal
 # (derivation in the module docstring).
@@ -161,9 +165,32 @@ class Visibility:
         return self._scene.test_occlusions(self._o3c.Tensor(rays), tnear=0.0,
                                            tfar=1.0).numpy().astype(bool, copy=False)
 
+    def closest(self, points: np.ndarray) -> Hits:
+        """The closest surface point to each of ``points`` (N, 3) mm: its triangle,
+        barycentrics (Embree's convention, as :meth:`intersect`) and distance ``t`` (mm)."""
+        p = np.ascontiguousarray(points, dtype=np.float32)
+        out = self._scene.compute_closest_points(self._o3c.Tensor(p))
+        tri = out["primitive_ids"].numpy().astype(np.int32)
+        bary = out["primitive_uvs"].numpy().astype(np.float32)
+        t = np.linalg.norm(out["points"].numpy() - p, axis=1).astype(np.float32)
+        return Hits(tri=tri, bary=bary, t=t)
+
     def occlusion_fn(self):
         """``occluded`` with the signature expected by :func:`lighting.irradiance.irradiance`."""
         return self.occluded
+
+
+def interpolate(values: np.ndarray, faces: np.ndarray, tri: np.ndarray,
+                bary: np.ndarray) -> np.ndarray:
+    """(M, C) float32 per-vertex ``values`` (V, C) at hits on triangles ``tri`` (M,) with
+    barycentrics ``bary`` (M, 2) in Embree's convention: (1 - b1 - b2) v0 + b1 v1 + b2 v2."""
+    f = np.asarray(faces)[np.asarray(tri)]
+    b = np.asarray(bary, np.float32)
+    vals = np.asarray(values, np.float32)
+    out = vals[f[:, 0]] * (1.0 - b[:, 0] - b[:, 1])[:, None]
+    out += vals[f[:, 1]] * b[:, 0:1]
+    out += vals[f[:, 2]] * b[:, 1:2]
+    return out
 
 
 def _ray_buffer(origins: np.ndarray, directions: np.ndarray) -> np.ndarray:

@@ -138,6 +138,15 @@ class RenderConfig:
     spp: int = spec(4, lo=1, hi=256,
                     doc="camera samples per pixel, stratified (anti-aliasing); a pixel's disc "
                         "and environment light samples are spread over them")
+    # the thesis shades with direct light only; true adds one diffuse bounce (lighting/indirect.py)
+    indirect: bool = spec(False, doc="add one bounce of indirect light (Lambertian, the skin's "
+                                     "albedo) to every model")
+    # Measured (bench/bench_indirect.py, bench/results/indirect.json "samples"; default scan,
+    # point light, 6000 face vertices vs 4096 rays): RMS noise / mean light over the face
+    # 4.5 / 2.8 / 1.8 / 1.3 / 0.67 % at 16 / 32 / 64 / 128 / 256 rays; 256 is the first below
+    # the BRDF images' own 1.1 % at the default spp (render_spp.json)
+    indirect_samples: int = spec(256, lo=1, hi=4096,
+                                 doc="bounce rays per vertex of the indirect light")
 
 
 @dataclass(frozen=True)

@@ -76,6 +76,10 @@ class RenderOptions:
         only used when the samples are cast here.
     visibility : lighting.visibility.Visibility, optional
         Embree scene of the mesh built earlier (build once, render many).
+    indirect : (V, 3) float array, optional
+        One bounce of indirect irradiance at the mesh's vertices (stage ``indirect``): the
+        model's diffuse response to it is added (rendering/indirect_shading.py); None: direct
+        light only, as in the thesis.
     """
 
     maps: Any = None
@@ -88,3 +92,4 @@ class RenderOptions:
     spp: int = 1
     sampling: LightSampling | None = None
     visibility: Visibility | None = None
+    indirect: Any = None

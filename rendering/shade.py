@@ -51,6 +51,7 @@ from dermis.pipeline.shared import RunCache
 from dermis.pipeline.cl import event_seconds, get_env, to_device
 from dermis.pipeline.errors import ConfigError
 from dermis.rendering.cast import cast
+from dermis.rendering.indirect_shading import indirect_radiance
 from dermis.rendering.options import RenderOptions
 from dermis.rendering.surface import PixelSurface, check_bump, global_size, pixel_surface
 
@@ -250,6 +251,9 @@ def render(mesh, light, model: Model, params, camera, options: RenderOptions = R
     t0 = time.perf_counter()
     shader = _Shader(env_cl, base, bparams, term, asp, px)
     radiance, stats = shade(px, shader, progress)
+    if options.indirect is not None:   # one diffuse bounce (rendering/indirect_shading.py)
+        radiance += indirect_radiance(px, lambda hits: _Shader(env_cl, base, bparams, term, asp,
+                                                               hits), mesh.faces, options.indirect)
     image, nonfinite = _image(radiance, px)
     t_shading = time.perf_counter() - t0
     if progress is not None:

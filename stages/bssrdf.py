@@ -63,6 +63,8 @@ def node(scene, label: str, lights: tuple, geometry: str, model: str = "bssrdf")
               "seed": scene.mesh.seed, "eta": scene.optics.layers[0].eta / scene.optics.eta_above}
     if model != "bssrdf":
         params["model"] = model
+    if scene.render.indirect:   # its irradiance holds a bounce of indirect light (exitance.py)
+        params["indirect"] = True
     return Node(node_id(model, label, geometry), NAME, __name__, params, deps,
                 label=f"{model} / {label} / {geometry}", locations=("lights[].map",))
 
@@ -104,7 +106,8 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
                             visible=sharp_visibility(vis, front, surf["position"][front], lights))
     options = ExitanceOptions(epsilon=b["epsilon"], normalisation=b["normalisation"],
                               leaf_size=b["leaf_size"], brute_force=b["brute_force"],
-                              transmittance=transmit, env=ctx.cl, progress=ctx.progress)
+                              transmittance=transmit, indirect=params.get("indirect", False),
+                              env=ctx.cl, progress=ctx.progress)
     M, stats = exitance(inputs["points"], inputs["irradiance"].irradiance, profile, shading,
                         lights=lights, visibility=vis_embree, options=options,
                         shared=ctx.shared, keys=(ctx.input_keys["points"],

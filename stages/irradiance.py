@@ -6,7 +6,9 @@ lights).  One node per mesh and lighting condition.  The irradiance stored is th
 enters the skin: each light sample is weighted by the entry transmittance
 :class:`dermis.optics.transmittance.Transmittance` at its cosine (Fresnel, and with the BSSRDF's
 surface term min(Fresnel, 1 - the lobes' albedo); docs/science.md §4), because the
-profile's Rd is per entering photon.  Cost per mesh and light (64 samples, ~241k points):
+profile's Rd is per entering photon.  With ``[render] indirect`` the points also receive one
+bounce of indirect light (stage ``indirect``, interpolated from the mesh's vertices) times the
+entry transmittance of diffuse light, the hemispherical mean of T.  Cost per mesh and light (64 samples, ~241k points):
 ``bench/bench_irradiance.py`` -> ``bench/results/irradiance.json`` (docs/science.md §4).
 """
 from __future__ import annotations
@@ -18,6 +20,7 @@ from dermis.pipeline.config import LightConfig
 from dermis.pipeline.graph import Node, StageResult
 from dermis.pipeline.registry import stage
 from dermis.lighting.emitters import SamplingOptions, light_params
+from dermis.lighting.indirect import at_points
 from dermis.lighting.irradiance import irradiance
 from dermis.lighting.visibility import EMBREE_SCENES, embree_scene
 from dermis.optics.transmittance import Transmittance
@@ -39,7 +42,8 @@ def node(scene, mesh_node: str, label: str, lights: tuple) -> Node:
               "entry": {"eta": scene.optics.layers[0].eta / scene.optics.eta_above,
                         "surface_reflection": scene.bssrdf.surface_reflection}}
     return Node(node_id(mesh_node, label), NAME, __name__, params,
-                {"points": stage("samples").node_id(mesh_node), "mesh": mesh_node}, label=f"irradiance {label}",
+                {"points": stage("samples").node_id(mesh_node), "mesh": mesh_node,
+                 **stage("indirect").inputs(scene, mesh_node, label)}, label=f"irradiance {label}",
                 locations=("lights[].map",))
 
 
@@ -52,6 +56,8 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     transmit = Transmittance(entry["eta"], entry["surface_reflection"])
     E = irradiance(pts.positions, pts.normals, lights, vis.occluded, seed=params["seed"],
                    options=SamplingOptions(samples=params["samples"]), transmittance=transmit)
+    if "indirect" in inputs:   # one diffuse bounce (lighting/indirect.py): its entering part
+        E += at_points(inputs["indirect"].irradiance, mesh, pts.positions, vis) * transmit.mean
     info = {"seconds": time.perf_counter() - t0, "points": int(len(E)),
             "samples": params["samples"], "entry_transmittance": repr(transmit)}
     return StageResult(PointIrradiance(E, info), info=info)

@@ -60,8 +60,10 @@ def node(scene, model: str, label: str, lights: tuple, geometry: str) -> Node:
               "camera": asdict(scene.camera), "bump": GEOMETRY[geometry][1],
               "asperity_base": base,
               "optics": scene.optics.to_dict() if m.reads_optics(base) else None}
+    indirect = registry.stage("indirect").inputs(scene, GEOMETRY[geometry][0], label)
     return Node(node_id(model, label, geometry), NAME, __name__, params,
-                geometry_inputs(geometry, label), label=f"{model} / {label} / {geometry}",
+                {**geometry_inputs(geometry, label), **indirect},
+                label=f"{model} / {label} / {geometry}",
                 code=(registry.model_module(model),),
                 shares=m.shares + (m.base(base).shares if base is not None else ()))
 
@@ -82,7 +84,9 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     base_params = m.base(base).scene_params(params, ctx.shared) if base is not None else None
     result = render(mesh, [], m, p, CameraConfig(**params["camera"]),
                     RenderOptions(maps=inputs.get("maps"), bump=params["bump"], samples=samples,
-                                  base=base, base_params=base_params),
+                                  base=base, base_params=base_params,
+                                  indirect=inputs["indirect"].irradiance
+                                  if "indirect" in inputs else None),
                     cl_env=ctx.cl, progress=ctx.progress, shared=ctx.shared,
                     keys=(ctx.input_keys["mesh"], ctx.input_keys.get("maps")))
     result.timings["visibility_shared"] = float(

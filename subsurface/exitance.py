@@ -78,6 +78,10 @@ class ExitanceOptions:
         their reconstruction width); so is the "thesis" normalisation.
     transmittance : callable, optional
         The entry transmittance (``Transmittance``) the irradiance was weighted with.
+    indirect : bool
+        The irradiance also holds light other than the lights' own (one bounce of indirect
+        light, ``lighting/indirect.py``): the point and directional lights' part is then
+        recomputed for their shadow edges, and the rest is gathered whole, as a soft light's.
     tuning : GatherTuning
         Research knobs of the gather; the defaults are what the pipeline runs.
     env : pipeline.cl.ClEnv, optional
@@ -92,6 +96,7 @@ class ExitanceOptions:
     brute_force: bool = False
     near_field: bool = True
     transmittance: object = None
+    indirect: bool = False
     tuning: GatherTuning = GatherTuning()
     env: object = None
     progress: object = None
@@ -203,7 +208,8 @@ def exitance(points, irradiance: np.ndarray, profile, shading: ShadingPoints, *,
         # the shadow edges (host numpy and Embree, one thread each) are located while this
         # thread builds the octree and the device gathers the far part: independent work
         # whose results do not depend on the overlap
-        own = E if len(lights) == 1 else None   # a condition of one light: E is that light's
+        # a condition of one light: E is that light's (unless it holds indirect light too)
+        own = E if len(lights) == 1 and not options.indirect else None
         pool = ThreadPoolExecutor(max_workers=len(sharp))
         pending = [pool.submit(shadow_edges, points.positions, points.normals, l, visibility,
                                spacing, transmittance=transmittance, irradiance=own)
@@ -217,7 +223,7 @@ def exitance(points, irradiance: np.ndarray, profile, shading: ShadingPoints, *,
     t_edges = sum(ed.info["seconds"] for ed in edges)
     stats.update(st)
     M = m_far.astype(np.float64)
-    if soft:
+    if soft or options.indirect:
         m_soft, st_soft = gathered("soft", lambda: np.maximum(
             E - sum(ed.irradiance for ed in edges), 0.0).astype(np.float32), "near")
         M += m_soft

@@ -160,6 +160,10 @@ PROBE = {
     "lighting/lobes.py": {"render", "bssrdf", "visibility"},   # the irradiance pass draws none
     "lighting/irradiance.py": {"irradiance", "bssrdf"},   # the gather's shadow edges use it
     "rendering/cast.py": {"visibility", "render", "bssrdf"},   # shared rays, hit attributes
+    # the bounce itself: only the irradiance points read it when no indirect node is planned;
+    # the BRDF response reads no ray-tracing code of it (lighting/visibility.py interpolate)
+    "lighting/indirect.py": {"irradiance"},
+    "rendering/indirect_shading.py": {"render", "bssrdf"},   # the BSSRDF's surface lobes
     "pipeline/plan.py": set(),                         # decides which nodes exist, runs in none
     # the scene schema: its dataclasses and defaults are what stages rebuild their config from
     "pipeline/config.py": {"irradiance", "visibility", "render", "bssrdf", "report"},
