@@ -53,6 +53,7 @@ from dermis.pipeline.registry import MODEL_NAMES
 from dermis.rendering.color import LUMINANCE
 from dermis.geometry.regions import REGION_LABELS, REGIONS, block_mean, face_regions
 from dermis.groundtruth.noise import NOISE_FACTORS
+from dermis.reports.causes import causes_pages, causes_table
 from dermis.reports.truth_noise import (RESOLVE_K, compare, mean_se, model_noise_on, pair_test,
                                         rank_ranges, ref_scale_noise, ref_var_map,
                                         region_difference, scale_noise)
@@ -666,19 +667,23 @@ def _fmt_values(d: dict) -> str:
 
 def ground_truth_section(images: dict, references: dict, out_dir, files: list, *, mesh, camera,
                          extra_seconds: dict, skip_reason: str | None,
-                         differences: dict | None = None, tiles: dict | None = None):
+                         differences: dict | None = None, tiles: dict | None = None,
+                         variants: dict | None = None):
     """The report's distance-to-ground-truth section: metrics and files of ``references``
     (light -> RenderedImage; ``mesh`` and ``camera`` as :func:`ground_truth_metrics`, unused
     when there are none) and two functions adding pages to the open PDF: the opening pages
     (:func:`dermis.reports.truth_pages.opening_pages`, right after the title page; with
     ``differences``, the metrics of the differences against the BSSRDF, and their ``tiles``
-    {(model, light, geometry): image} beside the ones against the reference) and the
-    detail pages (:func:`ground_truth_pages`, at the end).
+    {(model, light, geometry): image} beside the ones against the reference; with
+    ``variants``, the causes stage's artifacts by light, the causes table after them,
+    :mod:`dermis.reports.causes`) and the detail pages (:func:`ground_truth_pages`, at the
+    end).
 
     Its files are appended to ``files``.  Returns (opening, details, info): info's ``pages``
     is filled in when the functions have run, ``metrics`` is the ``ground_truth`` object of
     ``metrics.json`` ({} without references), ``title`` the title page's lines
-    (:func:`dermis.reports.truth_pages.title_lines`)."""
+    (:func:`dermis.reports.truth_pages.title_lines`), ``causes`` the causes table (when
+    ``variants`` are given)."""
     from dermis.reports.truth_pages import opening_pages, title_lines
     info = {"references": sorted(references), "pages": 0, "metrics": {}}
     gt = None
@@ -690,11 +695,20 @@ def ground_truth_section(images: dict, references: dict, out_dir, files: list, *
         info["metrics"] = metrics_ground_truth(gt)
         info["thesis"] = [{k: c[k] for k in ("model", "claim", "verdict", "per_light")}
                           for c in gt["thesis"]]
+        if variants:
+            h, w = next(iter(references.values())).linear.shape[:2]
+            # the albedo convention is shared by construction (docs/ground-truth.md), so its
+            # part is 0; the flat-plate test keeps it so
+            info["causes"] = causes_table(gt, variants, convention=0.0, images=images,
+                                          labels=region_labels_for(mesh, camera, width=w,
+                                                                   height=h))
     info["title"] = title_lines(gt, skip_reason)
 
     def opening(pdf):
         info["pages"] += opening_pages(pdf, gt, images, references, differences=differences,
                                     tiles=tiles)
+        if info.get("causes"):
+            info["pages"] += causes_pages(pdf, info["causes"])
 
     def details(pdf):
         if gt:

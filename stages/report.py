@@ -34,25 +34,26 @@ GROUND_TRUTH_MESH = "mesh_high"   # the references are of the high mesh; regions
 def node(scene, render_ids: list[str], irradiance: dict[str, tuple[str, str]],
          difference_ids: list[str] = (), images_id: str | None = None,
          reference_ids: list[str] = (), reference_skipped: str | None = None,
-         profile_ids: list[str] = ()) -> Node:
+         profile_ids: list[str] = (), cause_ids: list[str] = ()) -> Node:
     """The report of the renders.  ``irradiance``: the BSSRDF's irradiance passes, id ->
     (lighting label, mesh node), whose seconds the timing table adds; ``profile_ids``: the
     layer profiles the BSSRDF models read (the profile page).  With ``reference_ids``
     (Mitsuba ground truth) also the distance-to-ground-truth section, which needs the high
     mesh (regions) and the camera; ``reference_skipped`` is the reason the scene asked for
-    references and got none."""
+    references and got none; ``cause_ids`` the reference's controlled variants (the causes
+    table)."""
     params = {"renders": sorted(render_ids),
               "irradiance": {nid: list(irradiance[nid]) for nid in sorted(irradiance)},
               "differences": sorted(difference_ids), "images": images_id,
               "references": sorted(reference_ids), "reference_skipped": reference_skipped,
-              "profiles": sorted(profile_ids),
+              "profiles": sorted(profile_ids), "causes": sorted(cause_ids),
               "scene_name": scene.scene.name, "credits": list(scene.credits())}
     deps = (tuple(render_ids) + tuple(params["irradiance"]) + tuple(params["differences"])
             + ((images_id,) if images_id else ()) + tuple(params["references"]))
     if reference_ids:
         params["camera"] = asdict(scene.camera)
         deps += (GROUND_TRUTH_MESH,)
-    deps += tuple(params["profiles"])
+    deps += tuple(params["profiles"]) + tuple(params["causes"])
     return Node(NAME, NAME, __name__, params, deps, label="grids + PDF")
 
 
@@ -67,7 +68,8 @@ def plan(scene, plan) -> None:
         {n.id: (n.params["label"], n.deps["mesh"]) for n in plan.of_stage("irradiance")},
         [n.id for n in plan.of_stage("differences")], images[0].id if images else None,
         [n.id for n in plan.of_stage("reference")], plan.skipped.get("reference"),
-        [n.id for n in plan.of_stage("profiles")]), target=True)
+        [n.id for n in plan.of_stage("profiles")], [n.id for n in plan.of_stage("causes")]),
+        target=True)
 
 
 def run(params: dict, inputs: dict, ctx) -> StageResult:
@@ -91,10 +93,13 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
         images, refs, ctx.out_dir, files, mesh=inputs[GROUND_TRUTH_MESH] if refs else None,
         camera=CameraConfig(**params["camera"]) if refs else None, extra_seconds=extra,
         skip_reason=params.get("reference_skipped"), differences=metrics,
-        tiles=tiles.get("model"))
+        tiles=tiles.get("model"),
+        variants={inputs[nid].info["light"]: inputs[nid] for nid in params.get("causes", ())})
     metrics["ground_truth"] = gt_info["metrics"]
     if refs:
         metrics["thesis"] = gt_info["thesis"]
+        if gt_info.get("causes"):
+            metrics["causes"] = gt_info["causes"]
     else:
         metrics["ground_truth_skipped"] = gt_info["title"]["note"]
     mpath = ctx.out_dir / "metrics.json"
