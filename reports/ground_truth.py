@@ -104,7 +104,15 @@ def _flip(ref: np.ndarray, test: np.ndarray, mask: np.ndarray) -> tuple[float, n
         return float("nan"), np.zeros(mask.shape, np.float32)
     r = np.ascontiguousarray(np.where(mask[..., None], ref, 0.0), np.float32)
     t = np.ascontiguousarray(np.where(mask[..., None], test, 0.0), np.float32)
-    err, _, _ = flip.evaluate(r, t, "HDR", applyMagma=False, computeMeanError=False)
+    # HDR-FLIP's exposure range from the compared (head) pixels alone: over the whole frame
+    # the black background's median set the stop exposure to 24 stops, 23 exposures, ~4 s
+    # an image at 80^2 (against 2-6 from the head's pixels)
+    skin = np.ascontiguousarray(r[mask][None], np.float32)
+    _, _, exposure = flip.evaluate(skin, skin, "HDR", applyMagma=False, computeMeanError=False)
+    err, _, _ = flip.evaluate(r, t, "HDR", applyMagma=False, computeMeanError=False,
+                              parameters={k: exposure[k] for k in ("startExposure",
+                                                                   "stopExposure",
+                                                                   "numExposures")})
     err = np.asarray(err, np.float32).reshape(mask.shape[0], mask.shape[1], -1)[..., 0]
     return float(err[mask].mean()) if mask.any() else 0.0, err
 
