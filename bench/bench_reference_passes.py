@@ -45,6 +45,8 @@ def main(argv=None) -> int:
     ap.add_argument("--target", type=float, default=0.01)
     ap.add_argument("--max-spp", type=int, default=4096)
     ap.add_argument("--lights", nargs="*", default=None)
+    ap.add_argument("--no-run", action="store_true",
+                    help="analyse the newest reference entries the cache holds")
     ap.add_argument("--out", default=str(REPO / "bench" / "results" / "reference_passes.json"))
     args = ap.parse_args(argv)
 
@@ -57,18 +59,23 @@ def main(argv=None) -> int:
         over["reference"]["lights"] = args.lights
     scene = load_scene(None, overrides=over)
     load0, t0, c0 = os.getloadavg(), time.perf_counter(), time.process_time()
-    summary = api.run(scene, cache=args.cache, export=False, until="reference")
+    if args.no_run:
+        paths = [max((d for d in (Path(args.cache) / f"reference-{label}").glob("*")
+                      if (d / "meta.json").is_file()), key=lambda d: d.stat().st_mtime)
+                 for label, _ in scene.light_groups()
+                 if (Path(args.cache) / f"reference-{label}").is_dir()]
+    else:
+        summary = api.run(scene, cache=args.cache, export=False, until="reference")
+        paths = [Path(rep.path) for rep in summary.nodes if rep.stage == "reference"]
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     out = {"scene": "scenes/default.toml (high mesh, reference only)", "target": args.target,
            "max_spp": args.max_spp, "wall_seconds": wall, "cpu_seconds": cpu,
            "loadavg_before": load0, "loadavg_after": os.getloadavg(), "cpus": os.cpu_count(),
            "lights": {}}
     from dermis.pipeline.graph import restore_measurements
-    for rep in summary.nodes:
-        if rep.stage != "reference":
-            continue
-        meta = json.loads((Path(rep.path) / "meta.json").read_text())
-        ref = restore_measurements(artifacts.load(rep.path), meta.get("measurements", {}))
+    for path in paths:
+        meta = json.loads((path / "meta.json").read_text())
+        ref = restore_measurements(artifacts.load(path), meta.get("measurements", {}))
         info = ref.info
         log = info["pass_log"]
         uniform = [p for p in log if p.get("uniform")]

@@ -185,8 +185,11 @@ class BssrdfConfig:
 class ReferenceConfig:
     # Mitsuba 3 path-traced ground truth (stages/reference.py, docs/ground-truth.md), rendered
     # in progressive passes of two half-buffers over the head's pixels until every face
-    # region's mean is known to target_rel_se or budget_s runs out (groundtruth/progressive.py);
-    # the defaults' cost: bench/results/reference_passes.json
+    # region's mean is known to target_rel_se or budget_s runs out (groundtruth/progressive.py).
+    # 1 % everywhere took 0.6-3.8 M paths per lighting condition of the default scene
+    # (bench/results/reference_passes.json), ~30 us a path on 2 idle cores: 340 s for the
+    # four, so the default budget (40 s each) reaches ~1.5-2 % and keeps a cold default run
+    # near 5 minutes; a larger budget_s continues from the cached passes.
     enabled: bool = spec(True, doc="render Mitsuba 3 references (skipped with one message where "
                                    "Mitsuba cannot run)")
     # 100 reference pixels across the default camera's 800: 8x8-pixel blocks, where the
@@ -197,7 +200,7 @@ class ReferenceConfig:
     target_rel_se: float = spec(0.01, lo=0.0, lo_open=True, hi=1.0,
                                 doc="stop when every face region's luminance mean has this "
                                     "relative standard error")
-    budget_s: float = spec(60.0, lo=0.0, hi=1e7, doc="seconds of rendering per lighting condition "
+    budget_s: float = spec(40.0, lo=0.0, hi=1e7, doc="seconds of rendering per lighting condition "
                                                      "(0 = no limit); a larger budget continues "
                                                      "from the cached passes")
     max_passes: int = spec(0, lo=0, hi=1 << 20, doc="stop after this many passes (0 = no limit); "
