@@ -73,6 +73,7 @@ SLOW = (
     "test_pipeline.py",            # the quick scene built, rebuilt and compared across jobs
     "test_sweep.py",               # sweeps of the quick scene, serial and on Dask
     "test_reference.py::test08", "test_reference.py::test09",   # Mitsuba renders
+    "test_convention.py",          # Mitsuba renders of a flat plate (~50 s)
     "test_hardening_config.py::test12",  # peak memory of a render measured in a subprocess
     "test_hardening.py::test15", "test_hardening.py::test16", "test_hardening.py::test19",
     "test_hardening.py::test23",
