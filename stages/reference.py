@@ -97,7 +97,7 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
         max_depth=r["max_depth"], rr_depth=r["rr_depth"]))
     t0 = time.perf_counter()
     head = head_scene(mi, mesh, stack, camera, lights, width=r["width"], height=r["height"],
-                      options=HeadSceneOptions(roughness=r["roughness"], tint_rd=slab.Rd,
+                      options=HeadSceneOptions(roughness=r["roughness"], tint_rd=slab.Rd_entered,
                                                env_clamp=r["env_clamp"],
                                                max_depth=r["max_depth"],
                                                rr_depth=r["rr_depth"]))
