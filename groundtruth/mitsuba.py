@@ -15,6 +15,7 @@ variant lacks, and one path at a time would take hours.
 from __future__ import annotations
 
 
+import functools
 import glob
 import importlib.util
 import os
@@ -25,7 +26,7 @@ import threading
 from dermis.pipeline.errors import ConfigError, DermisError
 
 __all__ = ["MitsubaUnavailable", "load_mitsuba", "mitsuba_missing_reason", "VARIANTS",
-           "INSTALL_HINT"]
+           "INSTALL_HINT", "exclusive"]
 
 VARIANTS = ("cuda_ad_rgb", "llvm_ad_rgb")
 INSTALL_HINT = ("bash .ci/setup, or pip install mitsuba drjit (dermis's dependencies); "
@@ -60,6 +61,21 @@ def _find_libllvm() -> str | None:
 # One import and variant choice at a time: two reference nodes running at once (-j 2) imported
 # Mitsuba concurrently and one saw a half-initialised module (no ``variants``).
 _LOAD_LOCK = threading.RLock()
+
+
+# Mitsuba's JIT state is not safe for two Python threads rendering at once: a reference node
+# and a causes node at -j 2 failed with "jit_registry_id(...): pointer is not registered".  A
+# node runs its Mitsuba work holding this lock (Mitsuba itself already uses every core).
+_RENDER_LOCK = threading.RLock()
+
+
+def exclusive(fn):
+    """``fn`` run while no other thread of this process uses Mitsuba (a stage's ``run``)."""
+    @functools.wraps(fn)
+    def run(*args, **kwargs):
+        with _RENDER_LOCK:
+            return fn(*args, **kwargs)
+    return run
 
 
 def load_mitsuba(variant: str = "auto"):

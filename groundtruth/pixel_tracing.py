@@ -58,11 +58,13 @@ def trace_pixels(mi, scene, pixels: np.ndarray, spp: int, seed: int, *, width: i
 
 
 
-def sensor_mean(mi, scene, samples: int, seed: int) -> np.ndarray:
-    """(3,) float64 mean of ``samples`` paths of the scene's first sensor over its whole film
-    (one pixel: an irradiance meter), summed here in a fixed order: ``mi.render`` adds a
-    one-pixel film's samples with atomics, whose order (so the last bits) varies run to run."""
-    sensor, integrator = scene.sensors()[0], scene.integrator()
+def sensor_mean(mi, scene, samples: int, seed: int, sensor=None) -> np.ndarray:
+    """(3,) float64 mean of ``samples`` paths of ``sensor`` (default: the scene's first) over
+    its whole film (one pixel: a radiance or irradiance meter), summed here in a fixed order:
+    ``mi.render`` adds a one-pixel film's samples with atomics, whose order (so the last
+    bits) varies run to run."""
+    sensor = scene.sensors()[0] if sensor is None else sensor
+    integrator = scene.integrator()
     total, done, k = np.zeros(3), 0, 0
     while done < samples:
         n = min(int(samples) - done, MAX_LANES)

@@ -35,16 +35,16 @@ are :mod:`dermis.groundtruth.passes`):
   by that plus its own thickness (vertex normals); index-matched interfaces are ``null``
   BSDFs, others rough dielectrics.  The media do not sample emitters (trap 6: a shadow ray
   from inside a closed boundary is always blocked).
-* **Albedo texture**: a tint of the boundary's transmission, t = sqrt(albedo / Rd) per
-  crossing (``specular_transmittance``), with Rd the path tracer's own total diffuse
-  reflectance of the stack
+* **Albedo texture** (the albedo convention, docs/ground-truth.md): a texture value a is
+  the reflectance, per unit of flux that crossed the surface at normal incidence, of the
+  skin below it, as every dermis model reads it.  It is exported as a tint of the boundary's
+  transmission, t = sqrt(a / Rd_entered) per crossing (``specular_transmittance``), with
+  Rd_entered the path tracer's own reflectance of the stack per entered flux
   (:func:`dermis.groundtruth.slab.slab_reflectance`).  A path that enters at x and leaves
-  at y carries t(x) t(y), so a flat patch of uniform albedo a reflects exactly a: the texture
-  reads as total diffuse reflectance, as in every dermis model (docs/ground-truth.md).
+  at y carries t(x) t(y), so a flat patch of uniform albedo a reflects a (1 - specular) of
+  a normally incident light, as every model's flat patch reflects a T(1).
 * **Integrator**: ``volpathmis`` (trap 4: spectral MIS), ``max_depth = -1`` with Russian
   roulette (trap 7), emitters hidden from camera rays (dermis's background is black).
-
-Variant: :func:`load_mitsuba` picks ``cuda_ad_rgb`` where a CUDA device answers, else
 
 Which Mitsuba variant renders is :mod:`dermis.groundtruth.mitsuba`'s choice; every function
 here takes the loaded ``mitsuba`` module as ``mi``.
@@ -240,10 +240,13 @@ def boundary_bsdf(eta_in: float, eta_out: float, roughness: float, tint=None) ->
     return dielectric_bsdf(eta_in, eta_out, roughness, tint)
 
 
-def tint_texture(mi, texture_srgb, rd) -> dict:
-    """Bitmap texture t = sqrt(albedo / Rd) (linear albedo from the sRGB texture)."""
+def tint_texture(mi, texture_srgb, rd_entered) -> dict:
+    """Bitmap texture t = sqrt(albedo / Rd_entered) (linear albedo from the sRGB texture):
+    the albedo convention (module docstring), ``rd_entered`` (3,) the path tracer's
+    reflectance of the stack per entered flux at normal incidence
+    (:attr:`dermis.groundtruth.slab.SlabResult.Rd_entered`)."""
     lin = srgb_to_linear(np.asarray(texture_srgb, np.float32) / 255.0)
-    t = np.sqrt(np.maximum(lin, 0.0) / np.maximum(np.asarray(rd, np.float32), 1e-6))
+    t = np.sqrt(np.maximum(lin, 0.0) / np.maximum(np.asarray(rd_entered, np.float32), 1e-6))
     return {"type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(t, np.float32)),
             "raw": True, "filter_type": "bilinear", "wrap_mode": "clamp"}
 
@@ -269,8 +272,9 @@ class HeadSceneOptions:
 
     roughness : GGX alpha of the skin's boundary (and of every index-mismatched interface);
         0: smooth (:func:`dielectric_bsdf`)
-    tint_rd : (3,) the path tracer's Rd of the stack (:func:`dermis.groundtruth.slab.
-        slab_reflectance`) normalising the albedo tint; None: no tint
+    tint_rd : (3,) the path tracer's reflectance of the stack per ENTERED flux at normal
+        incidence (:attr:`dermis.groundtruth.slab.SlabResult.Rd_entered`), normalising the
+        albedo tint (the albedo convention, :func:`tint_texture`); None: no tint
     env_clamp : environment radiance above this is cut (0: none; :func:`environment_radiance`)
     integrator : Mitsuba integrator of the skin (``volpathmis``: trap 4, spectral MIS)
     max_depth, rr_depth : path length limit (-1: none; 2: direct light only) and the depth

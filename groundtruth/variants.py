@@ -17,7 +17,7 @@ reference's resolution and camera:
 * **Boundary.**  The reference's skin boundary is a rough GGX dielectric (alpha 0.3), the
   models' a smooth Fresnel one.  The skin head is rendered with the rough boundary and with
   Mitsuba's smooth ``dielectric`` (or a small alpha), each with the albedo tint normalised by
-  its own flat-slab Rd (:func:`slab_albedo`), so that both read the texture as total diffuse
+  its own flat-slab Rd (:func:`dermis.groundtruth.slab.slab_reflectance`), so that both read the texture as total diffuse
   reflectance on flat skin: effect b = smooth / rough - 1 per region, what remains of the
   boundary after the normalisation (angles of entry and exit, curvature).  A path leaving
   skin through a smooth boundary reaches a light only by hitting it: the variant is defined
@@ -47,12 +47,12 @@ import numpy as np
 
 from dermis.geometry.regions import REGION_LABELS, REGIONS, face_regions
 from dermis.groundtruth.passes import pixel_hits, render_passes
-from dermis.groundtruth.scene_export import HeadSceneOptions, head_scene, release, rgb_spectrum
-from dermis.groundtruth.slab import SLAB_DEPTH_MM, SlabResult, slab_boxes
+from dermis.groundtruth.scene_export import HeadSceneOptions, head_scene, release
+from dermis.groundtruth.slab import slab_reflectance
 from dermis.pipeline.errors import ConfigError
 from dermis.rendering.color import LUMINANCE
 
-__all__ = ["VariantOptions", "Halves", "WHOLE_FACE", "VARIANT_REGIONS", "slab_albedo",
+__all__ = ["VariantOptions", "Halves", "WHOLE_FACE", "VARIANT_REGIONS",
            "render_halves", "region_labels", "ratio_stats", "interreflection_variant",
            "boundary_variant", "boundary_lights_problem", "CAUSE_EFFECTS", "MIN_LIT_PIXELS"]
 
@@ -81,7 +81,7 @@ class VariantOptions:
     rough_spp, smooth_spp : samples per pixel of each half of the skin head, rough / smooth
     roughness : GGX alpha of the reference's boundary
     smooth_roughness : the smooth variant's alpha (0: Mitsuba's smooth ``dielectric``)
-    slab_samples : paths of each flat-slab Rd (:func:`slab_albedo`)
+    slab_samples : paths of each flat-slab Rd (:func:`dermis.groundtruth.slab.slab_reflectance`)
     max_depth, rr_depth, env_clamp : the reference's skin integrator and environment clamp
     """
 
@@ -120,60 +120,6 @@ class Halves:
 
 
 # --------------------------------------------------------------------------- flat slab
-def slab_albedo(mi, stack, *, roughness: float, samples: int = 1 << 16, batches: int = 8,
-                seed: int = 0, max_depth: int = -1, rr_depth: int = 1024) -> SlabResult:
-    """Mitsuba's total diffuse reflectance of a flat slab, by reciprocity.
-
-    The slab of :func:`dermis.groundtruth.slab.slab_boxes` under a uniform sky of radiance 1,
-    seen straight down by an orthographic camera: the pixel reads the hemispherical-directional
-    reflectance towards the normal, which by reciprocity is the directional-hemispherical
-    reflectance at normal incidence that :func:`dermis.groundtruth.slab.slab_reflectance`
-    measures with a light and a meter.  Unlike that estimator it works for a smooth boundary
-    (``roughness`` 0), whose exiting paths always reach the sky.  The boundary's own reflection
-    (the same scene with a black interior) is subtracted; standard errors from ``batches``
-    independent renders.
-    """
-    t0 = time.perf_counter()
-    T = mi.ScalarTransform4f
-    layers = stack.layers
-    depth = (sum(l.thickness_mm for l in layers) if not math.isinf(layers[-1].thickness_mm)
-             else SLAB_DEPTH_MM)
-
-    def scene(black):
-        d = {"type": "scene", "integrator": {"type": "volpathmis", "max_depth": int(max_depth),
-                                             "rr_depth": int(rr_depth)},
-             "sky": {"type": "constant", "radiance": rgb_spectrum((1.0, 1.0, 1.0))},
-             "sensor": {"type": "orthographic",
-                        "to_world": T().look_at(origin=[0.0, 0.0, 10.0], target=[0.0, 0.0, 0.0],
-                                                up=[0.0, 1.0, 0.0]),
-                        "film": {"type": "hdrfilm", "width": 1, "height": 1,
-                                 "rfilter": {"type": "box"}, "pixel_format": "rgb"},
-                        "sampler": {"type": "independent", "sample_count": 1}}}
-        d.update(slab_boxes(mi, stack, roughness, black=black))
-        # the sky lights the slab from above only, as the meter's light does: a black floor
-        # under it (a finite slab would otherwise add the sky's light transmitted upwards)
-        d["floor"] = {"type": "rectangle", "bsdf": {"type": "diffuse",
-                                                    "reflectance": rgb_spectrum((0, 0, 0))},
-                      "to_world": T().translate([0.0, 0.0, -depth - 1.0])
-                      @ T().scale([1e4, 1e4, 1.0])}
-        return mi.load_dict(d)
-
-    sc = scene(False)
-    per = max(1, int(samples) // batches)
-    vals = np.array([np.asarray(mi.render(sc, spp=per, seed=int(seed) * 1000 + b),
-                                np.float64).reshape(-1)[:3] for b in range(batches)])
-    spec = np.asarray(mi.render(scene(True), spp=1 << 16, seed=int(seed) * 1000 + 999),
-                      np.float64).reshape(-1)[:3]
-    total = vals.mean(axis=0)
-    err = vals.std(axis=0, ddof=1) / math.sqrt(batches)
-    rd = total - spec
-    return SlabResult(rd, err, spec, rd / np.maximum(1.0 - spec, 1e-9),
-                      time.perf_counter() - t0, per * batches,
-                      {"roughness": float(roughness), "batches": batches, "method": "reciprocal",
-                       "max_depth": int(max_depth), "rr_depth": int(rr_depth),
-                       "variant": mi.variant()})
-
-
 # --------------------------------------------------------------------------- rendering
 def render_halves(mi, scene, *, spp: int, seed: int, integrator=None,
                   progress: Callable[[int], None] | None = None) -> Halves:
@@ -321,11 +267,12 @@ def boundary_variant(mi, mesh, stack, camera, lights, opts: VariantOptions, *,
     total = 2 * sum(spps.values())
     slabs, renders, done = {}, {}, 0
     for name in ("rough", "smooth"):
-        slab = slab_albedo(mi, stack, roughness=alphas[name], samples=opts.slab_samples,
-                           seed=opts.seed, max_depth=opts.max_depth, rr_depth=opts.rr_depth)
+        slab = slab_reflectance(mi, stack, roughness=alphas[name], samples=opts.slab_samples,
+                                seed=opts.seed, max_depth=opts.max_depth,
+                                rr_depth=opts.rr_depth)
         slabs[name] = slab
         head = head_scene(mi, mesh, stack, camera, lights, width=w, height=h,
-                          options=HeadSceneOptions(roughness=alphas[name], tint_rd=slab.Rd,
+                          options=HeadSceneOptions(roughness=alphas[name], tint_rd=slab.Rd_entered,
                                                    env_clamp=opts.env_clamp,
                                                    max_depth=opts.max_depth,
                                                    rr_depth=opts.rr_depth))

@@ -92,6 +92,7 @@ def _slab_info(slab) -> dict:
             "roughness": slab.info.get("roughness")}
 
 
+@mitsuba.exclusive
 def run(params: dict, inputs: dict, ctx) -> StageResult:
     t_start = time.perf_counter()
     r, c = params["reference"], params["causes"]

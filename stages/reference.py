@@ -69,8 +69,7 @@ def node_id(label: str) -> str:
 
 
 def node(scene, label: str, lights: tuple) -> Node:
-    """The reference of one lighting condition (its ``[reference]`` keys checked at load:
-    pipeline/scene_rules.py ``check_reference``)."""
+    """The reference of one lighting condition (``[reference]`` checked at load)."""
     w, h = reference_size(scene.camera, scene.reference)
     params = {"label": label, "camera": asdict(scene.camera), **light_params(lights),
               "optics": scene.optics.to_dict(),
@@ -80,6 +79,7 @@ def node(scene, label: str, lights: tuple) -> Node:
                 resumable=("reference.budget_s", "reference.max_passes"))
 
 
+@mitsuba.exclusive
 def run(params: dict, inputs: dict, ctx) -> StageResult:
     t_start = time.perf_counter()
     r = params["reference"]
@@ -97,7 +97,7 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
         mi, stack, roughness=r["roughness"], samples=r["slab_samples"], seed=r["seed"],
         max_depth=r["max_depth"], rr_depth=r["rr_depth"]))
     w, h = r["width"], r["height"]
-    options = HeadSceneOptions(roughness=r["roughness"], tint_rd=slab.Rd,
+    options = HeadSceneOptions(roughness=r["roughness"], tint_rd=slab.Rd_entered,
                                env_clamp=r["env_clamp"], max_depth=r["max_depth"],
                                rr_depth=r["rr_depth"])
     job = TraceJob(f"{NAME}-{params['label']}-{time.time_ns()}", mesh, stack, camera, lights,

@@ -74,6 +74,7 @@ SLOW = (
     "test_sweep.py",               # sweeps of the quick scene, serial and on Dask
     "test_reference.py::test08", "test_reference.py::test09",   # Mitsuba renders
     "test_reference_passes.py::test04", "test_reference_passes.py::test05",   # Mitsuba, Dask
+    "test_convention.py",          # Mitsuba renders of a flat plate (~50 s)
     "test_hardening_config.py::test12",  # peak memory of a render measured in a subprocess
     "test_hardening.py::test15", "test_hardening.py::test16", "test_hardening.py::test19",
     "test_hardening.py::test23",

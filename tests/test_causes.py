@@ -125,25 +125,19 @@ def test01_interreflection_gain_nonnegative_on_the_head_zero_on_a_sphere(mi, qui
 
 
 # ------------------------------------------------------------------------ flat slab
-def test02_reciprocal_slab_agrees_with_slab_py_and_the_smooth_one_with_monte_carlo(mi):
-    """A 1 mm Skin1 slab: the reciprocal estimator (camera and uniform sky) reads the same
-    Rd as groundtruth/slab.py (light and meter) at alpha 0.3, within 4 standard errors of
-    the pair; with the smooth boundary it reads dermis's Monte Carlo (smooth Fresnel, no
-    rough-boundary loss) within 4 standard errors, and its specular reflection is Fresnel's
-    ((eta - 1) / (eta + 1))^2; the rough slab is darker than the smooth one by more than its
-    noise (the GGX boundary's energy loss, docs/ground-truth.md trap 9)."""
+def test02_smooth_slab_agrees_with_monte_carlo_and_the_rough_one_is_darker(mi):
+    """A 1 mm Skin1 slab (groundtruth/slab.py, by reciprocity: a radiance meter under a
+    uniform sky): with the smooth boundary of the boundary variant it reads dermis's Monte
+    Carlo (smooth Fresnel, no rough-boundary loss) within 4 standard errors, and its specular
+    reflection is Fresnel's ((eta - 1) / (eta + 1))^2; the rough slab is darker than the
+    smooth one by more than its noise (the GGX boundary's energy loss, docs/ground-truth.md
+    trap 9)."""
     from dermis.groundtruth.slab import slab_reflectance
-    from dermis.groundtruth.variants import slab_albedo
     from dermis.optics import monte_carlo_slab as mc_slab
     from dermis.optics.layers import Layer, LayerStack
     stack = LayerStack((Layer(1.0, 1.3, (0.032, 0.17, 0.48), (0.74, 0.88, 1.01)),))
-    meter = slab_reflectance(mi, stack, roughness=0.3, samples=1 << 18, batches=16, seed=1)
-    recip = slab_albedo(mi, stack, roughness=0.3, samples=1 << 16, batches=16, seed=1)
-    se = np.hypot(meter.Rd_stderr, recip.Rd_stderr)
-    assert np.all(np.abs(meter.Rd - recip.Rd) < 4 * se), (meter.Rd, recip.Rd, se)
-    assert np.allclose(meter.specular, recip.specular, rtol=0.05), (meter.specular,
-                                                                    recip.specular)
-    smooth = slab_albedo(mi, stack, roughness=0.0, samples=1 << 16, batches=16, seed=1)
+    recip = slab_reflectance(mi, stack, roughness=0.3, samples=1 << 16, batches=16, seed=1)
+    smooth = slab_reflectance(mi, stack, roughness=0.0, samples=1 << 16, batches=16, seed=1)
     mc = mc_slab.simulate(stack, photons=200_000, r_max_mm=50.0, bins=4, seed=3)
     se_mc = np.hypot(smooth.Rd_stderr, mc.Rd_err)
     assert np.all(np.abs(smooth.Rd_entered - mc.Rd) < 4 * se_mc), (smooth.Rd_entered, mc.Rd,
