@@ -145,8 +145,12 @@ def test02_smooth_slab_agrees_with_monte_carlo_and_the_rough_one_is_darker(mi):
     f0 = ((1.3 - 1.0) / (1.3 + 1.0)) ** 2
     n = 1 << 16  # the black-interior render's samples: reflect with probability F0
     assert np.all(np.abs(smooth.specular - f0) < 4 * math.sqrt(f0 * (1 - f0) / n))
-    assert np.all(smooth.Rd_entered - recip.Rd_entered > 4 * np.hypot(smooth.Rd_stderr,
-                                                                       recip.Rd_stderr))
+    # the GGX loss is 22 / 11 / 3 % of this slab (R/G/B, docs/ground-truth.md trap 9): red
+    # and green resolved at 2^16 paths, blue (~1.6 standard errors a percent) not darker
+    # beyond noise
+    se_pair = np.hypot(smooth.Rd_stderr, recip.Rd_stderr)
+    loss = smooth.Rd_entered - recip.Rd_entered
+    assert np.all(loss[:2] > 4 * se_pair[:2]) and loss[2] > -4 * se_pair[2], (loss, se_pair)
 
 
 @pytest.mark.slow
@@ -291,8 +295,8 @@ def test07_stage_plan_settings_and_cache(mi, tmp_path):
     from dermis.pipeline.plan import build_graph
     from dermis.stages import causes
     over = {"render": {"lights": ["point", "area"]},
-            "reference": {"enabled": True, "width": 16, "height": 16, "spp": 2,
-                          "slab_samples": 2048},
+            "reference": {"enabled": True, "width": 16, "height": 16, "min_spp": 2,
+                          "max_spp": 2, "budget_s": 0, "slab_samples": 2048},
             "causes": {"diffuse_spp": 4, "rough_spp": 2, "smooth_spp": 2,
                        "slab_samples": 2048}}
     scene = load_scene(scene_file(tmp_path, over))
