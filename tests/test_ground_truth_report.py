@@ -42,15 +42,17 @@ TILE = 8            # region tiles
 LIGHT = "point"
 # float64 sums of float32 images: 1e-6 relative is far below every quantity tested
 EXACT = 1e-6
-COLOURS = np.random.default_rng(3).uniform(0.2, 1.0, (6, 3))   # per label 0 (none) .. 5
+NLAB = len(REGIONS) + 1     # labels 0 (none) .. len(REGIONS)
+COLOURS = np.random.default_rng(3).uniform(0.2, 1.0, (NLAB, 3))   # per label
 
 
 def _layout():
-    """(labels (H, W), T (H, W, 3), e (H, W), e' (H, W)): 16 tiles, tile k -> label k mod 6."""
+    """(labels (H, W), T (H, W, 3), e (H, W), e' (H, W)): 16 tiles, tile k -> label k mod
+    NLAB (every region has at least two tiles)."""
     labels = np.zeros((H, W), np.int8)
     for k in range(16):
         i, j = divmod(k, 4)
-        labels[i * TILE:(i + 1) * TILE, j * TILE:(j + 1) * TILE] = k % 6
+        labels[i * TILE:(i + 1) * TILE, j * TILE:(j + 1) * TILE] = k % NLAB
     y, x = np.mgrid[0:H, 0:W]
     e = np.where(((y // 4) + (x // 4)) % 2 == 0, 1.0, -1.0)
     e2 = np.where((y // 4) % 2 == 0, 1.0, -1.0)
