@@ -10,7 +10,7 @@ region's relative standard error, and per light:
   for the same worst-region error (every pixel at the samples the worst region needed,
   n_r (s_r / target)^2 scaled from the uniform passes) against the paths spent;
 * the gain of tracing only the head's pixels: a whole-frame ``mi.render`` pass timed against
-  the same samples traced at the head's pixels (``--frame-check``).
+  the same samples traced at the head's pixels (``--frame-check``, ``frame_check``).
 
     python3 bench/bench_reference_passes.py [--cache DIR] [--target 0.01] [--max-spp 4096]
 
@@ -39,12 +39,55 @@ def time_to(log: list, target: float) -> float | None:
     return None
 
 
+def frame_check(cache: str, spp: int = 8, repeats: int = 3) -> dict:
+    """Whole-frame ``mi.render`` against the same samples traced at the head's pixels only
+    (the default scene's point light, 100 x 100): seconds per head-pixel sample, each the
+    median of ``repeats``."""
+    import statistics
+    import numpy as np
+    from dermis.groundtruth import mitsuba
+    from dermis.groundtruth.passes import pixel_hits
+    from dermis.groundtruth.pixel_tracing import trace_pixels
+    from dermis.groundtruth.scene_export import HeadSceneOptions, head_scene, release
+    from dermis.pipeline import artifacts
+    from dermis.pipeline.config import load_scene
+    scene = load_scene(None)
+    mesh_dir = max((d for d in (Path(cache) / "mesh_high").glob("*") if (d / "meta.json").is_file()),
+                   key=lambda d: d.stat().st_mtime)
+    mesh = artifacts.load(mesh_dir)
+    mi = mitsuba.load_mitsuba("auto")
+    head = head_scene(mi, mesh, scene.optics, scene.camera, dict(scene.light_groups())["point"],
+                      width=100, height=100, options=HeadSceneOptions(roughness=0.3))
+    try:
+        hit, _ = pixel_hits(mi, head.scene, width=100, height=100)
+        ys, xs = np.nonzero(hit)
+        px = np.stack([xs, ys], axis=1)
+        frame, pixels = [], []
+        for k in range(repeats):
+            t0 = time.perf_counter()
+            np.asarray(mi.render(head.scene, spp=spp, seed=k))
+            frame.append(time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            trace_pixels(mi, head.scene, px, spp, 100 + k, width=100, height=100)
+            pixels.append(time.perf_counter() - t0)
+    finally:
+        release(head)
+    n = int(hit.sum()) * spp
+    f, p = statistics.median(frame), statistics.median(pixels)
+    return {"spp": spp, "head_pixels": int(hit.sum()), "frame_pixels": 10000,
+            "frame_seconds": f, "head_only_seconds": p, "frame_us_per_head_sample": 1e6 * f / n,
+            "head_only_us_per_sample": 1e6 * p / n, "head_only_speedup": f / p,
+            "loadavg": os.getloadavg()}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cache", default="/tmp/dermis-bench-reference-passes")
     ap.add_argument("--target", type=float, default=0.01)
     ap.add_argument("--max-spp", type=int, default=4096)
     ap.add_argument("--lights", nargs="*", default=None)
+    ap.add_argument("--frame-check", action="store_true",
+                    help="also time a whole-frame render against the head's pixels alone")
     ap.add_argument("--no-run", action="store_true",
                     help="analyse the newest reference entries the cache holds")
     ap.add_argument("--out", default=str(REPO / "bench" / "results" / "reference_passes.json"))
@@ -104,6 +147,9 @@ def main(argv=None) -> int:
               f"stopped {info['stopped']}, worst {max(info['region_rel_se'].values()):.4f}, "
               f"to 2 % {rec['seconds_to_2pct']}, to 1 % {rec['seconds_to_1pct']}, "
               f"adaptive gain {rec['adaptive_gain']}", flush=True)
+    if args.frame_check:
+        out["frame_check"] = frame_check(args.cache)
+        print("frame check:", out["frame_check"])
     Path(args.out).write_text(json.dumps(out, indent=1, sort_keys=True, default=float))
     print(f"wall {wall:.0f} s, cpu {cpu:.0f} s")
     return 0
