@@ -10,4 +10,5 @@ from dermis.models.model import Model
 
 __all__ = ["MODEL"]
 
-MODEL = Model(name="bssrdf", label="bssrdf", stage="bssrdf", doc="docs/science.md §4")
+MODEL = Model(name="bssrdf", label="bssrdf", stage="bssrdf", doc="docs/science.md §4",
+              glossy=True)

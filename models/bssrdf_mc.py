@@ -9,4 +9,4 @@ from dermis.models.model import Model
 __all__ = ["MODEL"]
 
 MODEL = Model(name="bssrdf_mc", label="BSSRDF (Monte Carlo profile)", stage="bssrdf",
-              doc="docs/science.md §3", profile="monte_carlo")
+              doc="docs/science.md §3", profile="monte_carlo", glossy=True)

@@ -44,6 +44,9 @@ class Model:
         where it is not the linear albedo itself
     profile : for a BSSRDF, the layer-profile model it reads (None: the scene's ``[optics]
         profile``)
+    glossy : its image shows the Lafortune skin fit's lobes (a BSSRDF through its surface
+        term, ``[bssrdf] surface_reflection``), so the shared rays sample them
+        (``rendering/cast.py`` :func:`glossy_lobes`)
     """
 
     name: str
@@ -59,6 +62,7 @@ class Model:
     scene_params: Callable[[dict, Any], Any] | None = None
     shade_albedo: Callable[[Any, Any, bool], Any] | None = None
     profile: str | None = None
+    glossy: bool = False
 
     def checked(self, params, what: str):
         """``params`` (its defaults when None), else ConfigError: ``what`` must be

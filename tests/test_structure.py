@@ -125,8 +125,9 @@ PROBE = {
     "cl/optics.h": {"render", "bssrdf"},               # Fresnel in HK93 (cl/shade.cl includes it)
     "cl/bssrdf_gather.cl": {"bssrdf"},
     "stages/render.py": {"render", "bssrdf"},          # GEOMETRY, geometry_inputs
-    "models/lafortune.py": {"render", "bssrdf", "irradiance"},  # the BSSRDF's surface lobes
-                                                       # and the entry transmittance they cap
+    "models/lafortune.py": {"render", "bssrdf", "irradiance",  # the BSSRDF's surface lobes,
+                            "visibility"},             # the entry transmittance they cap and
+                                                       # the lobes the rays sample
     "models/hk93.py": {"render", "bssrdf"},            # the render stage's models
     # the previews cast their rays on the renders' shared Embree scenes (lighting/visibility.py,
     # which imports lighting/strata.py for the sub-pixel offsets)
@@ -136,6 +137,9 @@ PROBE = {
     "lighting/emitters.py": {"render", "bssrdf", "irradiance", "visibility"},
     "lighting/environment.py": {"render", "bssrdf", "irradiance", "visibility"},
     "lighting/lobes.py": {"render", "bssrdf", "visibility"},   # the irradiance pass draws none
+    # the renderer's environment estimator, imported with the light sampling everywhere
+    "lighting/mixture.py": {"render", "bssrdf", "irradiance", "visibility"},
+    "lighting/control.py": {"render", "bssrdf", "irradiance", "visibility"},
     "lighting/irradiance.py": {"irradiance", "bssrdf"},   # the gather's shadow edges use it
     "rendering/cast.py": {"visibility", "render", "bssrdf"},   # shared rays, hit attributes
     "pipeline/plan.py": set(),                         # decides which nodes exist, runs in none
