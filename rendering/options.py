@@ -35,6 +35,17 @@ class LightSampling:
         (:class:`lighting.lobes.RetroLobe`; fraction 0 = none);
         :func:`rendering.cast.retro_lobe` sets it for a scene whose HK93 layers scatter
         backwards
+    mixture : with ``env_strategy`` "product", environment lights through the renderer's
+        estimator (lighting/mixture.py: per-hit strategy shares, samples stratified over the
+        pixel in 2-D); False: fixed shares, as the irradiance pass samples
+    glossy_lobes : with ``mixture``, a share of each hit's environment samples drawn from the
+        Lafortune lobes (:class:`lighting.lobes.LafortuneLobes`, per-hit shares);
+        :func:`rendering.cast.glossy_lobes` sets it for a scene that renders them
+    control_variate : with ``mixture``, the control variate of lighting/control.py: the
+        unoccluded diffuse light known exactly, the samples estimating only the rest.  Off:
+        unbiased, but a pixel's estimate can fall below zero where occluders hide much of
+        the sky (measured in bench/results/env_noise.json "control_variate"), and radiance
+        estimates here are never negative
     """
 
     shadow_samples: int | None = None
@@ -45,6 +56,9 @@ class LightSampling:
     glossy_tilt: float = 0.75
     retro_fraction: float = 0.0
     retro_k: float = 0.0
+    mixture: bool = True
+    glossy_lobes: bool = False
+    control_variate: bool = False
 
 
 @dataclass(frozen=True, eq=False)

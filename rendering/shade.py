@@ -129,7 +129,9 @@ class _Shader:
         for m in (base, term):
             if m is not None:
                 defines.update(m.shade)
-        self.kernel = cl.Kernel(env_cl.program("shade.cl", defines), "shade_samples")
+        program = env_cl.program("shade.cl", defines)
+        self.kernel = cl.Kernel(program, "shade_samples")
+        self.control_kernel = cl.Kernel(program, "shade_control")
         base_block = bparams.pack() if bparams is not None else np.zeros(4, np.float32)
         asp_block = asp.pack() if asp is not None else np.zeros(8, np.float32)
         albedo = px.surf["albedo"]
@@ -140,20 +142,39 @@ class _Shader:
                        to_device(env_cl, np.asarray(base_block, dtype=np.float32)),
                        to_device(env_cl, np.asarray(asp_block, dtype=np.float32))]
 
-    def __call__(self, gidx: np.ndarray, dirs: np.ndarray,
-                 wts: np.ndarray) -> tuple[np.ndarray, float]:
-        """f W cos(theta_i) of each sample of hit ``gidx``: (k, 3) float32, kernel seconds."""
+    def __call__(self, gidx: np.ndarray, dirs: np.ndarray, wts: np.ndarray,
+                 flags: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+        """Each sample of hit ``gidx``: f W cos(theta_i) where lit, minus the control term
+        (cl/shade.cl; ``flags`` None: all lit): (k, 3) float32, kernel seconds."""
         import pyopencl as cl  # optional until a kernel runs (pipeline/cl.py NoOpenCLError)
 
         env, k = self.env, len(gidx)
         out = np.empty((k, 3), dtype=np.float32)
         out_buf = cl.Buffer(env.context, cl.mem_flags.WRITE_ONLY, out.nbytes)
+        fl = (np.ascontiguousarray(flags, dtype=np.uint8) if flags is not None
+              else np.ones(1, np.uint8))
         ev = self.kernel(env.queue, global_size(k), None, to_device(env, gidx),
                          to_device(env, dirs), to_device(env, wts), np.int32(k), *self.inputs,
-                         out_buf)
+                         to_device(env, fl), np.int32(flags is not None), out_buf)
         cl.enqueue_copy(env.queue, out, out_buf, wait_for=[ev])
         env.queue.finish()
         return out, event_seconds(ev)
+
+    def control(self, control_bin: np.ndarray, table: np.ndarray) -> tuple[np.ndarray, float]:
+        """The control variate's integral alpha n_s . M_b of every hit: (M, 3) float32, kernel
+        seconds."""
+        import pyopencl as cl  # optional until a kernel runs (pipeline/cl.py NoOpenCLError)
+
+        env, m = self.env, len(control_bin)
+        out = np.empty((max(m, 1), 3), dtype=np.float32)
+        out_buf = cl.Buffer(env.context, cl.mem_flags.WRITE_ONLY, out.nbytes)
+        ev = self.control_kernel(env.queue, global_size(m), None, np.int32(m),
+                                 to_device(env, np.asarray(control_bin, np.int32)),
+                                 to_device(env, np.asarray(table, np.float32)),
+                                 *self.inputs[:3], *self.inputs[3:], out_buf)
+        cl.enqueue_copy(env.queue, out, out_buf, wait_for=[ev])
+        env.queue.finish()
+        return out[:m], event_seconds(ev)
 
 
 def shade(px: PixelSurface, shader, progress=None) -> tuple[np.ndarray, dict]:
@@ -167,16 +188,23 @@ def shade(px: PixelSurface, shader, progress=None) -> tuple[np.ndarray, dict]:
     k_total = len(owner)
     radiance = np.zeros((n_pix, 3), dtype=np.float64)
     stats = {"kernel_seconds": 0.0, "shaded_samples": int(k_total)}
+    flags = getattr(samples, "flags", None)
     for start in range(0, k_total, CHUNK_SAMPLES):
         sl = slice(start, min(k_total, start + CHUNK_SAMPLES))
         gidx = owner[sl]
-        out, seconds = shader(gidx, samples.directions[sl], samples.weights[sl])
+        out, seconds = shader(gidx, samples.directions[sl], samples.weights[sl],
+                              flags[sl] if flags is not None else None)
         stats["kernel_seconds"] += seconds
         pix = px.hit_idx[gidx]
         for ch in range(3):
             radiance[:, ch] += np.bincount(pix, weights=out[:, ch], minlength=n_pix)
         if progress is not None:
             progress(min(1.0, sl.stop / max(k_total, 1)))
+    if getattr(samples, "control_bin", None) is not None:    # the control variate's integral
+        out, seconds = shader.control(samples.control_bin, samples.control_table)
+        stats["kernel_seconds"] += seconds
+        for ch in range(3):
+            radiance[:, ch] += np.bincount(px.hit_idx, weights=out[:, ch], minlength=n_pix)
     return radiance / px.spp, stats
 
 
