@@ -141,12 +141,16 @@ class RenderedImage:
     mask : (H, W) bool, camera ray hit the mesh
     timings : dict of seconds (visibility, shadows, shading, kernel_seconds, total, ...)
     info : dict (model, light, geometry, samples, ray counts)
+    noise : (H, W, 3) float32 or None, the signed half difference (A - B) / 2 of two half
+        images whose mean is ``linear``: per pixel noise^2 estimates the variance of
+        ``linear``; None where the model has no estimate
     """
 
     linear: np.ndarray
     mask: np.ndarray
     timings: dict = field(default_factory=dict)
     info: dict = field(default_factory=dict)
+    noise: np.ndarray | None = None
 
 
 @dataclass

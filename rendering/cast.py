@@ -47,6 +47,7 @@ from dermis.pipeline.errors import ConfigError
 from dermis.pipeline.registry import model
 from dermis.pipeline.reuse import content_key
 from dermis.pipeline.shared import RunCache, Shared
+from dermis.rendering.halves import half_flags, sample_signs
 from dermis.rendering.options import LightSampling, RenderOptions
 from dermis.rendering.surface import surface_attributes
 
@@ -106,16 +107,17 @@ def _light_sampling(sampling: LightSampling | None, lights) -> LightSampling:
     return replace(sampling, env=env)
 
 
+def light_columns(lights, spp: int, shadow_samples: int | None = None) -> list[int]:
+    """Light samples drawn per camera hit, per light: 1 per point or directional light,
+    ceil(S / spp) per disc or environment light (S = ``shadow_samples`` or the light's
+    ``samples``), in the order the samples are concatenated."""
+    return [1 if lt.type in ("point", "directional")
+            else -(-int(shadow_samples or lt.samples) // spp) for lt in lights]
+
+
 def samples_per_hit(lights, spp: int, shadow_samples: int | None = None) -> int:
-    """Light samples drawn per camera hit: 1 per point or directional light, ceil(S / spp)
-    per disc or environment light (S = ``shadow_samples`` or the light's ``samples``)."""
-    n = 0
-    for lt in lights:
-        if lt.type in ("point", "directional"):
-            n += 1
-        else:
-            n += -(-int(shadow_samples or lt.samples) // spp)
-    return n
+    """Light samples drawn per camera hit, all lights (:func:`light_columns`)."""
+    return sum(light_columns(lights, spp, shadow_samples))
 
 
 # --------------------------------------------------------------------------- casting
@@ -227,7 +229,8 @@ def cast(mesh, lights, camera, options: RenderOptions = RenderOptions(), *, cl_e
         lobe = RetroLobe(surf["wo"], sampling.retro_fraction, sampling.retro_k)
     t_surface = time.perf_counter() - t0
 
-    per_hit = samples_per_hit(lights, spp, sampling.shadow_samples)
+    columns = light_columns(lights, spp, sampling.shadow_samples)
+    per_hit = sum(columns)
     chunk = max(1, CHUNK_SAMPLES // max(per_hit, 1))
     m = len(tri)
     counts = np.zeros(m, dtype=np.int32)
@@ -260,9 +263,12 @@ def cast(mesh, lights, camera, options: RenderOptions = RenderOptions(), *, cl_e
                                ls.directions.reshape(-1, 3).take(flat, axis=0),
                                ls.distance.reshape(-1).take(flat))
         n_shadow += len(ip)
+        # each sample's half (rendering/halves.py): the image's own noise estimate
+        halves = half_flags(sample_signs(sub[sl], spp, columns))
         if ls.control is None:
             keep = np.flatnonzero(~blocked)
             ip, flat = ip.take(keep), flat.take(keep)
+            flags.append(halves.reshape(-1).take(flat) | np.uint8(SAMPLE_LIT))
         else:
             lit = np.zeros(live.shape, bool)
             lit.reshape(-1)[flat[~blocked]] = True
@@ -270,7 +276,8 @@ def cast(mesh, lights, camera, options: RenderOptions = RenderOptions(), *, cl_e
             flat = np.flatnonzero(kept)
             ip = flat // live.shape[1]
             flags.append(lit.reshape(-1).take(flat).astype(np.uint8) * SAMPLE_LIT
-                         + ls.control.reshape(-1).take(flat).astype(np.uint8) * SAMPLE_CONTROL)
+                         + ls.control.reshape(-1).take(flat).astype(np.uint8) * SAMPLE_CONTROL
+                         + halves.reshape(-1).take(flat))
             cbins.append(ls.control_bin)
             table = ls.control_table
         counts[sl] = np.bincount(ip, minlength=sl.stop - sl.start)
@@ -292,8 +299,8 @@ def cast(mesh, lights, camera, options: RenderOptions = RenderOptions(), *, cl_e
             "shadow_rays": int(n_shadow), "env_mixture": mixture,
             "env_control": table is not None,
             "glossy_lobes": isinstance(lobe, LafortuneLobes),
-            "unoccluded_samples": int(len(directions) if table is None else
-                                      sum(int(np.count_nonzero(f & SAMPLE_LIT)) for f in flags)),
+            "unoccluded_samples": int(sum(int(np.count_nonzero(f & SAMPLE_LIT))
+                                          for f in flags)),
             "stored_samples": int(len(directions)), "triangles": int(len(mesh.faces)),
             "timings": {"primary": t_primary, "surface": t_surface,
                         "light_sampling": t_sampling, "shadows": t_shadows,
@@ -302,7 +309,7 @@ def cast(mesh, lights, camera, options: RenderOptions = RenderOptions(), *, cl_e
                         tri=tri.astype(np.int32), bary=bary.astype(np.float32), counts=counts,
                         directions=np.ascontiguousarray(directions, dtype=np.float32),
                         weights=np.ascontiguousarray(weights, dtype=np.float32), info=info,
-                        flags=np.concatenate(flags) if table is not None else None,
+                        flags=(np.concatenate(flags) if flags else np.zeros(0, np.uint8)),
                         control_bin=(np.concatenate(cbins).astype(np.int32)
                                      if table is not None else None),
                         control_table=table)

@@ -51,6 +51,7 @@ from dermis.pipeline.shared import RunCache
 from dermis.pipeline.cl import event_seconds, get_env, to_device
 from dermis.pipeline.errors import ConfigError
 from dermis.rendering.cast import cast
+from dermis.rendering.halves import signs_of
 from dermis.rendering.options import RenderOptions
 from dermis.rendering.surface import PixelSurface, check_bump, global_size, pixel_surface
 
@@ -78,6 +79,8 @@ class RenderResult:
         sums), ``kernel_seconds`` (OpenCL profiling time, part of the above), ``total``,
         ``scene_build`` (Embree scene, 0 when one was passed in)
     info : dict of JSON-able facts (model, lights, samples, ray counts, device)
+    noise : (H, W, 3) float32 the image's own noise estimate (A - B) / 2 of its two half
+        images (rendering/halves.py), or None where the samples carry no halves
     """
 
     linear: np.ndarray
@@ -85,6 +88,7 @@ class RenderResult:
     coverage: np.ndarray | None = None
     timings: dict = field(default_factory=dict)
     info: dict = field(default_factory=dict)
+    noise: np.ndarray | None = None
 
 
 def _resolve(model: Model, params, base: str | None, base_params):
@@ -180,15 +184,19 @@ class _Shader:
 def shade(px: PixelSurface, shader, progress=None) -> tuple[np.ndarray, dict]:
     """Sum f W cos over every unoccluded light sample into its pixel, / spp.
 
-    Returns (H*W, 3) float64 radiance and a dict of seconds and counts.
+    Returns (H*W, 3) float64 radiance and a dict of seconds and counts; its ``"noise"``:
+    (H*W, 3) float64 the signed half difference of the samples' halves, / spp
+    (rendering/halves.py), or None where the samples carry no halves.
     """
     samples = px.samples
     n_pix = px.width * px.height
     owner = np.repeat(np.arange(len(samples.counts), dtype=np.int32), samples.counts)
     k_total = len(owner)
     radiance = np.zeros((n_pix, 3), dtype=np.float64)
-    stats = {"kernel_seconds": 0.0, "shaded_samples": int(k_total)}
     flags = getattr(samples, "flags", None)
+    signs = signs_of(flags) if flags is not None and len(flags) == k_total else None
+    noise = np.zeros((n_pix, 3), dtype=np.float64) if signs is not None else None
+    stats = {"kernel_seconds": 0.0, "shaded_samples": int(k_total)}
     for start in range(0, k_total, CHUNK_SAMPLES):
         sl = slice(start, min(k_total, start + CHUNK_SAMPLES))
         gidx = owner[sl]
@@ -198,6 +206,10 @@ def shade(px: PixelSurface, shader, progress=None) -> tuple[np.ndarray, dict]:
         pix = px.hit_idx[gidx]
         for ch in range(3):
             radiance[:, ch] += np.bincount(pix, weights=out[:, ch], minlength=n_pix)
+        if noise is not None:
+            out *= signs[sl, None]
+            for ch in range(3):
+                noise[:, ch] += np.bincount(pix, weights=out[:, ch], minlength=n_pix)
         if progress is not None:
             progress(min(1.0, sl.stop / max(k_total, 1)))
     if getattr(samples, "control_bin", None) is not None:    # the control variate's integral
@@ -205,17 +217,34 @@ def shade(px: PixelSurface, shader, progress=None) -> tuple[np.ndarray, dict]:
         stats["kernel_seconds"] += seconds
         for ch in range(3):
             radiance[:, ch] += np.bincount(px.hit_idx, weights=out[:, ch], minlength=n_pix)
+        if noise is not None:       # a hit's half: its first sample's (none: both halves)
+            first = np.cumsum(samples.counts) - samples.counts
+            hit_sign = np.where(samples.counts > 0,
+                                signs[np.minimum(first, max(k_total - 1, 0))]
+                                if k_total else 0.0, 0.0)
+            out *= hit_sign[:, None]
+            for ch in range(3):
+                noise[:, ch] += np.bincount(px.hit_idx, weights=out[:, ch], minlength=n_pix)
+    stats["noise"] = noise / px.spp if noise is not None else None
     return radiance / px.spp, stats
 
 
-def _image(radiance: np.ndarray, px: PixelSurface) -> tuple[np.ndarray, int]:
-    """(H, W, 3) float32 image of per-pixel radiance; non-finite values zeroed, pixels counted."""
+def _image(radiance: np.ndarray, px: PixelSurface,
+           noise: np.ndarray | None = None) -> tuple[np.ndarray, int, np.ndarray | None]:
+    """(H, W, 3) float32 image of per-pixel radiance and its noise; non-finite values zeroed
+    (in both, where either is), pixels counted."""
     image = radiance.astype(np.float32)
     bad = ~np.isfinite(image)
+    if noise is not None:
+        noise = noise.astype(np.float32)
+        bad |= ~np.isfinite(noise)
     nonfinite = int(bad.any(axis=1).sum())
     if nonfinite:  # never hand a NaN on; the count is recorded (tests require 0)
         image[bad] = 0.0
-    return image.reshape(px.height, px.width, 3), nonfinite
+        if noise is not None:
+            noise[bad] = 0.0
+    shape = (px.height, px.width, 3)
+    return image.reshape(shape), nonfinite, None if noise is None else noise.reshape(shape)
 
 
 def render(mesh, light, model: Model, params, camera, options: RenderOptions = RenderOptions(),
@@ -278,7 +307,7 @@ def render(mesh, light, model: Model, params, camera, options: RenderOptions = R
     t0 = time.perf_counter()
     shader = _Shader(env_cl, base, bparams, term, asp, px)
     radiance, stats = shade(px, shader, progress)
-    image, nonfinite = _image(radiance, px)
+    image, nonfinite, noise = _image(radiance, px, stats["noise"])
     t_shading = time.perf_counter() - t0
     if progress is not None:
         progress(1.0)
@@ -309,4 +338,4 @@ def render(mesh, light, model: Model, params, camera, options: RenderOptions = R
         "nonfinite_pixels": nonfinite, "device": env_cl.description,
     }
     return RenderResult(linear=image, mask=px.mask, coverage=px.coverage, timings=timings,
-                        info=info)
+                        info=info, noise=noise)
