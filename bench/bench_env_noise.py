@@ -124,10 +124,13 @@ def _shaders(scene):
 
 VARIANTS = {
     # the previous estimator: fixed shares of product and cosine samples (3 + 1 per hit),
-    # the block coordinate stratified in 1-D (bit-identical to "before")
+    # the block coordinate stratified in 1-D (bit-identical to "before" until the pixel's
+    # samples became nets)
     "previous": {"mixture": False},
     # the pipeline's default (stages/visibility.py)
     "default": {},
+    # one net for the pixel's light samples, not one per half (rendering/halves.py)
+    "joint_net": {"independent_halves": False},
     # the default with the control variate (a research option: estimates can be negative)
     "control_variate": {"control_variate": True},
 }
@@ -160,15 +163,21 @@ def _cast(scene, mesh, lights, vis, env, seed, shadow_samples=None, variant="def
                 cl_env=env)
 
 
-def _images(shaders, mesh, samples, env, subsurface, timed=False):
-    """model -> image (and model -> (seconds, cpu seconds) of its shading when ``timed``)."""
+def _images(shaders, mesh, samples, env, subsurface, timed=False, noise=None):
+    """model -> image (and model -> (seconds, cpu seconds) of its shading when ``timed``);
+    ``noise``: a dict filled with model -> the image's own noise estimate (None without)."""
     imgs, secs = {}, {}
     for name, shade in shaders.items():
         t, c = time.perf_counter(), time.process_time()
         imgs[name], r = shade(mesh, samples, env)
         secs[name] = (time.perf_counter() - t, time.process_time() - c)
+        if noise is not None:
+            est = getattr(r, "noise", None)
+            noise[name] = None if est is None else est.astype(np.float64)
     imgs["bssrdf"] = subsurface + imgs["surface"]
     secs["bssrdf"] = secs["surface"]   # the gather does not depend on the light samples
+    if noise is not None:             # the subsurface part is held fixed: the surface term's
+        noise["bssrdf"] = noise.get("surface")
     coverage = r.coverage
     return (imgs, secs, coverage) if timed else (imgs, coverage)
 
@@ -226,8 +235,9 @@ def _commit() -> str:
         return "unknown"
 
 
-def metrics(images: list, ref_mean, ref_var, skin) -> dict:
-    """The module docstring's measures of ``images`` (renders of independent seeds)."""
+def metrics(images: list, ref_mean, ref_var, skin, noises: list | None = None) -> dict:
+    """The module docstring's measures of ``images`` (renders of independent seeds) and, with
+    their own noise estimates ``noises``, how those compare with the error."""
     r, v = ref_mean[skin], ref_var[skin]                    # (P, 3)
     sq = np.mean([(im[skin] - r) ** 2 for im in images], axis=0) - v   # (P, 3)
     rel = float(np.sqrt(max(sq.mean(), 0.0) / (r * r).mean()))
@@ -238,7 +248,14 @@ def metrics(images: list, ref_mean, ref_var, skin) -> dict:
     stack = np.stack([im[skin] for im in images])
     seed_var = stack.var(axis=0, ddof=1) if len(images) > 1 else np.zeros_like(r)
     every = np.stack([im[np.asarray(skin)] for im in images])
-    return {"rel_rmse": rel, "rel_rmse_uncorrected": raw,
+    own = {}
+    if noises and all(x is not None for x in noises):
+        n2 = float(np.mean([x[skin] ** 2 for x in noises]))
+        own = {"own_rel_noise": float(np.sqrt(n2 / (r * r).mean())),
+               # the estimate's mean noise^2 over the reference-corrected squared error
+               "own_noise_ratio": float(n2 / max(sq.mean(), 1e-300)),
+               "own_noise_ratio_seeds": float(n2 / max(seed_var.mean(), 1e-300))}
+    return {**own, "rel_rmse": rel, "rel_rmse_uncorrected": raw,
             "pixel_median": float(np.median(px)), "pixel_p95": float(np.percentile(px, 95)),
             "pixel_p99": float(np.percentile(px, 99)),
             "rel_noise_between_seeds": float(np.sqrt(seed_var.mean() / (r * r).mean())),
@@ -249,19 +266,25 @@ def metrics(images: list, ref_mean, ref_var, skin) -> dict:
 
 
 def _measure(scene, mesh, lights, vis, env, shaders, subsurface, ref, seeds, variant,
-             verbose=True) -> dict:
-    """The measures of ``seeds`` renders of ``variant`` (VARIANTS) at the default settings."""
+             verbose=True, shadow_samples=None) -> dict:
+    """The measures of ``seeds`` renders of ``variant`` (VARIANTS) at the default settings
+    (``shadow_samples``: light samples per pixel instead of the light's)."""
     renders = {m: [] for m in MODELS}
+    noises = {m: [] for m in MODELS}
     times = {m: [] for m in MODELS}
     vis_times = []
     coverage = None
     for k in range(seeds):
         t, c = time.perf_counter(), time.process_time()
-        samples = _cast(scene, mesh, lights, vis, env, scene.mesh.seed + k, variant=variant)
+        samples = _cast(scene, mesh, lights, vis, env, scene.mesh.seed + k, shadow_samples,
+                        variant=variant)
         vis_times.append((time.perf_counter() - t, time.process_time() - c))
-        imgs, secs, coverage = _images(shaders, mesh, samples, env, subsurface, timed=True)
+        own = {}
+        imgs, secs, coverage = _images(shaders, mesh, samples, env, subsurface, timed=True,
+                                       noise=own)
         for m in MODELS:
             renders[m].append(imgs[m])
+            noises[m].append(own.get(m))
             times[m].append(secs[m])
     skin = np.asarray(coverage) >= 1.0
     vis_s = np.median([t[0] for t in vis_times])
@@ -271,7 +294,7 @@ def _measure(scene, mesh, lights, vis, env, shaders, subsurface, ref, seeds, var
            "visibility_seconds": float(vis_s), "visibility_cpu_seconds": float(vis_cpu),
            "models": {}}
     for m in MODELS:
-        row = metrics(renders[m], *ref[m], skin)
+        row = metrics(renders[m], *ref[m], skin, noises[m])
         row["shading_seconds"] = float(np.median([t[0] for t in times[m]]))
         row["seconds"] = float(vis_s + row["shading_seconds"])
         row["cpu_seconds"] = float(vis_cpu + np.median([t[1] for t in times[m]]))
@@ -279,13 +302,16 @@ def _measure(scene, mesh, lights, vis, env, shaders, subsurface, ref, seeds, var
         if verbose:
             print(f"  {variant:16s} {m:10s} rel RMSE {row['rel_rmse']:.4f}  pixel median "
                   f"{row['pixel_median']:.4f}  p95 {row['pixel_p95']:.4f}  bias "
-                  f"{row['rel_bias']:+.4f}  negative {row['negative_channels']:.1e}", flush=True)
+                  f"{row['rel_bias']:+.4f}  negative {row['negative_channels']:.1e}  own noise "
+                  f"{row.get('own_rel_noise', float('nan')):.4f} (ratio "
+                  f"{row.get('own_noise_ratio', float('nan')):.3f})", flush=True)
     return out
 
 
 # The shares swept by --shares: the lobe's scale (lighting/lobes.py LOBE_SHARE_SCALE; 0 = no
 # lobe samples) and the cosine share of the rest (lighting/mixture.py COSINE_SHARE).
-SHARE_GRID = {"lobe_scale": (0.0, 0.25, 0.5, 1.0, 2.0), "cosine_share": (1 / 16, 1 / 8, 1 / 4)}
+SHARE_GRID = {"lobe_scale": (0.0, 0.25, 0.5, 1.0, 2.0),
+              "cosine_share": (1 / 64, 1 / 32, 1 / 16, 1 / 8)}
 
 
 def shares(scene, mesh, lights, vis, env, shaders, subsurface, ref, seeds) -> list:
@@ -298,7 +324,7 @@ def shares(scene, mesh, lights, vis, env, shaders, subsurface, ref, seeds) -> li
         for variant in ("default", "control_variate"):
             for scale in SHARE_GRID["lobe_scale"]:
                 for cos in SHARE_GRID["cosine_share"]:
-                    if cos != 1 / 8 and scale not in (0.5, 2.0):
+                    if cos != 1 / 32 and scale not in (0.5, 2.0):
                         continue        # the cosine share at the two chosen lobe scales only
                     mixture.COSINE_SHARE = cos
                     cast_mod.LOBE_SHARE_SCALE = cast_mod.LOBE_SHARE_SCALE_CONTROL = scale
@@ -312,6 +338,52 @@ def shares(scene, mesh, lights, vis, env, shaders, subsurface, ref, seeds) -> li
         (mixture.COSINE_SHARE, cast_mod.LOBE_SHARE_SCALE,
          cast_mod.LOBE_SHARE_SCALE_CONTROL) = keep
     return rows
+
+
+BRIGHTNESS = ("luminance", "rgb_mean", "rgb_norm")
+
+
+def brightness(scene, mesh, lights, vis, env, shaders, subsurface, ref, seeds) -> dict:
+    """The default variant with the map's sampling weight per pixel (lighting/environment.py
+    ``brightness``) replaced by each of BRIGHTNESS."""
+    from dermis.lighting.environment import environment_map
+    from dermis.rendering.color import LUMINANCE
+    emap = environment_map(lights[0])
+    keep = (emap.pmf, emap.cdf, getattr(emap, "_prod", None))
+    rad = emap.radiance.astype(np.float64)
+    sin_t = np.sin((np.arange(emap.height) + 0.5) / emap.height * np.pi)[:, None]
+    weights = {"luminance": rad @ np.asarray(LUMINANCE, np.float64),
+               "rgb_mean": rad.mean(axis=-1), "rgb_norm": np.sqrt((rad * rad).sum(-1))}
+    out = {}
+    try:
+        for name in BRIGHTNESS:
+            w = weights[name] * sin_t
+            emap.pmf = (w / w.sum()).ravel()
+            emap.cdf = np.cumsum(emap.pmf)
+            emap._prod = None
+            r = _measure(scene, mesh, lights, vis, env, shaders, subsurface, ref, seeds,
+                         "default", verbose=False)
+            out[name] = {m: round(v["rel_rmse"], 4) for m, v in r["models"].items()}
+            print("  brightness", name, out[name], flush=True)
+    finally:
+        emap.pmf, emap.cdf, emap._prod = keep
+    return out
+
+
+def sample_counts(scene, mesh, lights, vis, env, shaders, subsurface, ref, seeds,
+                  counts) -> dict:
+    """Relative RMSE (and the own noise estimate) of the default variant at other light
+    sample counts per pixel, with the visibility's CPU seconds at 200 x 200."""
+    out = {}
+    for n in counts:
+        r = _measure(scene, mesh, lights, vis, env, shaders, subsurface, ref, seeds, "default",
+                     verbose=False, shadow_samples=n)
+        out[str(n)] = {"visibility_cpu_seconds": r["visibility_cpu_seconds"],
+                       **{m: {"rel_rmse": round(v["rel_rmse"], 4),
+                              "own_rel_noise": round(v.get("own_rel_noise", float("nan")), 4)}
+                          for m, v in r["models"].items()}}
+        print("  samples", n, out[str(n)], flush=True)
+    return out
 
 
 def cost(scene, mesh, lights, vis, env, reps: int = 3) -> dict:
@@ -400,6 +472,10 @@ def main(argv=None) -> dict:
     ap.add_argument("--reuse-reference", action="store_true")
     ap.add_argument("--shares", action="store_true", help="sweep SHARE_GRID")
     ap.add_argument("--cost", action="store_true", help="seconds at 800 x 800 per variant")
+    ap.add_argument("--brightness", action="store_true",
+                    help="the map's sampling weight: luminance, RGB mean, RGB norm")
+    ap.add_argument("--sample-counts", default="",
+                    help="comma-separated light samples per pixel to measure the default at")
     ap.add_argument("--memory", action="store_true")
     ap.add_argument("--cache", default=None)
     ap.add_argument("--device", default=None)
@@ -432,6 +508,13 @@ def main(argv=None) -> dict:
     if args.shares:
         out["shares"] = shares(scene, mesh, lights, vis, env, shaders, subsurface, ref,
                                args.seeds)
+    if args.brightness:
+        out["brightness"] = brightness(scene, mesh, lights, vis, env, shaders, subsurface, ref,
+                                       args.seeds)
+    if args.sample_counts:
+        out["sample_counts"] = sample_counts(scene, mesh, lights, vis, env, shaders, subsurface,
+                                             ref, max(args.seeds // 2, 2),
+                                             [int(x) for x in args.sample_counts.split(",")])
     if args.cost:
         out["cost"] = cost(scene, mesh, lights, vis, env)
     if args.memory:

@@ -31,8 +31,10 @@ Light types (``pipeline.config.LightConfig``, lengths in mm):
   embedded procedural sunset sky (sun 3 deg above the horizon, thesis).  Three strategies
   (``env_strategy``):
 
-  - ``"luminance"``: S samples importance sampled by pixel luminance x sin(theta) (the
-    pixel's solid angle), stratified in the flattened CDF; weight = L / (S p_env).
+  - ``"luminance"``: S samples importance sampled by pixel brightness x sin(theta) (the
+    pixel's solid angle; brightness: the RGB norm, lighting/environment.py
+    ``brightness``, luminance until the measurement there), stratified in the flattened
+    CDF; weight = L / (S p_env).
   - ``"mis"``: multiple importance sampling (Veach &
     Guibas 1995; Veach's thesis 1997, ch. 9).  n_cos = round(3 S / 8) samples (6 of 16)
     from the cosine-weighted hemisphere around the normal, p_cos = cos/pi (Malley's method
@@ -272,13 +274,15 @@ def _disc(light, p: np.ndarray, rng, samples: int, strata=None, salt: int = 0) -
 def _environment(light, p: np.ndarray, rng, samples: int, env, normals, strategy: str,
                  strata=None, salt: int = 0,
                  lobe: "Lobe | None" = None, mixture: bool = False,
-                 control: bool = False, horizon: bool = True) -> tuple:
+                 control: bool = False, horizon: bool = True,
+                 product_normals: np.ndarray | None = None) -> tuple:
     if env is None:
         env = environment_map(light)
     n = len(p)
     if mixture and normals is not None:     # the renderer's estimator (lighting/mixture.py)
         es = sample_environment(env, normals, rng, samples, strata=strata, salt=salt, lobe=lobe,
-                                control=control, horizon=horizon)
+                                control=control, horizon=horizon,
+                                product_normals=product_normals)
         dist = np.full((n, samples), np.inf, dtype=np.float32)
         return es.directions, es.weights, dist, es
     mis = strategy in ("mis", "product") and normals is not None and samples >= 2 \
@@ -359,7 +363,8 @@ def sample_lights(lights, points: np.ndarray, normals: np.ndarray | None = None,
                   share: int = 1, strata: "PixelStrata | None" = None,
                   lobe: "Lobe | None" = None,
                   horizon: bool = True, mixture: bool = False,
-                  control: bool = False) -> LightSamples:
+                  control: bool = False,
+                  product_normals: np.ndarray | None = None) -> LightSamples:
     """Sample one light or several (summed) for N surface points.
 
     Parameters
@@ -433,7 +438,8 @@ def sample_lights(lights, points: np.ndarray, normals: np.ndarray | None = None,
             part = _environment(light, p, rng, s, env, n, env_strategy, strata,
                                 salt=3 * index + 1, lobe=lobe,
                                 mixture=mixture and n is not None,
-                                control=control and ctrl is None, horizon=horizon)
+                                control=control and ctrl is None, horizon=horizon,
+                                product_normals=product_normals)
         else:
             raise ConfigError(f"lights.{light.name}.type = {kind!r}: must be one of point, "
                               "disc, directional, environment")

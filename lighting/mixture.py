@@ -29,7 +29,9 @@ Measured on the default scan under the Venice sunset (200 x 200, 8 seeds, relati
 against a 32,768-sample render; bench/results/env_noise.json "after"): Lafortune 0.121 ->
 0.097, BSSRDF 0.065 -> 0.032, HK93 0.106 -> 0.099, asperity 0.104 -> 0.098 against the fixed
 shares (3 product + 1 cosine sample per hit, the block coordinate stratified in 1-D); with the
-control variate 0.045 / 0.017 / 0.043 / 0.048.
+control variate 0.045 / 0.017 / 0.043 / 0.048.  The product tables' bin is the hit's
+interpolated normal's (``product_normals``: the cosine the image shades with), the cosine
+strategy's hemisphere the geometric normal's (every direction the renderer shades).
 """
 from __future__ import annotations
 
@@ -49,7 +51,7 @@ __all__ = ["EnvironmentSamples", "sample_environment", "COSINE_SHARE"]
 # lobe scale 0.5; bench/results/env_noise.json "shares"): 1/4 -> 0.127 / 0.130 / 0.033,
 # 1/8 -> 0.102 / 0.103 / 0.032, 1/16 -> 0.097 / 0.099 / 0.032 (with the control variate
 # and scale 2 likewise: 0.048 / 0.046, 0.046 / 0.044, 0.045 / 0.043).
-COSINE_SHARE = 1.0 / 16.0
+COSINE_SHARE = 1.0 / 32.0
 
 
 @dataclass
@@ -78,10 +80,7 @@ def _uniforms(rng, n: int, s: int, strata, salt: int) -> tuple[np.ndarray, np.nd
     drawn with the shares c_k on average."""
     if strata is not None:
         g = strata.uniform_2d(rng, s, 2 * salt)
-        if int(round(math.sqrt(s * strata.share))) ** 2 == s * strata.share:
-            return g[..., 1], g[..., 0]        # the cell's row picks the strategy
-        u1 = g[..., 0]                          # the first coordinate stratified only
-        u2 = strata.uniform_1d(rng, s, 2 * salt + 1)
+        return g[..., 0], g[..., 1]
     else:
         u1 = (np.arange(s)[None, :] + rng.random((n, s))) / s
         u2 = (np.arange(s)[None, :] + rng.random((n, s))) / s
@@ -92,12 +91,15 @@ def _uniforms(rng, n: int, s: int, strata, salt: int) -> tuple[np.ndarray, np.nd
 
 def sample_environment(env, normals: np.ndarray, rng, samples: int, *, strata=None,
                        salt: int = 0, lobe=None, control: bool = False,
-                       horizon: bool = False) -> EnvironmentSamples:
+                       horizon: bool = False,
+                       product_normals: np.ndarray | None = None) -> EnvironmentSamples:
     """The samples of one environment map ``env`` for points with unit geometric ``normals``
     (N, 3) (module docstring).  ``lobe``: a strategy with ``fractions()`` (N,) shares,
     ``__getitem__``, ``sample(u)`` and ``pdf(directions)`` (lighting/lobes.py), or None;
     ``control``: also the control variate's region (lighting/control.py); ``horizon``: weights
-    0 below the normals' horizon (but in the control variate's region)."""
+    0 below the normals' horizon (but in the control variate's region); ``product_normals``
+    (N, 3): the normals whose bins the product strategy's tables are read for (default
+    ``normals``; not with ``control``)."""
     n, s = len(normals), int(samples)
     nrm = normalize(np.asarray(normals, np.float64))
     table = control_table(env) if control else None
@@ -105,6 +107,8 @@ def sample_environment(env, normals: np.ndarray, rng, samples: int, *, strata=No
         cbin, bins = table.bins(env, nrm)
     else:
         cbin, bins = None, env.normal_bin(nrm)
+    if product_normals is not None and not control:
+        bins = env.normal_bin(normalize(np.asarray(product_normals, np.float64)))
     if env.black or n == 0:
         z = np.zeros((n, s), bool)
         return EnvironmentSamples(np.zeros((n, s, 3), np.float32),

@@ -203,7 +203,7 @@ def cast(mesh, lights, camera, options: RenderOptions = RenderOptions(), *, cl_e
     pixel, sub, tri, bary, n_rays, surf, hits_key, k_s = _camera_hits(
         mesh, camera, spp, seed, vis, env_cl, shared, mesh_key)
     # a pixel's light samples, stratified over its sub-samples (one sample: per point)
-    strata = PixelStrata(pixel, sub, spp, int(seed)) if spp > 1 else None
+    strata = PixelStrata(pixel, sub, spp, int(seed), independent=sampling.independent_halves)
     t_primary = time.perf_counter() - t_start
 
     t0 = time.perf_counter()
@@ -248,7 +248,8 @@ def cast(mesh, lights, camera, options: RenderOptions = RenderOptions(), *, cl_e
                            share=spp,
                            strata=strata[sl] if strata is not None else None,
                            lobe=lobe[sl] if lobe is not None else None,
-                           mixture=mixture, control=sampling.control_variate)
+                           mixture=mixture, control=sampling.control_variate,
+                           product_normals=surf["shading_normal"][sl] if mixture else None)
         # the live samples by flat index, row-major (grouped by hit, in hit order), and one
         # ``take`` per array; with the control variate the live ones above the geometric
         # horizon get shadow rays and every sample of its region is kept, lit or not

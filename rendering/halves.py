@@ -2,42 +2,43 @@
 
 A pixel's value is ``x = (1 / spp) sum_k y_k`` over the light samples of its camera hits
 (rendering/shade.py).  Every stored light sample carries a half: A (sign +1), B (-1) or both
-(0), so that ``A = x + d``, ``B = x - d`` with ``d = (1 / spp) sum_k sign_k y_k``; their mean is
+(0), so that ``A = x + d``, ``B = x - d`` with ``d = (1 / spp) sum_k sign_k y_k``: their mean is
 the image itself (the same samples, the same sum) and ``noise = (A - B) / 2 = d``
-(``RenderedImage.noise``): per pixel, ``noise^2`` estimates the variance of ``x``.
+(``RenderedImage.noise``).
 
 Which half (:func:`sample_signs`):
 
-* ``spp`` >= 2: whole camera samples.  Camera sample k gets the sign of the Thue-Morse
-  sequence t(k) (the parity of k's binary digits; +1 where it is 0).  The camera samples are a
-  jittered m x m grid (cell k = (k mod m, k div m), rendering/camera.py) or Latin hypercube
-  strata (x stratum k), and a pixel's light samples are dealt to them in sets (lighting/
-  strata.py :class:`PixelStrata`: camera sample j takes the strata ``(j + r) mod spp`` of
-  every group).  Thue-Morse halves of 2^n consecutive indices have equal sums of k^p for p <
-  n (Prouhet 1851): for spp = 4 the halves are the pixel's two diagonals, for spp = 16 each
-  row and column of the grid holds two samples of each half, and either way each half holds
-  as many camera cells and light strata of every part of the pixel and the sphere as the other
-  (to first order in the position inside the pixel and in the strata), so E[A] = E[B] wherever
-  the pixel's integrand is smooth at that order.  An odd camera sample out (spp odd) is split
+* ``spp`` >= 2: whole camera samples, camera sample k by the Thue-Morse sequence t(k) (the
+  parity of k's binary digits; +1 where it is 0).  The camera samples are a jittered m x m
+  grid (cell k = (k mod m, k div m), rendering/camera.py) or Latin hypercube strata (x
+  stratum k); Thue-Morse halves of 2^n consecutive indices have equal sums of k^p for p < n
+  (Prouhet 1851): for spp = 4 the halves are the pixel's two diagonals, for spp = 16 each
+  row and column holds two cells of each half.  An odd camera sample out (spp odd) is split
   as below.
-* ``spp`` = 1 (and the odd camera sample out): the light samples of each light, by t(i) of
-  their index i among the hit's samples of that light (the strata of lighting/strata.py and
-  lighting/mixture.py follow i); an odd sample out and a light of one sample per hit (point,
-  directional) are in both halves (sign 0): with one camera ray through the pixel centre such
-  a light's estimate is exact, and its noise is 0.
+* ``spp`` = 1 (and the odd camera sample out): the light samples of each light, the first
+  half of its samples at the hit against the second half; an odd sample out and a light of
+  one sample per hit (point, directional) are in both halves (sign 0): with one camera ray
+  through the pixel centre such a light's estimate is exact, and its noise is 0.
 
-What the estimate is (tests/test_noise_estimate.py): the halves share the pixel's random strata
-rotation and fill complementary strata, so they are not independent: E[noise^2] = Var(x) +
-Var(E[A | rotation] - x) + (E[A] - E[B])^2 / 4 - Cov(A, B | rotation) ... with the conditional
-halves independent, ``E[noise^2] = Var(x) + E[(E[A|r] - E[B|r])^2] / 4``: the variance a fully
-stratified pixel saves over two independent halves shows up as noise.  Thue-Morse halves hold
-the same strata rows, columns and first moments, so that term is of second order in the strata
-(measured on the default scan under the sunset, tests/test_noise_estimate.py and
-bench/results/env_noise.json "noise_estimate").
+The light samples of each half are a net of their own, scrambled on its own
+(lighting/strata.py :class:`PixelStrata`, ``LightSampling.independent_halves``), so given
+the camera cells the halves are independent and identically distributed, and per pixel
+
+    E[noise^2] = Var(A - B) / 4 = Var(x)
+
+for the light sampling.  The camera cells are fixed (a half holds the same cells in every
+render), so where the pixel's content varies across the pixel (edges, texture) E[A] and
+E[B] can differ and noise^2 overstates the camera part of the variance by (E[A] - E[B])^2
+/ 4; it is exact where the content varies along one image axis only.  With one net for the
+pixel (``independent_halves`` False, a less noisy image) the halves share its strata:
+E[noise^2] = 2 Var_indep - Var(x), Var_indep the variance of the independent halves' image,
+so noise^2 then overstates Var(x) (tests/test_noise_estimate.py checks both relations).
 """
 from __future__ import annotations
 
 import numpy as np
+
+from dermis.lighting.strata import thue_morse_sign
 
 __all__ = ["HALF_A", "HALF_B", "thue_morse_sign", "sample_signs", "half_flags", "signs_of"]
 
@@ -45,17 +46,6 @@ __all__ = ["HALF_A", "HALF_B", "thue_morse_sign", "sample_signs", "half_flags", 
 # SAMPLE_CONTROL); neither bit: in both halves
 HALF_A = 4
 HALF_B = 8
-
-
-def thue_morse_sign(k) -> np.ndarray:
-    """+1 where the Thue-Morse sequence t(k) (parity of the binary digits of k) is 0, else -1
-    (int8)."""
-    k = np.asarray(k, np.int64).copy()
-    parity = np.zeros(k.shape, np.int64)
-    while np.any(k):
-        parity ^= k & 1
-        k >>= 1
-    return (1 - 2 * parity).astype(np.int8)
 
 
 def sample_signs(sub: np.ndarray, spp: int, columns: list[int]) -> np.ndarray:
@@ -69,12 +59,12 @@ def sample_signs(sub: np.ndarray, spp: int, columns: list[int]) -> np.ndarray:
     out = np.empty((len(sub), total), np.int8)
     out[:] = np.where(sub < paired, thue_morse_sign(sub), 0)[:, None].astype(np.int8)
     odd = sub >= paired
-    if odd.any():
+    if odd.any():                                # its light samples: first half, second half
         per = []
         for s in columns:
             i = np.arange(s)
-            per.append(np.where(i < s - s % 2, thue_morse_sign(i), 0).astype(np.int8))
-        out[odd] = np.concatenate(per)[None, :]
+            per.append(np.where(i < s // 2, 1, np.where(i < 2 * (s // 2), -1, 0)))
+        out[odd] = np.concatenate(per).astype(np.int8)[None, :]
     return out
 
 

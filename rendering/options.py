@@ -46,6 +46,15 @@ class LightSampling:
         unbiased, but a pixel's estimate can fall below zero where occluders hide much of
         the sky (measured in bench/results/env_noise.json "control_variate"), and radiance
         estimates here are never negative
+    independent_halves : the two half images of the image's own noise estimate
+        (rendering/halves.py) drawn from two independently scrambled nets of the pixel's
+        light samples (:class:`lighting.strata.PixelStrata` ``independent``), so noise^2
+        estimates the image's variance.  False: one net of all the pixel's samples, a less
+        noisy image whose noise^2 overstates its variance (E[noise^2] = 2 Var_indep - Var,
+        rendering/halves.py).  Measured on the default scan under the Venice sunset, 200 x
+        200, 8 seeds, relative noise Lafortune / HK93 (estimate / variance): True 0.0714 /
+        0.0707 (1.02 / 1.02), False 0.0609 / 0.0599 (1.79 / 1.84)
+        (bench/results/env_noise.json "noise_estimate")
     """
 
     shadow_samples: int | None = None
@@ -59,6 +68,7 @@ class LightSampling:
     mixture: bool = True
     glossy_lobes: bool = False
     control_variate: bool = False
+    independent_halves: bool = True
 
 
 @dataclass(frozen=True, eq=False)

@@ -194,8 +194,8 @@ def shade(px: PixelSurface, shader, progress=None) -> tuple[np.ndarray, dict]:
     k_total = len(owner)
     radiance = np.zeros((n_pix, 3), dtype=np.float64)
     flags = getattr(samples, "flags", None)
-    signs = signs_of(flags) if flags is not None and len(flags) == k_total else None
-    noise = np.zeros((n_pix, 3), dtype=np.float64) if signs is not None else None
+    halves = flags is not None and len(flags) == k_total
+    noise = np.zeros((n_pix, 3), dtype=np.float64) if halves else None
     stats = {"kernel_seconds": 0.0, "shaded_samples": int(k_total)}
     for start in range(0, k_total, CHUNK_SAMPLES):
         sl = slice(start, min(k_total, start + CHUNK_SAMPLES))
@@ -207,7 +207,7 @@ def shade(px: PixelSurface, shader, progress=None) -> tuple[np.ndarray, dict]:
         for ch in range(3):
             radiance[:, ch] += np.bincount(pix, weights=out[:, ch], minlength=n_pix)
         if noise is not None:
-            out *= signs[sl, None]
+            out *= signs_of(flags[sl])[:, None]
             for ch in range(3):
                 noise[:, ch] += np.bincount(pix, weights=out[:, ch], minlength=n_pix)
         if progress is not None:
@@ -220,7 +220,7 @@ def shade(px: PixelSurface, shader, progress=None) -> tuple[np.ndarray, dict]:
         if noise is not None:       # a hit's half: its first sample's (none: both halves)
             first = np.cumsum(samples.counts) - samples.counts
             hit_sign = np.where(samples.counts > 0,
-                                signs[np.minimum(first, max(k_total - 1, 0))]
+                                signs_of(flags[np.minimum(first, max(k_total - 1, 0))])
                                 if k_total else 0.0, 0.0)
             out *= hit_sign[:, None]
             for ch in range(3):
