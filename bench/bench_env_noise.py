@@ -27,14 +27,20 @@ Measures over the skin (pixels whose every camera sample hit the head), all chan
 * ``pixel_median``, ``pixel_p95``: each pixel's relative RMSE over its channels and the seeds
   (reference variance subtracted), the median and 95th percentile over the skin;
 * ``negative_channels``: the share of pixel channels below zero (the control variate's);
+* ``own_rel_noise``, ``own_noise_ratio``: the images' own noise estimates
+  (``RenderedImage.noise``, rendering/halves.py): sqrt(mean noise^2) / sqrt(mean ref^2), and
+  mean noise^2 over the reference-corrected mean squared error (1: the estimate is the error;
+  the BSSRDF's is its surface term's, the part the light samples change);
 * ``seconds``, ``cpu_seconds``: the shared visibility (camera rays, light sampling, shadow
   rays) of one image and each model's shading at 200 x 200, medians over the seeds.
 
 Light sampling variants (``--variants``, VARIANTS): ``previous`` (the estimator before the
 mixture: fixed product and cosine shares; bit-identical to the "before" entry), ``default``
-(the pipeline's: lighting/mixture.py with the Lafortune lobes where the scene renders them)
+(the pipeline's: lighting/mixture.py with the Lafortune lobes where the scene renders them),
+``joint_net`` (one net for the pixel's samples instead of one per half, lighting/strata.py)
 and ``control_variate`` (the research option of lighting/control.py).  ``--shares`` sweeps the
-lobe and cosine shares; ``--cost`` times the visibility and the shading of every variant at
+lobe and cosine shares; ``--brightness`` the map's sampling weight (luminance, RGB mean, RGB
+norm); ``--sample-counts`` measures the default at other light sample counts; ``--cost`` times the visibility and the shading of every variant at
 the scene's own 800 x 800 (interleaved, medians); ``--memory`` measures the peak resident
 memory of a child that casts and shades this setup with 16 and with 1024 light samples per
 pixel in one piece (what the 64x render needs) and the bytes per stored light sample.
@@ -45,6 +51,9 @@ so "before" and "after" are measured against the same one).
     python bench/bench_env_noise.py --label before [--seeds 4] [--pieces 64] [--cache DIR]
     python bench/bench_env_noise.py --label after --reuse-reference --seeds 8 \
         --variants previous,default,control_variate --shares --cost --memory
+    python bench/bench_env_noise.py --label after_nets --reuse-reference --seeds 8 \
+        --variants previous,default,joint_net,control_variate --brightness --shares \
+        --sample-counts 32,64,128,256 --cost --memory
 
 -> ``bench/results/env_noise.json`` (one entry per ``--label``).
 """

@@ -69,9 +69,9 @@ def brightness(radiance: np.ndarray) -> np.ndarray:
     bench/bench_env_noise.py): where the sky and the sun differ in colour - a blue zenith, an
     orange horizon - luminance (0.07 of the weight in blue) leaves the blue channel's sky and
     the red channel's horizon undersampled.  Measured on the default scan under the Venice
-    sunset, 200 x 200, 6 seeds, relative RMSE Lafortune / HK93 / Lambert: luminance 0.0745 /
-    0.0742 / 0.0735, RGB mean 0.0691 / 0.0685 / 0.0701, RGB norm 0.0630 / 0.0620 / 0.0683
-    (bench/results/env_noise.json "brightness")."""
+    sunset, 200 x 200, 8 seeds, relative RMSE against the converged render, Lafortune / HK93
+    / BSSRDF: luminance 0.0854 / 0.0853 / 0.0296, RGB mean 0.0798 / 0.0796 / 0.0293, RGB
+    norm 0.0722 / 0.0715 / 0.0292 (bench/results/env_noise.json "after_nets" "brightness")."""
     rad = np.asarray(radiance, np.float64)
     return np.sqrt(np.einsum("...k,...k->...", rad, rad))
 

@@ -47,10 +47,11 @@ __all__ = ["EnvironmentSamples", "sample_environment", "COSINE_SHARE"]
 
 # Share of the samples not drawn from the lobe that come from the cosine hemisphere (the rest:
 # the product strategy); it covers what the product tables miss.  Measured on the default
-# scan under the Venice sunset (200 x 200, 4 seeds, relative RMSE Lafortune / HK93 / BSSRDF,
-# lobe scale 0.5; bench/results/env_noise.json "shares"): 1/4 -> 0.127 / 0.130 / 0.033,
-# 1/8 -> 0.102 / 0.103 / 0.032, 1/16 -> 0.097 / 0.099 / 0.032 (with the control variate
-# and scale 2 likewise: 0.048 / 0.046, 0.046 / 0.044, 0.045 / 0.043).
+# scan under the Venice sunset (200 x 200, 8 seeds, relative RMSE Lafortune / HK93 / BSSRDF,
+# lobe scale 0.5, the pixel's nets; bench/results/env_noise.json "after_nets" "shares"):
+# 1/8 -> 0.0787 / 0.0783 / 0.0300, 1/16 -> 0.0750 / 0.0745 / 0.0294, 1/32 -> 0.0722 /
+# 0.0715 / 0.0292, 1/64 -> 0.0709 / 0.0700 / 0.0291: below 1/32 the gain is under 2 %,
+# and 1/32 keeps twice 1/64's samples where the tables' padded cosine misses.
 COSINE_SHARE = 1.0 / 32.0
 
 

@@ -9,9 +9,11 @@
   (``share``) as the points of a scrambled Sobol net, in two halves (the image's own noise
   estimate, rendering/halves.py), each a net of its own: the light samples are stratified
   over the whole pixel in every box shape, not only a grid.  Measured on the default scan
-  under the Venice sunset (200 x 200, 8 seeds, spp 4, 16 samples; relative RMSE Lafortune,
-  with the map sampled by luminance): a jittered 4 x 4 grid dealt over the camera samples
-  0.0965, one net of 16 0.0753 (bench/results/env_noise.json).
+  under the Venice sunset (200 x 200, 8 seeds, spp 4, 16 samples; relative RMSE Lafortune
+  against the converged render, the map sampled by luminance): a jittered 4 x 4 grid dealt
+  over the camera samples 0.0971, two nets of 8 0.0854 (bench/results/env_noise.json
+  "before_nets", "after_nets" "brightness"); one net of 16 is lower still (0.0614 against
+  0.0722 with the RGB norm, "after_nets" "joint_net").
 * :func:`thue_morse_sign` - the halves of a pixel's camera samples.
 
 Guarded by tests/test_antialias.py (sub-pixel samples stratified and seeded),

@@ -52,9 +52,10 @@ class LightSampling:
         estimates the image's variance.  False: one net of all the pixel's samples, a less
         noisy image whose noise^2 overstates its variance (E[noise^2] = 2 Var_indep - Var,
         rendering/halves.py).  Measured on the default scan under the Venice sunset, 200 x
-        200, 8 seeds, relative noise Lafortune / HK93 (estimate / variance): True 0.0714 /
-        0.0707 (1.02 / 1.02), False 0.0609 / 0.0599 (1.79 / 1.84)
-        (bench/results/env_noise.json "noise_estimate")
+        200, 8 seeds, relative RMSE against the converged render, Lafortune / HK93 (mean
+        noise^2 / squared error): True 0.0722 / 0.0715 (1.015 / 1.017), False 0.0614 /
+        0.0605 (1.79 / 1.83) (bench/results/env_noise.json "after_nets", variants
+        "default" and "joint_net")
     """
 
     shadow_samples: int | None = None
