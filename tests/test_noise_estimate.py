@@ -238,3 +238,26 @@ def test05_pixel_samples_are_nets_and_uniform(rng, independent):
     for half in ((0, 3), (1, 2)):      # and per half, one per 1/8
         h = v[:, list(half)].reshape(pixels, 8)
         assert np.all(np.sort(np.floor(h * 8).astype(int), axis=1) == np.arange(8))
+
+
+# ---------------------------------------------------------------------------- the artifact
+def test06_render_stage_stores_the_noise(tmp_path):
+    """A pipeline run's BRDF image artifact holds the render's noise estimate (float32, the
+    image's shape) through the cache's save and load; an image without one loads as None."""
+    import tomllib
+    from scene_toml import QUICK, TINY, merge, to_toml
+    from dermis.pipeline import api, artifacts
+    from dermis.pipeline.artifacts import RenderedImage
+    from dermis.pipeline.config import load_scene
+    scene_dict = merge(tomllib.loads(QUICK.read_text()),
+                       merge(TINY, {"render": {"lights": ["sunset"]},
+                                    "output": {"output_dir": str(tmp_path / "out")}}))
+    path = tmp_path / "tiny.toml"
+    path.write_text(to_toml(scene_dict))
+    summary = api.run(load_scene(path), cache=tmp_path / "cache", until="render", export=False)
+    got = {rep.id: rep.path for rep in summary.nodes}
+    image = artifacts.load(got["render-lafortune-sunset-high"])
+    assert image.noise.dtype == np.float32 and image.noise.shape == image.linear.shape
+    assert np.any(image.noise != 0) and np.all(image.noise[~image.mask] == 0)
+    artifacts.save(RenderedImage(image.linear, image.mask), tmp_path / "plain")
+    assert artifacts.load(tmp_path / "plain").noise is None
