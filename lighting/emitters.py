@@ -402,6 +402,10 @@ def sample_lights(lights, points: np.ndarray, normals: np.ndarray | None = None,
         With ``mixture``, the control variate of the first environment light
         (lighting/control.py: ``control``, ``control_bin`` and ``control_table`` of the
         result; samples of its region keep their weights below the horizon).
+    product_normals : (N, 3) float, optional
+        With ``mixture``, the normals whose bins the product strategy's tables are read for
+        (the renderer's interpolated normals: the cosine it shades with); the horizon and
+        the cosine strategy stay ``normals``'.
 
     Returns
     -------

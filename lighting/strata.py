@@ -169,17 +169,20 @@ class PixelStrata:
         return block[np.asarray(self.sub, np.int64)]
 
     def _layout(self, s: int) -> tuple[np.ndarray, np.ndarray | None, int]:
-        """Each of the N x s points' index in its net, its net (None: one per pixel; else
-        0, 1 the halves, 2 an odd point out) and the largest net's size."""
+        """Each of the N x s points' index in its net (N, s), its net (None: one per pixel;
+        else 0, 1 the halves, 2 an odd point out: (N, 1) when whole camera samples make the
+        halves, (N, s) with an odd one) and the largest net's size."""
         block = self.blocks()[:, None]
         i = np.arange(s)[None, :]
         if not self.independent:
             return block * s + i, None, s * self.share
         h = self.share // 2
         half = s // 2
+        group = (block >= h).astype(np.int64)
+        index = (block - h * group) * s + i
+        if self.share % 2 == 0:
+            return index, group, max(h * s, 1)
         odd = block >= 2 * h                              # an odd camera sample's points
-        group = np.where(block < h, 0, 1) + np.zeros_like(i)
-        index = np.where(block < h, block, block - h) * s + i
         group = np.where(odd, np.where(i < half, 0, np.where(i < 2 * half, 1, 2)), group)
         index = np.where(odd, np.where(i < half, h * s + i,
                                        np.where(i < 2 * half, h * s + i - half, 0)), index)
@@ -197,14 +200,17 @@ class PixelStrata:
         nets = 1 if group is None else 2 + (self.share % 2)
         out = np.empty(index.shape + (dims,), np.int64)
         for k in range(dims):
+            if nodes <= _LUT_NODES:     # one tree word per point's net, the digits looked up
+                net_salt = _hash_u64(np.arange(nets, dtype=np.uint64) * np.uint64(64 * 4096)
+                                     + np.uint64(k * 4096 + 1))
+                word = _hash_u64(key[:, None]
+                                 ^ (net_salt[0] if group is None else net_salt.take(group)))
+                bits = (word & np.uint64((1 << nodes) - 1)).astype(np.int64)
+                out[..., k] = _scramble_table(d, k).take(bits * (1 << d) + index)
+                continue
             # each net's random tree: a row per point and net (N, nets * words)
             tree = np.stack([_hash_u64(key ^ _hash_u64(np.uint64((g * 64 + k) * 4096 + w + 1)))
                              for g in range(nets) for w in range(words)], axis=-1)
-            if nodes <= _LUT_NODES:               # the scrambled digits looked up
-                bits = tree if nets == 1 else np.take_along_axis(tree, group, 1)
-                bits = (bits & np.uint64((1 << nodes) - 1)).astype(np.int64)
-                out[..., k] = _scramble_table(d, k).take(bits * (1 << d) + index)
-                continue
             x = _sobol_2d(d)[:, k].take(index)
             y = np.zeros_like(x)
             for depth in range(d):
