@@ -264,12 +264,17 @@ def cast(mesh, lights, camera, options: RenderOptions = RenderOptions(), *, cl_e
                                ls.directions.reshape(-1, 3).take(flat, axis=0),
                                ls.distance.reshape(-1).take(flat))
         n_shadow += len(ip)
-        # each sample's half (rendering/halves.py): the image's own noise estimate
-        halves = half_flags(sample_signs(sub[sl], spp, columns))
+        # each sample's half (rendering/halves.py): the image's own noise estimate; with an
+        # even spp a camera sample's samples share its half
+        if spp % 2 == 0:
+            halves = half_flags(sample_signs(sub[sl], spp, [1]))[:, 0]
+        else:
+            halves = half_flags(sample_signs(sub[sl], spp, columns)).reshape(-1)
         if ls.control is None:
             keep = np.flatnonzero(~blocked)
             ip, flat = ip.take(keep), flat.take(keep)
-            flags.append(halves.reshape(-1).take(flat) | np.uint8(SAMPLE_LIT))
+            flags.append((halves.take(ip) if spp % 2 == 0 else halves.take(flat))
+                         | np.uint8(SAMPLE_LIT))
         else:
             lit = np.zeros(live.shape, bool)
             lit.reshape(-1)[flat[~blocked]] = True
@@ -278,7 +283,7 @@ def cast(mesh, lights, camera, options: RenderOptions = RenderOptions(), *, cl_e
             ip = flat // live.shape[1]
             flags.append(lit.reshape(-1).take(flat).astype(np.uint8) * SAMPLE_LIT
                          + ls.control.reshape(-1).take(flat).astype(np.uint8) * SAMPLE_CONTROL
-                         + halves.reshape(-1).take(flat))
+                         + (halves.take(ip) if spp % 2 == 0 else halves.take(flat)))
             cbins.append(ls.control_bin)
             table = ls.control_table
         counts[sl] = np.bincount(ip, minlength=sl.stop - sl.start)
