@@ -26,14 +26,34 @@ Measures over the skin (pixels whose every camera sample hit the head), all chan
   seeds (the report's relative RMSE of one image);
 * ``pixel_median``, ``pixel_p95``: each pixel's relative RMSE over its channels and the seeds
   (reference variance subtracted), the median and 95th percentile over the skin;
+* ``negative_channels``: the share of pixel channels below zero (the control variate's);
+* ``own_rel_noise``, ``own_noise_ratio``: the images' own noise estimates
+  (``RenderedImage.noise``, rendering/halves.py): sqrt(mean noise^2) / sqrt(mean ref^2), and
+  mean noise^2 over the reference-corrected mean squared error (1: the estimate is the error;
+  the BSSRDF's is its surface term's, the part the light samples change);
 * ``seconds``, ``cpu_seconds``: the shared visibility (camera rays, light sampling, shadow
-  rays) of one image and each model's shading, medians over the seeds.
+  rays) of one image and each model's shading at 200 x 200, medians over the seeds.
+
+Light sampling variants (``--variants``, VARIANTS): ``previous`` (the estimator before the
+mixture: fixed product and cosine shares; bit-identical to the "before" entry), ``default``
+(the pipeline's: lighting/mixture.py with the Lafortune lobes where the scene renders them),
+``joint_net`` (one net for the pixel's samples instead of one per half, lighting/strata.py)
+and ``control_variate`` (the research option of lighting/control.py).  ``--shares`` sweeps the
+lobe and cosine shares; ``--brightness`` the map's sampling weight (luminance, RGB mean, RGB
+norm); ``--sample-counts`` measures the default at other light sample counts; ``--cost`` times the visibility and the shading of every variant at
+the scene's own 800 x 800 (interleaved, medians); ``--memory`` measures the peak resident
+memory of a child that casts and shades this setup with 16 and with 1024 light samples per
+pixel in one piece (what the 64x render needs) and the bytes per stored light sample.
 
 The converged render is kept in ``<cache>/bench_env_noise/`` (``--reuse-reference`` reuses it,
-so "before" and "after" are measured against the same one); ``--memory`` also measures the
-peak resident memory of a one-piece render with 64x the light samples in a child process.
+so "before" and "after" are measured against the same one).
 
     python bench/bench_env_noise.py --label before [--seeds 4] [--pieces 64] [--cache DIR]
+    python bench/bench_env_noise.py --label after --reuse-reference --seeds 8 \
+        --variants previous,default,control_variate --shares --cost --memory
+    python bench/bench_env_noise.py --label after_nets --reuse-reference --seeds 8 \
+        --variants previous,default,joint_net,control_variate --brightness --shares \
+        --sample-counts 32,64,128,256 --cost --memory
 
 -> ``bench/results/env_noise.json`` (one entry per ``--label``).
 """
@@ -60,10 +80,11 @@ MODELS = ("lafortune", "hk93", "asperity", "bssrdf")
 LABEL = "sunset"
 
 
-def _scene():
+def _scene(full: bool = False):
+    """The setup's scene (``full``: at the default scene's own camera size)."""
     from dermis.pipeline.config import load_scene
     return load_scene(None, overrides={
-        "camera": {"width": SIZE, "height": SIZE},
+        **({} if full else {"camera": {"width": SIZE, "height": SIZE}}),
         "render": {"models": ["lafortune", "hk93", "asperity", "bssrdf"], "lights": [LABEL],
                    "geometries": ["high"]}})
 
@@ -110,27 +131,62 @@ def _shaders(scene):
     return out
 
 
-def _cast(scene, mesh, lights, vis, env, seed, shadow_samples=None):
-    from dermis.rendering.cast import cast, retro_lobe
-    from dermis.rendering.options import LightSampling, RenderOptions
-    retro = retro_lobe(scene)
-    sampling = LightSampling(shadow_samples=shadow_samples,
-                             **({"retro_fraction": retro["fraction"], "retro_k": retro["k"]}
-                                if retro else {}))
-    return cast(mesh, lights, scene.camera,
+VARIANTS = {
+    # the previous estimator: fixed shares of product and cosine samples (3 + 1 per hit),
+    # the block coordinate stratified in 1-D (bit-identical to "before" until the pixel's
+    # samples became nets)
+    "previous": {"mixture": False},
+    # the pipeline's default (stages/visibility.py)
+    "default": {},
+    # one net for the pixel's light samples, not one per half (rendering/halves.py)
+    "joint_net": {"independent_halves": False},
+    # the default with the control variate (a research option: estimates can be negative)
+    "control_variate": {"control_variate": True},
+}
+
+
+def _sampling(scene, shadow_samples=None, **over):
+    """The light sampling of the pipeline's visibility node for this scene
+    (stages/visibility.py), with ``over`` replacing fields."""
+    from dataclasses import fields
+    from dermis.rendering.options import LightSampling
+    from dermis.rendering import cast as cast_mod
+    names = {f.name for f in fields(LightSampling)}
+    kw = {}
+    retro = cast_mod.retro_lobe(scene)
+    if retro:
+        kw.update(retro_fraction=retro["fraction"], retro_k=retro["k"])
+    elif "glossy_lobes" in names and cast_mod.glossy_lobes(scene):
+        kw["glossy_lobes"] = True
+    kw.update(over)
+    return LightSampling(shadow_samples=shadow_samples, **kw)
+
+
+def _cast(scene, mesh, lights, vis, env, seed, shadow_samples=None, variant="default",
+          camera=None):
+    from dermis.rendering.cast import cast
+    from dermis.rendering.options import RenderOptions
+    sampling = _sampling(scene, shadow_samples, **VARIANTS[variant])
+    return cast(mesh, lights, camera or scene.camera,
                 RenderOptions(spp=scene.render.spp, seed=seed, sampling=sampling, visibility=vis),
                 cl_env=env)
 
 
-def _images(shaders, mesh, samples, env, subsurface, timed=False):
-    """model -> image (and model -> (seconds, cpu seconds) of its shading when ``timed``)."""
+def _images(shaders, mesh, samples, env, subsurface, timed=False, noise=None):
+    """model -> image (and model -> (seconds, cpu seconds) of its shading when ``timed``);
+    ``noise``: a dict filled with model -> the image's own noise estimate (None without)."""
     imgs, secs = {}, {}
     for name, shade in shaders.items():
         t, c = time.perf_counter(), time.process_time()
         imgs[name], r = shade(mesh, samples, env)
         secs[name] = (time.perf_counter() - t, time.process_time() - c)
+        if noise is not None:
+            est = getattr(r, "noise", None)
+            noise[name] = None if est is None else est.astype(np.float64)
     imgs["bssrdf"] = subsurface + imgs["surface"]
     secs["bssrdf"] = secs["surface"]   # the gather does not depend on the light samples
+    if noise is not None:             # the subsurface part is held fixed: the surface term's
+        noise["bssrdf"] = noise.get("surface")
     coverage = r.coverage
     return (imgs, secs, coverage) if timed else (imgs, coverage)
 
@@ -180,15 +236,17 @@ def _commit() -> str:
     try:
         out = subprocess.run(["git", "-C", str(REPO), "log", "-1", "--format=%h %s"],
                              capture_output=True, text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "-C", str(REPO), "status", "--porcelain", "--", "*.py",
-                                "*.cl", "*.h"], capture_output=True, text=True).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(REPO), "status", "--porcelain",
+                                "--untracked-files=no", "--", "*.py", "*.cl", "*.h"],
+                               capture_output=True, text=True).stdout.strip()
         return out[:120] + (" (+ uncommitted changes)" if dirty else "")
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
 
 
-def metrics(images: list, ref_mean, ref_var, skin) -> dict:
-    """The module docstring's measures of ``images`` (renders of independent seeds)."""
+def metrics(images: list, ref_mean, ref_var, skin, noises: list | None = None) -> dict:
+    """The module docstring's measures of ``images`` (renders of independent seeds) and, with
+    their own noise estimates ``noises``, how those compare with the error."""
     r, v = ref_mean[skin], ref_var[skin]                    # (P, 3)
     sq = np.mean([(im[skin] - r) ** 2 for im in images], axis=0) - v   # (P, 3)
     rel = float(np.sqrt(max(sq.mean(), 0.0) / (r * r).mean()))
@@ -198,50 +256,235 @@ def metrics(images: list, ref_mean, ref_var, skin) -> dict:
     # reference-free: the spread between the seeds (unbiased for the variance of one image)
     stack = np.stack([im[skin] for im in images])
     seed_var = stack.var(axis=0, ddof=1) if len(images) > 1 else np.zeros_like(r)
-    return {"rel_rmse": rel, "rel_rmse_uncorrected": raw,
+    every = np.stack([im[np.asarray(skin)] for im in images])
+    own = {}
+    if noises and all(x is not None for x in noises):
+        n2 = float(np.mean([x[skin] ** 2 for x in noises]))
+        own = {"own_rel_noise": float(np.sqrt(n2 / (r * r).mean())),
+               # the estimate's mean noise^2 over the reference-corrected squared error
+               "own_noise_ratio": float(n2 / max(sq.mean(), 1e-300)),
+               "own_noise_ratio_seeds": float(n2 / max(seed_var.mean(), 1e-300))}
+    return {**own, "rel_rmse": rel, "rel_rmse_uncorrected": raw,
             "pixel_median": float(np.median(px)), "pixel_p95": float(np.percentile(px, 95)),
             "pixel_p99": float(np.percentile(px, 99)),
             "rel_noise_between_seeds": float(np.sqrt(seed_var.mean() / (r * r).mean())),
             "rel_bias": float(np.mean(stack.mean(axis=0) - r) / np.mean(r)),
-            "reference_rel_noise": ref_noise}
+            "reference_rel_noise": ref_noise,
+            "negative_channels": float(np.mean(every < 0)),
+            "most_negative_rel": float(min(every.min(), 0.0) / np.median(r))}
 
 
-def memory_peak(scene_samples: int, cache) -> dict:
-    """Peak resident memory of the pipeline's visibility and Lafortune nodes of this setup with
-    ``scene_samples`` light samples on the sunset, in a child process (one render, no pieces)."""
+def _measure(scene, mesh, lights, vis, env, shaders, subsurface, ref, seeds, variant,
+             verbose=True, shadow_samples=None) -> dict:
+    """The measures of ``seeds`` renders of ``variant`` (VARIANTS) at the default settings
+    (``shadow_samples``: light samples per pixel instead of the light's)."""
+    renders = {m: [] for m in MODELS}
+    noises = {m: [] for m in MODELS}
+    times = {m: [] for m in MODELS}
+    vis_times = []
+    coverage = None
+    for k in range(seeds):
+        t, c = time.perf_counter(), time.process_time()
+        samples = _cast(scene, mesh, lights, vis, env, scene.mesh.seed + k, shadow_samples,
+                        variant=variant)
+        vis_times.append((time.perf_counter() - t, time.process_time() - c))
+        own = {}
+        imgs, secs, coverage = _images(shaders, mesh, samples, env, subsurface, timed=True,
+                                       noise=own)
+        for m in MODELS:
+            renders[m].append(imgs[m])
+            noises[m].append(own.get(m))
+            times[m].append(secs[m])
+    skin = np.asarray(coverage) >= 1.0
+    vis_s = np.median([t[0] for t in vis_times])
+    vis_cpu = np.median([t[1] for t in vis_times])
+    out = {"variant": variant, "sampling": repr(_sampling(scene, **VARIANTS[variant])),
+           "skin_pixels": int(skin.sum()), "seeds": seeds,
+           "visibility_seconds": float(vis_s), "visibility_cpu_seconds": float(vis_cpu),
+           "models": {}}
+    for m in MODELS:
+        row = metrics(renders[m], *ref[m], skin, noises[m])
+        row["shading_seconds"] = float(np.median([t[0] for t in times[m]]))
+        row["seconds"] = float(vis_s + row["shading_seconds"])
+        row["cpu_seconds"] = float(vis_cpu + np.median([t[1] for t in times[m]]))
+        out["models"][m] = row
+        if verbose:
+            print(f"  {variant:16s} {m:10s} rel RMSE {row['rel_rmse']:.4f}  pixel median "
+                  f"{row['pixel_median']:.4f}  p95 {row['pixel_p95']:.4f}  bias "
+                  f"{row['rel_bias']:+.4f}  negative {row['negative_channels']:.1e}  own noise "
+                  f"{row.get('own_rel_noise', float('nan')):.4f} (ratio "
+                  f"{row.get('own_noise_ratio', float('nan')):.3f})", flush=True)
+    return out
+
+
+# The shares swept by --shares: the lobe's scale (lighting/lobes.py LOBE_SHARE_SCALE; 0 = no
+# lobe samples) and the cosine share of the rest (lighting/mixture.py COSINE_SHARE).
+SHARE_GRID = {"lobe_scale": (0.0, 0.25, 0.5, 1.0, 2.0),
+              "cosine_share": (1 / 64, 1 / 32, 1 / 16, 1 / 8)}
+
+
+def shares(scene, mesh, lights, vis, env, shaders, subsurface, ref, seeds) -> list:
+    """Relative RMSE per model over SHARE_GRID, with and without the control variate."""
+    from dermis.lighting import mixture
+    from dermis.rendering import cast as cast_mod
+    keep = (mixture.COSINE_SHARE, cast_mod.LOBE_SHARE_SCALE, cast_mod.LOBE_SHARE_SCALE_CONTROL)
+    rows = []
+    try:
+        for variant in ("default", "control_variate"):
+            for scale in SHARE_GRID["lobe_scale"]:
+                for cos in SHARE_GRID["cosine_share"]:
+                    if cos != 1 / 32 and scale not in (0.5, 2.0):
+                        continue        # the cosine share at the two chosen lobe scales only
+                    mixture.COSINE_SHARE = cos
+                    cast_mod.LOBE_SHARE_SCALE = cast_mod.LOBE_SHARE_SCALE_CONTROL = scale
+                    r = _measure(scene, mesh, lights, vis, env, shaders, subsurface, ref, seeds,
+                                 variant, verbose=False)
+                    row = {"variant": variant, "lobe_scale": scale, "cosine_share": cos,
+                           **{m: round(v["rel_rmse"], 4) for m, v in r["models"].items()}}
+                    rows.append(row)
+                    print("  shares", row, flush=True)
+    finally:
+        (mixture.COSINE_SHARE, cast_mod.LOBE_SHARE_SCALE,
+         cast_mod.LOBE_SHARE_SCALE_CONTROL) = keep
+    return rows
+
+
+BRIGHTNESS = ("luminance", "rgb_mean", "rgb_norm")
+
+
+def brightness(scene, mesh, lights, vis, env, shaders, subsurface, ref, seeds) -> dict:
+    """The default variant with the map's sampling weight per pixel (lighting/environment.py
+    ``brightness``) replaced by each of BRIGHTNESS."""
+    from dermis.lighting.environment import environment_map
+    from dermis.rendering.color import LUMINANCE
+    emap = environment_map(lights[0])
+    keep = (emap.pmf, emap.cdf, getattr(emap, "_prod", None))
+    rad = emap.radiance.astype(np.float64)
+    sin_t = np.sin((np.arange(emap.height) + 0.5) / emap.height * np.pi)[:, None]
+    weights = {"luminance": rad @ np.asarray(LUMINANCE, np.float64),
+               "rgb_mean": rad.mean(axis=-1), "rgb_norm": np.sqrt((rad * rad).sum(-1))}
+    out = {}
+    try:
+        for name in BRIGHTNESS:
+            w = weights[name] * sin_t
+            emap.pmf = (w / w.sum()).ravel()
+            emap.cdf = np.cumsum(emap.pmf)
+            emap._prod = None
+            r = _measure(scene, mesh, lights, vis, env, shaders, subsurface, ref, seeds,
+                         "default", verbose=False)
+            out[name] = {m: round(v["rel_rmse"], 4) for m, v in r["models"].items()}
+            print("  brightness", name, out[name], flush=True)
+    finally:
+        emap.pmf, emap.cdf, emap._prod = keep
+    return out
+
+
+def sample_counts(scene, mesh, lights, vis, env, shaders, subsurface, ref, seeds,
+                  counts) -> dict:
+    """Relative RMSE (and the own noise estimate) of the default variant at other light
+    sample counts per pixel, with the visibility's CPU seconds at 200 x 200."""
+    out = {}
+    for n in counts:
+        r = _measure(scene, mesh, lights, vis, env, shaders, subsurface, ref, seeds, "default",
+                     verbose=False, shadow_samples=n)
+        out[str(n)] = {"visibility_cpu_seconds": r["visibility_cpu_seconds"],
+                       **{m: {"rel_rmse": round(v["rel_rmse"], 4),
+                              "own_rel_noise": round(v.get("own_rel_noise", float("nan")), 4)}
+                          for m, v in r["models"].items()}}
+        print("  samples", n, out[str(n)], flush=True)
+    return out
+
+
+def cost(scene, mesh, lights, vis, env, reps: int = 3) -> dict:
+    """CPU and wall seconds of the shared visibility and of each model's shading at the scene's
+    own camera (800 x 800), per VARIANTS entry, interleaved ``reps`` times (medians): what an
+    image of the default matrix costs under the sunset.  Each variant's one-time tables are
+    built before timing (kept per process, as in a pipeline run)."""
+    full = _scene(full=True)
+    shaders = _shaders(full)
+    out = {v: {"cast": [], **{m: [] for m in shaders}} for v in VARIANTS}
+    for v in VARIANTS:             # warm: the tables built once per process
+        _cast(full, mesh, lights, vis, env, 999, variant=v)
+    for rep in range(reps):
+        for v in VARIANTS:
+            t, c = time.perf_counter(), time.process_time()
+            samples = _cast(full, mesh, lights, vis, env, scene.mesh.seed + rep, variant=v)
+            out[v]["cast"].append((time.perf_counter() - t, time.process_time() - c,
+                                   samples.info["timings"]["light_sampling"],
+                                   samples.info.get("stored_samples", len(samples.weights))))
+            for m, shade in shaders.items():
+                t, c = time.perf_counter(), time.process_time()
+                shade(mesh, samples, env)
+                out[v][m].append((time.perf_counter() - t, time.process_time() - c))
+    res = {"size": [full.camera.width, full.camera.height], "reps": reps}
+    for v, d in out.items():
+        cast_rows = np.array(d["cast"])
+        row = {"cast_seconds": float(np.median(cast_rows[:, 0])),
+               "cast_cpu_seconds": float(np.median(cast_rows[:, 1])),
+               "light_sampling_seconds": float(np.median(cast_rows[:, 2])),
+               "stored_samples": int(np.median(cast_rows[:, 3]))}
+        for m in shaders:
+            a = np.array(d[m])
+            row[f"{m}_seconds"] = float(np.median(a[:, 0]))
+            row[f"{m}_cpu_seconds"] = float(np.median(a[:, 1]))
+        row["cast_and_shading_cpu_seconds"] = row["cast_cpu_seconds"] + sum(
+            row[f"{m}_cpu_seconds"] for m in shaders if m != "surface")
+        res[v] = row
+        print(f"  cost {v:16s} cast {row['cast_cpu_seconds']:.2f} CPU s (sampling "
+              f"{row['light_sampling_seconds']:.2f} s), cast + 3 BRDF shadings "
+              f"{row['cast_and_shading_cpu_seconds']:.2f} CPU s", flush=True)
+    return res
+
+
+def memory_peak(scene_samples: int, cache, variant: str = "default") -> dict:
+    """Peak resident memory (VmHWM) of a child process that casts this setup's sunset rays with
+    ``scene_samples`` light samples per pixel in one piece and shades Lafortune, and the
+    samples it stored: the memory a render with that many samples needs."""
     code = f"""
-import resource, sys, time
+import sys, time, dataclasses
 sys.path.insert(0, {str(REPO / 'bench')!r})
 import bench_env_noise as b
-from dermis.pipeline import api
-from dermis.pipeline.config import load_scene
-scene = load_scene(None, overrides={{
-    "camera": {{"width": {SIZE}, "height": {SIZE}}},
-    "render": {{"models": ["lafortune"], "lights": ["{LABEL}"], "geometries": ["high"]}}}})
-import dataclasses
-lights = [dataclasses.replace(l, samples={scene_samples}) if l.name == "{LABEL}" else l
-          for l in scene.lights]
-scene = dataclasses.replace(scene, lights=type(scene.lights)(lights))
+from dermis.lighting.visibility import Visibility
+from dermis.pipeline.cl import get_env
+scene = b._scene()
+mesh, lights, vis_default, bssrdf = b._inputs(scene, {str(cache)!r})
+del vis_default, bssrdf
+env = get_env(None)
+vis = Visibility(mesh.vertices, mesh.faces)
+shade = b._shaders(scene)["lafortune"]
+before = int([l for l in open("/proc/self/status") if l.startswith("VmRSS")][0].split()[1])
 t = time.perf_counter()
-api.run(scene, cache={str(cache)!r}, until="render", export=False, force=("visibility", "render"))
-print(time.perf_counter() - t, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+samples = b._cast(scene, mesh, lights, vis, env, 7, {scene_samples}, {variant!r})
+shade(mesh, samples, env)
+hwm = int([l for l in open("/proc/self/status") if l.startswith("VmHWM")][0].split()[1])
+print(time.perf_counter() - t, before, hwm, len(samples.weights))
 """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     if out.returncode:
         return {"error": out.stderr.strip().splitlines()[-1] if out.stderr else "failed"}
-    secs, kb = out.stdout.split()[-2:]
+    secs, before, hwm, stored = out.stdout.split()[-4:]
     return {"light_samples_per_pixel": scene_samples, "size": [SIZE, SIZE],
-            "seconds": float(secs), "peak_rss_bytes": int(kb) * 1024}
+            "seconds": float(secs), "rss_before_bytes": int(before) * 1024,
+            "peak_rss_bytes": int(hwm) * 1024, "stored_samples": int(stored)}
 
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--label", default="before")
+    ap.add_argument("--variants", default="default",
+                    help="comma-separated VARIANTS to measure (previous, default, "
+                         "control_variate)")
     ap.add_argument("--seeds", type=int, default=4, help="renders at the default settings")
     ap.add_argument("--pieces", type=int, default=64, help="pieces of the converged render")
     ap.add_argument("--piece-samples", type=int, default=256,
                     help="light samples per pixel of one piece")
     ap.add_argument("--reuse-reference", action="store_true")
+    ap.add_argument("--shares", action="store_true", help="sweep SHARE_GRID")
+    ap.add_argument("--cost", action="store_true", help="seconds at 800 x 800 per variant")
+    ap.add_argument("--brightness", action="store_true",
+                    help="the map's sampling weight: luminance, RGB mean, RGB norm")
+    ap.add_argument("--sample-counts", default="",
+                    help="comma-separated light samples per pixel to measure the default at")
     ap.add_argument("--memory", action="store_true")
     ap.add_argument("--cache", default=None)
     ap.add_argument("--device", default=None)
@@ -261,44 +504,40 @@ def main(argv=None) -> dict:
                               args.piece_samples,
                               Path(cache) / "bench_env_noise" / "reference.npz",
                               args.reuse_reference)
-    renders = {m: [] for m in MODELS}
-    times = {m: [] for m in MODELS}
-    vis_times = []
-    coverage = None
-    for k in range(args.seeds):
-        t, c = time.perf_counter(), time.process_time()
-        samples = _cast(scene, mesh, lights, vis, env, scene.mesh.seed + k)
-        vis_times.append((time.perf_counter() - t, time.process_time() - c))
-        imgs, secs, coverage = _images(shaders, mesh, samples, env, subsurface, timed=True)
-        for m in MODELS:
-            renders[m].append(imgs[m])
-            times[m].append(secs[m])
-    skin = np.asarray(coverage) >= 1.0
-    vis_s = np.median([t[0] for t in vis_times])
-    vis_cpu = np.median([t[1] for t in vis_times])
     out = {"setup": {"scene": "default", "mesh": "high", "light": LABEL, "size": [SIZE, SIZE],
-                     "spp": scene.render.spp, "light_samples_per_pixel": lights[0].samples,
-                     "seeds": args.seeds, "skin_pixels": int(skin.sum())},
+                     "spp": scene.render.spp, "light_samples_per_pixel": lights[0].samples},
            "code": _commit(), "machine": platform.processor() or platform.machine(),
            "device": env.description,
            "reference": {**ref_meta,
                          "samples_per_pixel": ref_meta["pieces"] * ref_meta["piece_samples"]},
-           "visibility_seconds": float(vis_s), "visibility_cpu_seconds": float(vis_cpu),
-           "models": {}}
-    for m in MODELS:
-        row = metrics(renders[m], *ref[m], skin)
-        row["shading_seconds"] = float(np.median([t[0] for t in times[m]]))
-        row["seconds"] = float(vis_s + row["shading_seconds"])
-        row["cpu_seconds"] = float(vis_cpu + np.median([t[1] for t in times[m]]))
-        out["models"][m] = row
-        print(f"  {m:10s} rel RMSE {row['rel_rmse']:.4f}  pixel median {row['pixel_median']:.4f}"
-              f"  p95 {row['pixel_p95']:.4f}  bias {row['rel_bias']:+.4f}  "
-              f"{row['seconds']:.2f} s ({row['cpu_seconds']:.2f} CPU s)", flush=True)
+           "variants": {}}
+    for v in args.variants.split(","):
+        out["variants"][v] = _measure(scene, mesh, lights, vis, env, shaders, subsurface, ref,
+                                      args.seeds, v)
+    if args.shares:
+        out["shares"] = shares(scene, mesh, lights, vis, env, shaders, subsurface, ref,
+                               args.seeds)
+    if args.brightness:
+        out["brightness"] = brightness(scene, mesh, lights, vis, env, shaders, subsurface, ref,
+                                       args.seeds)
+    if args.sample_counts:
+        out["sample_counts"] = sample_counts(scene, mesh, lights, vis, env, shaders, subsurface,
+                                             ref, max(args.seeds // 2, 2),
+                                             [int(x) for x in args.sample_counts.split(",")])
+    if args.cost:
+        out["cost"] = cost(scene, mesh, lights, vis, env)
     if args.memory:
-        out["memory"] = {"converged_one_piece": memory_peak(64 * lights[0].samples, cache),
-                         "default": memory_peak(lights[0].samples, cache)}
+        out["memory"] = {"default_samples": memory_peak(lights[0].samples, cache),
+                         "converged_one_piece": memory_peak(64 * lights[0].samples, cache)}
+        a, b = out["memory"]["default_samples"], out["memory"]["converged_one_piece"]
+        if "error" not in a and "error" not in b:
+            out["memory"]["bytes_per_stored_sample"] = (
+                (b["peak_rss_bytes"] - b["rss_before_bytes"]
+                 - (a["peak_rss_bytes"] - a["rss_before_bytes"]))
+                / max(b["stored_samples"] - a["stored_samples"], 1))
         print("  memory:", out["memory"])
     out["bench_peak_rss_bytes"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    print(f"  this process's peak resident memory {out['bench_peak_rss_bytes'] / 2**30:.2f} GiB")
     if not args.no_save:
         RESULTS.mkdir(parents=True, exist_ok=True)
         save_labelled(RESULTS / "env_noise.json", args.label, out)

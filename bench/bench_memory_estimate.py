@@ -20,6 +20,14 @@ run next to its peak (``--reestimate`` recomputes the estimates of the stored ru
 
     python3 bench/bench_memory_estimate.py [--sizes 64,256,512] [--cache DIR]
         [--out bench/results/memory_estimate.json] [--reestimate]
+
+``--light-samples 256,1024,2048`` instead measures what a requested light sample costs where
+the rendered surface fills the frame (a close-up of the face, ``CLOSEUP``: every pixel's
+camera samples hit, so nearly every sample a pixel requests is drawn above the horizon and
+stored): BRDF and BSSRDF runs under the sunset at one size, the light's sample count varied;
+the slope of the peak over the requested samples per pixel is the estimate's per-sample
+cost (``pipeline/resources.py`` LIGHT_SAMPLE_BYTES), stored as "light_samples" in --out
+beside the other runs.
 """
 from __future__ import annotations
 
@@ -68,13 +76,23 @@ CONFIGS = (
 )
 
 
+# A close-up of the quick scene's face: the surface fills the frame (measured coverage 1.0).
+CLOSEUP = {"fov_deg": 5.0}
+
+
 def overrides(size: int, models, lights, cache_root: Path, extra: dict) -> dict:
     """The quick scene cut to one geometry, ``models`` and ``lights``, at size x size."""
     over = {"camera": {"width": size, "height": size},
             "render": {"models": list(models), "lights": list(lights), "geometries": ["high"]},
             "output": {"previews": False, "output_dir": str(cache_root / "out")}}
     for table, values in extra.items():
-        if table == "lights":   # the sunset light with the default scene's 1k HDR map
+        if table == "light_samples":   # the disc's and the environment's sample count
+            lights = tomllib.loads(QUICK.read_text())["lights"]
+            for light in lights:
+                if light["type"] in ("disc", "environment"):
+                    light["samples"] = int(values)
+            over["lights"] = lights
+        elif table == "lights":   # the sunset light with the default scene's 1k HDR map
             lights = tomllib.loads(QUICK.read_text())["lights"]
             for light in lights:
                 if light["type"] == "environment":
@@ -92,7 +110,9 @@ def child(spec: dict) -> None:
     for until in spec.get("prepare", ()):
         api.run(scene, cache=spec["cache"], until=until, export=False)
     if not spec.get("prepare"):
-        api.run(scene, cache=spec["cache"], force=FORCED)
+        from dermis.pipeline.plan import build_graph
+        stages = {node.stage for node in build_graph(scene)[0].values()}
+        api.run(scene, cache=spec["cache"], force=[f for f in FORCED if f in stages])
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024   # KiB on Linux
     print(json.dumps({"peak_bytes": peak, "seconds": time.perf_counter() - t0}))
 
@@ -130,6 +150,44 @@ def reestimate(path: Path, cache: Path) -> None:
     print(json.dumps({k: result[k] for k in ("estimate_is_upper_bound", "estimate_over_peak")}))
 
 
+def light_sample_study(cache: Path, size: int, counts: list[int], out: Path) -> dict:
+    """Peaks of close-up BRDF and BSSRDF runs under the sunset at ``counts`` light samples,
+    their slope per requested light sample per pixel, and the estimate of each run."""
+    rows, fits = [], {}
+    for kind, models in (("brdf", ["lafortune"]), ("bssrdf", ["bssrdf"])):
+        for n in counts:
+            extra = {"camera": CLOSEUP, "light_samples": n}
+            over = overrides(size, models, ["sunset"], cache, extra)
+            over["camera"].update(CLOSEUP)
+            prepare = ["mesh_high"] + (["samples", "profiles"] if kind == "bssrdf" else [])
+            measure({"overrides": over, "cache": str(cache), "prepare": prepare})
+            res = measure({"overrides": over, "cache": str(cache)})
+            scene = load_scene(QUICK, overrides=over)
+            row = {"kind": kind, "models": models, "size": size, "pixels": size * size,
+                   "spp": scene.render.spp, "light_samples": n,
+                   "light_samples_per_pixel": light_samples_per_pixel(scene),
+                   "peak_mb": res["peak_bytes"] / 2**20,
+                   "estimate_mb": max(b for _, _, b in estimate_memory(scene)) / 2**20,
+                   "seconds": res["seconds"], "load": os.getloadavg()[0]}
+            print(json.dumps(row), flush=True)
+            rows.append(row)
+        mine = [r for r in rows if r["kind"] == kind]
+        lpp = np.array([r["light_samples_per_pixel"] for r in mine], float)
+        peak = np.array([r["peak_mb"] for r in mine], float) * 2**20
+        slope = np.polyfit(lpp * size * size, peak, 1)[0]
+        fits[kind] = {"bytes_per_requested_light_sample": float(slope),
+                      "bytes_between_largest": float((peak[-1] - peak[-2])
+                                                     / ((lpp[-1] - lpp[-2]) * size * size))}
+    study = {"what": "close-up (the surface fills the frame), sunset, light sample count "
+                     "varied at one size", "camera": CLOSEUP, "runs": rows, "fits": fits,
+             "estimate_is_upper_bound": all(r["estimate_mb"] >= r["peak_mb"] for r in rows)}
+    result = json.loads(out.read_text()) if out.is_file() else {}
+    result["light_samples"] = study
+    out.write_text(json.dumps(result, indent=1) + "\n")
+    print(json.dumps(fits, indent=1))
+    return study
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--child", help=argparse.SUPPRESS)
@@ -144,9 +202,16 @@ def main() -> None:
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "memory_estimate.json"))
     ap.add_argument("--reestimate", action="store_true",
                     help="keep the measured runs of --out, recompute their estimates")
+    ap.add_argument("--light-samples", default="",
+                    help="comma-separated light sample counts of the close-up study")
+    ap.add_argument("--light-samples-size", type=int, default=64)
     args = ap.parse_args()
     if args.child:
         child(json.loads(args.child))
+        return
+    if args.light_samples:
+        light_sample_study(Path(args.cache), args.light_samples_size,
+                           [int(n) for n in args.light_samples.split(",")], Path(args.out))
         return
     if args.reestimate:
         reestimate(Path(args.out), Path(args.cache))

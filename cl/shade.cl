@@ -37,12 +37,58 @@
 #define DERMIS_ASPERITY 0
 #endif
 
+/* alpha: the control variate's coefficient of a hit (lighting/control.py): the cosine-weighted
+ * mean over wi of the model's diffuse part, f_mean = int f_diffuse cos dwi / pi, so that
+ * alpha L cos follows f L cos where f is diffuse.  Any value fixed per hit keeps the estimate
+ * unbiased (the control terms have mean zero); this one makes the two cancel on unoccluded
+ * diffuse surfaces.  Lambert: a / pi.  Lafortune: the coupled diffuse term's mean,
+ * a (1 - L(mu_o)) / pi (its directional albedo is a (1 - L(mu_o)), docs/science.md §1), the
+ * lobes left to the samples.  HK93: the constant multiple scattering rho_ms a / pi, single
+ * scattering left to the samples.  Asperity (docs/science.md §5): the base's alpha x T(mu_o)
+ * x the cosine-weighted mean of T(mu_i), 1 - (1 - a/2) tau (1 - tau/2) (2 - tau), plus the
+ * term's directional albedo / pi, albedo tau (1 - tau/2) / (2 pi max(mu_o, tau)). */
+inline float3 control_alpha(float3 wo, float3 a, __constant const float *base_params,
+                            __constant const float *asperity_params) {
+#if DERMIS_BASE == 0
+    float3 alpha = a * DERMIS_INV_PI;
+#elif DERMIS_BASE == 1
+    float3 alpha = a * DERMIS_INV_PI;
+    if (base_params[27] != 0.0f)
+        alpha *= lafortune_unreflected(wo.z, base_params);
+#elif DERMIS_BASE == 2
+    float3 alpha = vload3(0, base_params + 16) * a * DERMIS_INV_PI;
+#else
+    float3 alpha = (float3)(0.0f);
+#endif
+#if DERMIS_ASPERITY
+    {
+        __constant const float *p = asperity_params;
+        float tau = p[0];
+        float3 alb = vload3(0, p + 2);
+        float e = tau * (1.0f - 0.5f * tau);
+        float mo = fmax(wo.z, tau);
+        if (p[5] != 0.0f) {
+            float3 keep = (float3)(1.0f) - 0.5f * alb;
+            alpha *= ((float3)(1.0f) - keep * (e / mo))
+                   * ((float3)(1.0f) - keep * (e * (2.0f - tau)));
+        }
+        alpha += alb * (e * 0.5f * DERMIS_INV_PI / mo);
+    }
+#endif
+    return wo.z > 0.0f ? alpha : (float3)(0.0f);
+}
+
+/* Per sample (flags: bit 0 lit - unoccluded, above the geometric horizon; bit 1 in the control
+ * variate's region; has_flags = 0: every sample lit):
+ *     out = [lit] f(wo, wi) W cos_i  -  [control] alpha W (n_s . wi)
+ * (n_s . wi not clamped: the control function is linear in n_s). */
 __kernel void shade_samples(
     __global const int *point, __global const float *wi_world, __global const float *weight,
     const int n,
     __global const float *shading_normal, __global const float *wo_world,
     __global const float *albedo,
     __constant const float *base_params, __constant const float *asperity_params,
+    __global const uchar *flags, const int has_flags,
     __global float *out)
 {
     int i = get_global_id(0);
@@ -54,6 +100,7 @@ __kernel void shade_samples(
     float3 wo = to_local(vload3(h, wo_world), t, b, nrm);
     float3 wi = to_local(vload3(i, wi_world), t, b, nrm);
     float3 a = vload3(h, albedo);
+    uchar fl = has_flags ? flags[i] : (uchar)1;
 
 #if DERMIS_BASE == 0
     float3 f = (wo.z > 0.0f && wi.z > 0.0f) ? a * DERMIS_INV_PI : (float3)(0.0f);
@@ -72,5 +119,34 @@ __kernel void shade_samples(
     f = f * asperity_transmit(wo, wi, asperity_params) + asperity_f(wo, wi, asperity_params);
 #endif
 
-    vstore3(f * vload3(i, weight) * fmax(wi.z, 0.0f), i, out);
+    float3 w = vload3(i, weight);
+    float3 res = (fl & 1) ? f * w * fmax(wi.z, 0.0f) : (float3)(0.0f);
+    if (fl & 2)
+        res -= control_alpha(wo, a, base_params, asperity_params) * w * wi.z;
+    vstore3(res, i, out);
+}
+
+/* The control variate's integral at each hit (lighting/control.py): alpha n_s . M_b, M_b the
+ * (3 x 3, RGB x world xyz) moments of the hit's bin (bin < 0: none). */
+__kernel void shade_control(
+    const int n, __global const int *control_bin, __global const float *table,
+    __global const float *shading_normal, __global const float *wo_world,
+    __global const float *albedo,
+    __constant const float *base_params, __constant const float *asperity_params,
+    __global float *out)
+{
+    int h = get_global_id(0);
+    if (h >= n) return;
+    int bin = control_bin[h];
+    float3 nrm = vload3(h, shading_normal);
+    float3 res = (float3)(0.0f);
+    if (bin >= 0) {
+        float3 t, b;
+        make_frame(nrm, &t, &b);
+        float3 wo = to_local(vload3(h, wo_world), t, b, nrm);
+        float3 m = (float3)(dot(vload3(3 * bin, table), nrm), dot(vload3(3 * bin + 1, table), nrm),
+                            dot(vload3(3 * bin + 2, table), nrm));
+        res = control_alpha(wo, vload3(h, albedo), base_params, asperity_params) * m;
+    }
+    vstore3(res, h, out);
 }

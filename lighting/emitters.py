@@ -31,8 +31,10 @@ Light types (``pipeline.config.LightConfig``, lengths in mm):
   embedded procedural sunset sky (sun 3 deg above the horizon, thesis).  Three strategies
   (``env_strategy``):
 
-  - ``"luminance"``: S samples importance sampled by pixel luminance x sin(theta) (the
-    pixel's solid angle), stratified in the flattened CDF; weight = L / (S p_env).
+  - ``"luminance"``: S samples importance sampled by pixel brightness x sin(theta) (the
+    pixel's solid angle; brightness: the RGB norm, lighting/environment.py
+    ``brightness``, luminance until the measurement there), stratified in the flattened
+    CDF; weight = L / (S p_env).
   - ``"mis"``: multiple importance sampling (Veach &
     Guibas 1995; Veach's thesis 1997, ch. 9).  n_cos = round(3 S / 8) samples (6 of 16)
     from the cosine-weighted hemisphere around the normal, p_cos = cos/pi (Malley's method
@@ -68,6 +70,10 @@ Light types (``pipeline.config.LightConfig``, lengths in mm):
   Optionally (``lobe``, lighting/lobes.py) a share of the samples is drawn about a
   direction the BRDF favours (the glossy reflection of the view, or the view itself for a
   backward-scattering layer), weighted by the same balance heuristic.
+  The renderer (rendering/cast.py) samples environment lights with ``mixture=True`` instead:
+  lighting/mixture.py draws each sample's strategy (product, cosine, lobe) with per-point
+  shares from a number stratified over the pixel, stratifies the pixel's samples in 2-D and,
+  on request (``control=True``), marks the control variate's region (lighting/control.py).
 
 The environment map, its lat-long convention and the product strategy's tables:
 lighting/environment.py; the warps and strata the samples come from: lighting/warps.py,
@@ -86,6 +92,7 @@ from typing import Protocol, Sequence
 import numpy as np
 
 from dermis.lighting.environment import EnvironmentMap, environment_map
+from dermis.lighting.mixture import sample_environment
 from dermis.lighting.strata import PixelStrata, stratified_2d
 from dermis.lighting.warps import concentric_disc, cosine_hemisphere, normalize, tangent_frame
 from dermis.pipeline.errors import ConfigError, DermisError
@@ -112,13 +119,21 @@ class LightSamples:
     """Light samples for N points, S per point (see the module docstring).
 
     directions : (N, S, 3) float32 unit vectors towards the light
-    weights : (N, S, 3) float32 contribution weights (0 below the normal's horizon)
+    weights : (N, S, 3) float32 contribution weights (0 below the normal's horizon, except
+        for samples in the control variate's region)
     distance : (N, S) float32 distance to the light sample, mm (inf at infinity)
+    control, control_bin, control_table : with ``control=True`` (:func:`sample_lights`), the
+        (N, S) bool samples in the control variate's region of an environment light, each
+        point's (N,) int32 control bin and the (bins, 3, 3) float32 moments M_b (RGB x xyz;
+        lighting/control.py); None otherwise
     """
 
     directions: np.ndarray
     weights: np.ndarray
     distance: np.ndarray
+    control: np.ndarray | None = None
+    control_bin: np.ndarray | None = None
+    control_table: np.ndarray | None = None
 
     @property
     def count(self) -> int:
@@ -258,10 +273,18 @@ def _disc(light, p: np.ndarray, rng, samples: int, strata=None, salt: int = 0) -
 
 def _environment(light, p: np.ndarray, rng, samples: int, env, normals, strategy: str,
                  strata=None, salt: int = 0,
-                 lobe: "Lobe | None" = None) -> tuple:
+                 lobe: "Lobe | None" = None, mixture: bool = False,
+                 control: bool = False, horizon: bool = True,
+                 product_normals: np.ndarray | None = None) -> tuple:
     if env is None:
         env = environment_map(light)
     n = len(p)
+    if mixture and normals is not None:     # the renderer's estimator (lighting/mixture.py)
+        es = sample_environment(env, normals, rng, samples, strata=strata, salt=salt, lobe=lobe,
+                                control=control, horizon=horizon,
+                                product_normals=product_normals)
+        dist = np.full((n, samples), np.inf, dtype=np.float32)
+        return es.directions, es.weights, dist, es
     mis = strategy in ("mis", "product") and normals is not None and samples >= 2 \
         and not env.black
     product = mis and strategy == "product"
@@ -339,7 +362,9 @@ def sample_lights(lights, points: np.ndarray, normals: np.ndarray | None = None,
                   seed: int | Sequence[int] = 0, options: SamplingOptions = SamplingOptions(),
                   share: int = 1, strata: "PixelStrata | None" = None,
                   lobe: "Lobe | None" = None,
-                  horizon: bool = True) -> LightSamples:
+                  horizon: bool = True, mixture: bool = False,
+                  control: bool = False,
+                  product_normals: np.ndarray | None = None) -> LightSamples:
     """Sample one light or several (summed) for N surface points.
 
     Parameters
@@ -369,6 +394,18 @@ def sample_lights(lights, points: np.ndarray, normals: np.ndarray | None = None,
     horizon : bool
         Zero the weights of samples below the normals' horizon (default).  False leaves
         them for a caller that tests cos > 0 itself (lighting/irradiance.py: one cosine pass).
+    mixture : bool
+        The renderer's estimator for environment lights (lighting/mixture.py): the product,
+        cosine and ``lobe`` strategies with per-point shares (``lobe.fractions()``), samples
+        stratified in 2-D.  Needs ``normals``.
+    control : bool
+        With ``mixture``, the control variate of the first environment light
+        (lighting/control.py: ``control``, ``control_bin`` and ``control_table`` of the
+        result; samples of its region keep their weights below the horizon).
+    product_normals : (N, 3) float, optional
+        With ``mixture``, the normals whose bins the product strategy's tables are read for
+        (the renderer's interpolated normals: the cosine it shades with); the horizon and
+        the cosine strategy stay ``normals``'.
 
     Returns
     -------
@@ -388,6 +425,7 @@ def sample_lights(lights, points: np.ndarray, normals: np.ndarray | None = None,
         raise DermisError(f"lights: strata for {len(strata.pixel)} points sharing "
                           f"{strata.share}; need {len(p)} and share = {share}")
     parts = []
+    ctrl = None
     for index, light in enumerate(lights):
         s = int(samples if samples is not None else getattr(light, "samples", 16))
         if s < 1:
@@ -395,24 +433,40 @@ def sample_lights(lights, points: np.ndarray, normals: np.ndarray | None = None,
         s = -(-s // max(int(share), 1))
         kind = light.type
         if kind == "point":
-            parts.append(_point(light, p, rng))
+            part = _point(light, p, rng)
         elif kind == "directional":
-            parts.append(_directional(light, p, rng))
+            part = _directional(light, p, rng)
         elif kind == "disc":
-            parts.append(_disc(light, p, rng, s, strata, salt=3 * index))
+            part = _disc(light, p, rng, s, strata, salt=3 * index)
         elif kind == "environment":
-            parts.append(_environment(light, p, rng, s, env, n, env_strategy, strata,
-                                      salt=3 * index + 1, lobe=lobe))
+            part = _environment(light, p, rng, s, env, n, env_strategy, strata,
+                                salt=3 * index + 1, lobe=lobe,
+                                mixture=mixture and n is not None,
+                                control=control and ctrl is None, horizon=horizon,
+                                product_normals=product_normals)
         else:
             raise ConfigError(f"lights.{light.name}.type = {kind!r}: must be one of point, "
                               "disc, directional, environment")
+        if len(part) == 4:                # the mixture zeroes below the horizon itself
+            es = part[3]
+            part = part[:3]
+            if es.control is not None:    # the first environment light's control variate
+                ctrl = (len(parts), es)
+        elif n is not None and horizon:   # weights 0 below the normals' horizon
+            up = np.einsum("nsk,nk->ns", np.asarray(part[0], np.float32), n) > 0
+            part = (part[0], np.where(up[..., None], part[1], np.float32(0.0)), part[2])
+        parts.append(part)
     wi, w, dist = (np.ascontiguousarray(np.concatenate(
         [np.asarray(q[k], dtype=np.float32) for q in parts], axis=1) if len(parts) > 1
         else parts[0][k], dtype=np.float32) for k in range(3))
-    if n is not None and horizon:
-        cos = np.einsum("nsk,nk->ns", wi, n)
-        w = np.where((cos > 0)[..., None], w, np.float32(0.0))
-    return LightSamples(wi, w, dist)
+    if ctrl is None:
+        return LightSamples(wi, w, dist)
+    at, es = ctrl
+    start = sum(q[0].shape[1] for q in parts[:at])
+    flags = np.zeros(wi.shape[:2], bool)
+    flags[:, start:start + es.control.shape[1]] = es.control
+    return LightSamples(wi, w, dist, control=flags, control_bin=es.control_bin,
+                        control_table=es.table.moments.astype(np.float32))
 
 
 def light_params(lights) -> dict:

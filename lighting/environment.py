@@ -1,9 +1,10 @@
 """The environment light: a lat-long radiance map and its sampling distributions
 (docs/science.md §6).
 
-* :class:`EnvironmentMap` - a lat-long radiance map with a luminance x sin(theta) sampling
-  distribution (the pixel's solid angle), inverted through the flattened CDF, and the
-  tables of the "product" strategy: the map's luminance mass in ~PRODUCT_BLOCKS blocks of
+* :class:`EnvironmentMap` - a lat-long radiance map with a brightness x sin(theta) sampling
+  distribution (brightness: the RGB norm, :func:`brightness`; sin: the pixel's solid angle),
+  inverted through the flattened CDF, and the tables of the "product" strategy: the map's
+  brightness mass in ~PRODUCT_BLOCKS blocks of
   pixels weighted by the cosine between each block and the normal, tabulated for
   PRODUCT_NORMAL_BINS lat-long bins of normals (the strategies: lighting/emitters.py).
 * :func:`procedural_sunset` - the embedded sunset sky (sun 3 deg above the horizon, thesis).
@@ -31,7 +32,7 @@ from dermis.pipeline.errors import ConfigError, DermisError
 from dermis.pipeline.imageio import read_image
 from dermis.rendering.color import LUMINANCE
 
-__all__ = ["EnvironmentMap", "procedural_sunset", "environment_map", "SUNSET_SUN_ELEVATION_DEG",
+__all__ = ["EnvironmentMap", "brightness", "procedural_sunset", "environment_map", "SUNSET_SUN_ELEVATION_DEG",
            "SUNSET_SUN_AZIMUTH_DEG", "SUNSET_SUN_IRRADIANCE", "PRODUCT_BLOCKS",
            "PRODUCT_NORMAL_BINS"]
 
@@ -60,6 +61,19 @@ SUNSET_GROUND_RADIANCE = (0.02, 0.017, 0.015)   # dark ground below the horizon 
 SUNSET_WIDTH = 2048     # 0.18 deg per pixel: the sun spans ~3 pixels
 
 _TWO_PI = 2.0 * math.pi
+
+
+def brightness(radiance: np.ndarray) -> np.ndarray:
+    """The map's sampling weight per pixel: the Euclidean norm of its linear RGB radiance
+    (float64).  Each channel's image is an error of its own (relative RMSE over the channels,
+    bench/bench_env_noise.py): where the sky and the sun differ in colour - a blue zenith, an
+    orange horizon - luminance (0.07 of the weight in blue) leaves the blue channel's sky and
+    the red channel's horizon undersampled.  Measured on the default scan under the Venice
+    sunset, 200 x 200, 8 seeds, relative RMSE against the converged render, Lafortune / HK93
+    / BSSRDF: luminance 0.0854 / 0.0853 / 0.0296, RGB mean 0.0798 / 0.0796 / 0.0293, RGB
+    norm 0.0722 / 0.0715 / 0.0292 (bench/results/env_noise.json "after_nets" "brightness")."""
+    rad = np.asarray(radiance, np.float64)
+    return np.sqrt(np.einsum("...k,...k->...", rad, rad))
 
 
 def _search(table: np.ndarray, keys: np.ndarray) -> np.ndarray:
@@ -103,7 +117,8 @@ def _tree_search(tree: list[np.ndarray], row: np.ndarray, keys: np.ndarray) -> n
 
 
 class EnvironmentMap:
-    """A lat-long radiance map with a luminance x sin(theta) sampling distribution.
+    """A lat-long radiance map with a brightness x sin(theta) sampling distribution
+    (:func:`brightness`).
 
     Parameters
     ----------
@@ -126,7 +141,7 @@ class EnvironmentMap:
         h, w = rad.shape[:2]
         self.height, self.width = h, w
         sin_t = np.sin((np.arange(h) + 0.5) / h * math.pi)
-        weight = (rad.astype(np.float64) @ LUMINANCE) * sin_t[:, None]
+        weight = brightness(rad) * sin_t[:, None]
         total = weight.sum()
         self.pmf = (weight / total).ravel() if total > 0 else np.zeros(h * w)
         self.cdf = np.cumsum(self.pmf)
@@ -198,9 +213,9 @@ class EnvironmentMap:
             2.0 * math.pi * math.pi * np.maximum(sin_t, 1e-30))
         return d, self.radiance[row, col], np.where(sin_t > 0, pdf, 0.0)
 
-    # -- luminance x cosine ("product" strategy): tables per bin of normals, lazily built
+    # -- brightness x cosine ("product" strategy): tables per bin of normals, lazily built
     def _product(self) -> dict:
-        """Tables of the product strategy (lighting/emitters.py docstring): the map's luminance mass in
+        """Tables of the product strategy (lighting/emitters.py docstring): the map's brightness mass in
         blocks of about PRODUCT_BLOCKS pixels, weighted per normal bin by the cosine of the
         block (padded by the block's and the bin's angular radius, so a block partly above
         a normal's horizon keeps some mass), and the pixels' share inside each block."""
@@ -232,17 +247,13 @@ class EnvironmentMap:
         table = weight / np.where(total > 0, total, 1.0)              # (K, B) block pmf per bin
         cum = np.cumsum(table, axis=1)                                # (K, B) per-bin CDF
         share = blocks / np.where(mass > 0, mass, 1.0)[:, None]       # pixel share in block
-        # the block's and the pixel's CDFs as search trees (_tree): each bin's row of the
-        # flat per-bin CDF (cum + bin, as the keys of product_sample), and the pixels' CDF
-        # in each block.  Searching a key's own row finds the same block as a search of the
-        # whole flat table (clipped to the row) when the flat table is sorted across rows as
-        # well and every key (u0 <= 1) stays below the next row; else the flat table is
-        # kept and searched
-        cum_flat = cum + np.arange(kr * kc)[:, None]    # sorted in each row
+        # the block's and the pixel's CDFs as search trees (_tree), a block in two steps:
+        # the row of blocks among the bin's row ends (the marginal over rows), then the block
+        # in the bin's CDF along that row (the same block as one search of the bin's whole
+        # CDF, and the two steps of the 2-D warp of product_sample's u2); and the pixels' CDF
+        # in each block
         per = bh * bw
-        k = np.arange(kr * kc)
-        exact = bool(np.all(cum_flat[1:, 0] >= cum_flat[:-1, -1])
-                     and np.all(k + cum[:, -1] * (1.0 - 1e-12) < k + 1))
+        row_cum = np.ascontiguousarray(cum[:, wc - 1::wc])             # (K, hc)
         # a pixel's block and position in the block as the sums of lookups by its row and its
         # column, and back (integer divisions of millions of samples cost more)
         r, c, b, q = np.arange(hc * bh), np.arange(wc * bw), np.arange(hc * wc), np.arange(per)
@@ -250,8 +261,8 @@ class EnvironmentMap:
                       "block_of": ((r // bh) * wc, c // bw), "pos_of": ((r % bh) * bw, c % bw),
                       "rows_of": ((b // wc) * bh, q // bw), "cols_of": ((b % wc) * bw, q % bw),
                       "nb": hc * wc, "per": per, "cum_last": cum[:, -1],
-                      "block_tree": _tree(cum_flat) if exact else None,
-                      "cum_flat": None if exact else cum_flat.ravel(),
+                      "row_cum": row_cum, "row_tree": _tree(row_cum),
+                      "col_cum": cum.ravel(), "col_tree": _tree(cum.reshape(-1, wc)),
                       "fine_tree": _tree(np.cumsum(share, axis=1)),
                       "share": share.ravel(), "kr": kr, "kc": kc}
         return self._prod
@@ -267,22 +278,37 @@ class EnvironmentMap:
         c = np.minimum((u * t["kc"]).astype(np.int64), t["kc"] - 1)
         return r * t["kc"] + c
 
-    def product_sample(self, u0: np.ndarray, jitter: np.ndarray, bins: np.ndarray):
+    def product_sample(self, u0: np.ndarray, jitter: np.ndarray, bins: np.ndarray,
+                       pixel: bool = False, u2: np.ndarray | None = None):
         """Directions, radiance and pdf of the product strategy for uniform numbers ``u0``
         (M,) (the block) and ``jitter`` (M, 3) (the pixel in the block, then the point in
-        the pixel: column, row) and the normal bin of each sample (M,) (:meth:`normal_bin`)."""
+        the pixel: column, row) and the normal bin of each sample (M,) (:meth:`normal_bin`);
+        with ``pixel`` also the picked pixel's (row, col).
+
+        The block inverts the bin's CDF at u0 (u0 is stratified per point; an alias table
+        would lose that).  With ``u2`` (M,) the pair (u0, u2) is warped in 2-D instead: the
+        row of blocks by u0 through the bin's marginal over rows, the block along that row
+        by u2 - the same block probabilities, so points stratified in 2-D stay stratified
+        over the sphere, in elevation and in azimuth (u0 alone spreads them in elevation)."""
         t = self._product()
-        nb, per = t["nb"], t["per"]
-        # the block: inversion of the bin's CDF at u0 (u0 is stratified per point; an alias
-        # table would lose that), a search of the bin's row
+        per, wc = t["per"], t["wc"]
+        rc = t["row_cum"]
+        hc = rc.shape[1]
+        bins = np.asarray(bins, np.int64)
         key = u0 * t["cum_last"].take(bins)
         key *= 1.0 - 1e-12
-        key += bins
-        if t["block_tree"] is not None:
-            b = _tree_search(t["block_tree"], bins, key)
-        else:
-            b = _search(t["cum_flat"], key) - bins * nb
-        b = np.clip(b, 0, nb - 1, out=b)
+        r = _tree_search(t["row_tree"], bins, key)
+        r = np.minimum(r, hc - 1, out=r)
+        at = bins * hc + r
+        if u2 is not None:     # the position along the row by u2
+            flat = rc.ravel()
+            hi = flat.take(at)
+            lo = np.where(r > 0, flat.take(np.maximum(at - 1, 0)), 0.0)
+            key = lo + u2 * (hi - lo)
+            key *= 1.0 - 1e-12
+        c = _tree_search(t["col_tree"], at, key)
+        b = r * wc
+        b += np.minimum(c, wc - 1, out=c)
         # the pixel in the block: a search of its CDF row
         j = _tree_search(t["fine_tree"], b, jitter[:, 0] * (1.0 - 1e-12))
         j = np.minimum(j, per - 1, out=j)
@@ -297,7 +323,8 @@ class EnvironmentMap:
         y = row + jitter[:, 2]
         y /= self.height
         d, _ = self._dirs(x, y, np.float32)
-        return d, self.radiance_at(row, col), self.product_pdf(d, bins, row, col, b, j)
+        out = d, self.radiance_at(row, col), self.product_pdf(d, bins, row, col, b, j)
+        return out + ((row, col),) if pixel else out
 
     def radiance_at(self, row: np.ndarray, col: np.ndarray) -> np.ndarray:
         """``radiance[row, col]`` through one flat index (a single ``take``: ~4x faster than

@@ -39,4 +39,4 @@ def check_scene(stack, sections: dict, where: str) -> list[str]:
 
 
 MODEL = Model(name="bssrdf", label="bssrdf", stage="bssrdf", doc="docs/science.md §4",
-              profiles=True, check=check_scene)
+              profiles=True, check=check_scene, glossy=True)

@@ -11,4 +11,4 @@ __all__ = ["MODEL"]
 
 MODEL = Model(name="bssrdf_mc", label="BSSRDF (Monte Carlo profile)", stage="bssrdf",
               doc="docs/science.md §3", profile="monte_carlo", profiles=True,
-              check=check_scene)
+              check=check_scene, glossy=True)

@@ -177,4 +177,4 @@ def _scene_params(scene: dict, shared) -> LafortuneParams:
 
 MODEL = Model(name="lafortune", label="lafortune", stage="render", doc="docs/science.md §1",
               params=LafortuneParams, kernel=KERNELS[0], albedo="rho_d",
-              shade=(("DERMIS_BASE", 1),), scene_params=_scene_params)
+              shade=(("DERMIS_BASE", 1),), scene_params=_scene_params, glossy=True)

@@ -51,6 +51,9 @@ class Model:
     check : (validated layer stack, validated scene sections by name, file) -> problems:
         what it needs of the scene, checked when the scene is loaded (the scene is refused
         before any stage runs)
+    glossy : its image shows the Lafortune skin fit's lobes (a BSSRDF through its surface
+        term, ``[bssrdf] surface_reflection``), so the shared rays sample them
+        (``rendering/cast.py`` :func:`glossy_lobes`)
     """
 
     name: str
@@ -69,6 +72,7 @@ class Model:
     shares: tuple = ()
     profiles: bool = False
     check: Callable[[Any, dict, str], list] | None = None
+    glossy: bool = False
 
     def checked(self, params, what: str):
         """``params`` (its defaults when None), else ConfigError: ``what`` must be

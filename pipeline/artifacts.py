@@ -23,7 +23,7 @@ import numpy as np
 from dermis.pipeline.errors import ConfigError, DermisError
 
 __all__ = ["Mesh", "BakedMaps", "LayerProfile", "RenderedImage", "SurfacePoints",
-           "PointIrradiance", "PixelSamples", "save",
+           "PointIrradiance", "PixelSamples", "SAMPLE_LIT", "SAMPLE_CONTROL", "save",
            "load", "ARTIFACT_TYPES"]
 
 
@@ -193,6 +193,12 @@ class PixelSamples:
     directions : (K, 3) float32 unit, towards the light; weights : (K, 3) float32 RGB, so a
         hit's radiance is sum f(wo, wi) weight cos(theta_i) (lighting/emitters.py)
     info : dict (rays traced, samples per hit, light names)
+    flags : (K,) uint8 or None (every sample lit): bit 0 (LIT) the sample is unoccluded and
+        above the geometric horizon, bit 1 (CONTROL) it lies in the control variate's region
+        of an environment light (lighting/control.py); a sample may be either or both
+    control_bin : (M,) int32 or None, each hit's control bin; control_table : (bins, 3, 3)
+        float32 or None, the moments M_b (RGB x world xyz): the control variate's integral
+        at a hit is n_s . M_b
     """
 
     width: int
@@ -205,7 +211,14 @@ class PixelSamples:
     directions: np.ndarray
     weights: np.ndarray
     info: dict = field(default_factory=dict)
+    flags: np.ndarray | None = None
+    control_bin: np.ndarray | None = None
+    control_table: np.ndarray | None = None
 
+
+# PixelSamples.flags bits
+SAMPLE_LIT = 1
+SAMPLE_CONTROL = 2
 
 ARTIFACT_TYPES = {cls.__name__: cls for cls in (Mesh, BakedMaps, LayerProfile, RenderedImage,
                                                 SurfacePoints, PointIrradiance, PixelSamples)}

@@ -37,10 +37,18 @@ RENDER_BASE = 500 << 20          # measured 296-335 MB at 64^2; 429-463 MB when 
 MESH_BYTES_PER_TRIANGLE = 160    # the rendered mesh and its ray-casting scene (measured 153)
 # Per pixel: per camera sample (hits, surface attributes) and per light sample (directions,
 # weights, visibility).  Measured slopes, 64^2-512^2 fit / 512^2 -> 1024^2: BRDF 332 / 503 B
-# a pixel (point light), 701 / 622 (disc); BSSRDF 925 (point), 1407 / 782 (disc): the
-# estimate's 536 / 824 (BRDF) and 840 / 1560 (BSSRDF) bound them.
+# a pixel (point light), 701 / 622 (disc); BSSRDF 925 (point), 1407 / 782 (disc).
+# A requested light sample: the visibility stage keeps every sample drawn above the horizon
+# and not shadowed (directions, weights, flags: 25 B; 50-55 B at the peak, while the batches
+# are joined: 53.7 B a stored sample in bench/results/env_noise.json "after_nets" "memory").
+# Where the head fills a fraction of the frame fewer are stored (0.36 of the requested under
+# the sunset at the default framing), but a close-up stores 0.94 of them: measured on the
+# quick scene's face filling a 64^2 frame under the sunset, 256 -> 1024 -> 2048 samples a
+# pixel, 54 and 33 B a requested sample (BRDF), 11 and 33 (BSSRDF); bench/results/
+# memory_estimate.json "light_samples".  64 B bounds both with a margin (24 B, the fit at the
+# default framing, left the 2048-sample close-up 27 MB above its estimate).
 CAMERA_SAMPLE_BYTES = {"brdf": 110, "bssrdf": 150}
-LIGHT_SAMPLE_BYTES = {"brdf": 24, "bssrdf": 60}
+LIGHT_SAMPLE_BYTES = {"brdf": 64, "bssrdf": 64}
 BSSRDF_BASE = 150 << 20          # octree, profile tables, points held by the gather
 # An environment light: its map, its sampling tables (a fixed part and a part per texel of
 # the map; measured with the 2048 x 1024 procedural sunset and the 1024 x 512 Venice HDR:

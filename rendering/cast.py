@@ -34,22 +34,24 @@ from dataclasses import replace
 
 import numpy as np
 
-from dermis.lighting.emitters import SamplingOptions, sample_lights
+from dermis.lighting.emitters import ENV_STRATEGIES, SamplingOptions, sample_lights
 from dermis.lighting.environment import environment_map
-from dermis.lighting.lobes import RETRO_FRACTION, RETRO_G_MAX, GlossyLobe, RetroLobe
+from dermis.lighting.lobes import (LOBE_SHARE_SCALE, LOBE_SHARE_SCALE_CONTROL, RETRO_FRACTION,
+                                   RETRO_G_MAX, GlossyLobe, LafortuneLobes, RetroLobe)
 from dermis.lighting.strata import PixelStrata
 from dermis.lighting.visibility import Visibility
 from dermis.rendering.camera import camera_rays, subpixel_offsets
-from dermis.pipeline.artifacts import PixelSamples
+from dermis.pipeline.artifacts import SAMPLE_CONTROL, SAMPLE_LIT, PixelSamples
 from dermis.pipeline.cl import get_env
 from dermis.pipeline.errors import ConfigError
 from dermis.pipeline.registry import model
 from dermis.pipeline.reuse import content_key
 from dermis.pipeline.shared import RunCache, Shared
+from dermis.rendering.halves import half_flags, sample_signs
 from dermis.rendering.options import LightSampling, RenderOptions
 from dermis.rendering.surface import surface_attributes
 
-__all__ = ["cast", "retro_lobe", "samples_per_hit"]
+__all__ = ["cast", "glossy_lobes", "retro_lobe", "samples_per_hit"]
 
 # Light samples drawn and traced per batch: bounds memory (~100 bytes a sample while
 # sampling) while keeping Embree and numpy calls large.
@@ -77,6 +79,22 @@ def retro_lobe(scene) -> dict | None:
     return {"fraction": RETRO_FRACTION, "k": RetroLobe.k_for_layer(layer.g, layer.eta)}
 
 
+def glossy_lobes(scene) -> bool:
+    """Whether a scene's images show the Lafortune lobes (``Model.glossy``: Lafortune, a
+    BSSRDF whose surface term is the lobes, the asperity term over a Lafortune base): its
+    environment-lit rays then draw a share of their samples from them
+    (:class:`~dermis.lighting.lobes.LafortuneLobes`)."""
+    base = scene.render.asperity_base
+    for m in map(model, scene.render.models):
+        if m.bases:
+            if base in {b.name for b in m.bases} and m.base(base).glossy:
+                return True
+        elif m.glossy and (m.stage == "render"
+                           or scene.bssrdf.surface_reflection == "lafortune_lobes"):
+            return True
+    return False
+
+
 def _light_sampling(sampling: LightSampling | None, lights) -> LightSampling:
     """``sampling`` (defaults when None), checked, with the environment map a light needs."""
     sampling = sampling if sampling is not None else LightSampling()
@@ -89,16 +107,17 @@ def _light_sampling(sampling: LightSampling | None, lights) -> LightSampling:
     return replace(sampling, env=env)
 
 
+def light_columns(lights, spp: int, shadow_samples: int | None = None) -> list[int]:
+    """Light samples drawn per camera hit, per light: 1 per point or directional light,
+    ceil(S / spp) per disc or environment light (S = ``shadow_samples`` or the light's
+    ``samples``), in the order the samples are concatenated."""
+    return [1 if lt.type in ("point", "directional")
+            else -(-int(shadow_samples or lt.samples) // spp) for lt in lights]
+
+
 def samples_per_hit(lights, spp: int, shadow_samples: int | None = None) -> int:
-    """Light samples drawn per camera hit: 1 per point or directional light, ceil(S / spp)
-    per disc or environment light (S = ``shadow_samples`` or the light's ``samples``)."""
-    n = 0
-    for lt in lights:
-        if lt.type in ("point", "directional"):
-            n += 1
-        else:
-            n += -(-int(shadow_samples or lt.samples) // spp)
-    return n
+    """Light samples drawn per camera hit, all lights (:func:`light_columns`)."""
+    return sum(light_columns(lights, spp, shadow_samples))
 
 
 # --------------------------------------------------------------------------- casting
@@ -184,27 +203,39 @@ def cast(mesh, lights, camera, options: RenderOptions = RenderOptions(), *, cl_e
     pixel, sub, tri, bary, n_rays, surf, hits_key, k_s = _camera_hits(
         mesh, camera, spp, seed, vis, env_cl, shared, mesh_key)
     # a pixel's light samples, stratified over its sub-samples (one sample: per point)
-    strata = PixelStrata(pixel, sub, spp, int(seed)) if spp > 1 else None
+    strata = PixelStrata(pixel, sub, spp, int(seed), independent=sampling.independent_halves)
     t_primary = time.perf_counter() - t_start
 
     t0 = time.perf_counter()
     pos, ng = surf["position"], surf["geo_normal"]
     lobe = None
-    if sampling.glossy_fraction > 0 and sampling.retro_fraction > 0:
-        raise ConfigError("sampling: glossy_fraction and retro_fraction are both > 0; "
-                          "one environment lobe at a time")
-    if sampling.glossy_fraction > 0:
+    if sum((sampling.glossy_fraction > 0, sampling.retro_fraction > 0,
+            bool(sampling.glossy_lobes))) > 1:
+        raise ConfigError("sampling: more than one of glossy_fraction, retro_fraction and "
+                          "glossy_lobes; one environment lobe at a time")
+    # the renderer's estimator replaces the default strategy; "mis" and "luminance" stay
+    mixture = sampling.mixture and sampling.env_strategy == ENV_STRATEGIES[0]
+    if sampling.control_variate and not mixture:
+        raise ConfigError("sampling: control_variate needs mixture (and env_strategy "
+                          f"{ENV_STRATEGIES[0]!r})")
+    if sampling.glossy_lobes and mixture:
+        lobe = LafortuneLobes(surf["wo"], surf["shading_normal"],
+                              scale=(LOBE_SHARE_SCALE_CONTROL if sampling.control_variate
+                                     else LOBE_SHARE_SCALE))
+    elif sampling.glossy_fraction > 0:
         lobe = GlossyLobe(surf["wo"], surf["shading_normal"], sampling.glossy_fraction,
                           sampling.glossy_exponent, sampling.glossy_tilt)
     elif sampling.retro_fraction > 0:
         lobe = RetroLobe(surf["wo"], sampling.retro_fraction, sampling.retro_k)
     t_surface = time.perf_counter() - t0
 
-    per_hit = samples_per_hit(lights, spp, sampling.shadow_samples)
+    columns = light_columns(lights, spp, sampling.shadow_samples)
+    per_hit = sum(columns)
     chunk = max(1, CHUNK_SAMPLES // max(per_hit, 1))
     m = len(tri)
     counts = np.zeros(m, dtype=np.int32)
-    dirs, wts = [], []
+    dirs, wts, flags, cbins = [], [], [], []
+    table = None
     t_sampling = t_shadows = 0.0
     n_shadow = 0
     for c, start in enumerate(range(0, m, chunk)):
@@ -216,22 +247,47 @@ def cast(mesh, lights, camera, options: RenderOptions = RenderOptions(), *, cl_e
                                                    env_strategy=sampling.env_strategy),
                            share=spp,
                            strata=strata[sl] if strata is not None else None,
-                           lobe=lobe[sl] if lobe is not None else None)
+                           lobe=lobe[sl] if lobe is not None else None,
+                           mixture=mixture, control=sampling.control_variate,
+                           product_normals=surf["shading_normal"][sl] if mixture else None)
         # the live samples by flat index, row-major (grouped by hit, in hit order), and one
-        # ``take`` per array
+        # ``take`` per array; with the control variate the live ones above the geometric
+        # horizon get shadow rays and every sample of its region is kept, lit or not
         live = ls.live()
+        if ls.control is not None:
+            live &= np.einsum("nsk,nk->ns", ls.directions, ng[sl]) > 0
         flat = np.flatnonzero(live)
         ip = flat // live.shape[1]
-        d = ls.directions.reshape(-1, 3).take(flat, axis=0)
         t1 = time.perf_counter()
         t_sampling += t1 - t0
-        blocked = vis.occluded(pos[sl].take(ip, axis=0), ng[sl].take(ip, axis=0), d,
+        blocked = vis.occluded(pos[sl].take(ip, axis=0), ng[sl].take(ip, axis=0),
+                               ls.directions.reshape(-1, 3).take(flat, axis=0),
                                ls.distance.reshape(-1).take(flat))
         n_shadow += len(ip)
-        keep = np.flatnonzero(~blocked)
-        ip, flat = ip.take(keep), flat.take(keep)
+        # each sample's half (rendering/halves.py): the image's own noise estimate; with an
+        # even spp a camera sample's samples share its half
+        if spp % 2 == 0:
+            halves = half_flags(sample_signs(sub[sl], spp, [1]))[:, 0]
+        else:
+            halves = half_flags(sample_signs(sub[sl], spp, columns)).reshape(-1)
+        if ls.control is None:
+            keep = np.flatnonzero(~blocked)
+            ip, flat = ip.take(keep), flat.take(keep)
+            flags.append((halves.take(ip) if spp % 2 == 0 else halves.take(flat))
+                         | np.uint8(SAMPLE_LIT))
+        else:
+            lit = np.zeros(live.shape, bool)
+            lit.reshape(-1)[flat[~blocked]] = True
+            kept = lit | ls.control
+            flat = np.flatnonzero(kept)
+            ip = flat // live.shape[1]
+            flags.append(lit.reshape(-1).take(flat).astype(np.uint8) * SAMPLE_LIT
+                         + ls.control.reshape(-1).take(flat).astype(np.uint8) * SAMPLE_CONTROL
+                         + (halves.take(ip) if spp % 2 == 0 else halves.take(flat)))
+            cbins.append(ls.control_bin)
+            table = ls.control_table
         counts[sl] = np.bincount(ip, minlength=sl.stop - sl.start)
-        dirs.append(d.take(keep, axis=0))
+        dirs.append(ls.directions.reshape(-1, 3).take(flat, axis=0))
         wts.append(ls.weights.reshape(-1, 3).take(flat, axis=0))
         t_shadows += time.perf_counter() - t1
         if progress is not None:
@@ -243,14 +299,23 @@ def cast(mesh, lights, camera, options: RenderOptions = RenderOptions(), *, cl_e
             "width": w, "height": h, "spp": spp, "seed": int(seed),
             "light_samples_per_hit": per_hit, "env_strategy": sampling.env_strategy,
             "env_lobe": (None if lobe is None else {"type": type(lobe).__name__,
-                                                    "fraction": lobe.fraction}),
+                                                    "fraction": float(np.mean(lobe.fractions()))
+                                                    if len(tri) else 0.0}),
             "primary_rays": int(n_rays), "hits": int(m), "camera_hits_key": hits_key,
-            "shadow_rays": int(n_shadow),
-            "unoccluded_samples": int(len(directions)), "triangles": int(len(mesh.faces)),
+            "shadow_rays": int(n_shadow), "env_mixture": mixture,
+            "env_control": table is not None,
+            "glossy_lobes": isinstance(lobe, LafortuneLobes),
+            "unoccluded_samples": int(sum(int(np.count_nonzero(f & SAMPLE_LIT))
+                                          for f in flags)),
+            "stored_samples": int(len(directions)), "triangles": int(len(mesh.faces)),
             "timings": {"primary": t_primary, "surface": t_surface,
                         "light_sampling": t_sampling, "shadows": t_shadows,
                         "kernel_seconds": k_s, "total": time.perf_counter() - t_start}}
     return PixelSamples(width=w, height=h, spp=spp, pixel=pixel.astype(np.int32),
                         tri=tri.astype(np.int32), bary=bary.astype(np.float32), counts=counts,
                         directions=np.ascontiguousarray(directions, dtype=np.float32),
-                        weights=np.ascontiguousarray(weights, dtype=np.float32), info=info)
+                        weights=np.ascontiguousarray(weights, dtype=np.float32), info=info,
+                        flags=(np.concatenate(flags) if flags else np.zeros(0, np.uint8)),
+                        control_bin=(np.concatenate(cbins).astype(np.int32)
+                                     if table is not None else None),
+                        control_table=table)

@@ -52,6 +52,7 @@ from dermis.pipeline.cl import event_seconds, get_env, to_device
 from dermis.pipeline.errors import ConfigError
 from dermis.rendering.cast import cast
 from dermis.rendering.indirect_shading import indirect_radiance
+from dermis.rendering.halves import signs_of
 from dermis.rendering.options import RenderOptions
 from dermis.rendering.surface import PixelSurface, check_bump, global_size, pixel_surface
 
@@ -79,6 +80,8 @@ class RenderResult:
         sums), ``kernel_seconds`` (OpenCL profiling time, part of the above), ``total``,
         ``scene_build`` (Embree scene, 0 when one was passed in)
     info : dict of JSON-able facts (model, lights, samples, ray counts, device)
+    noise : (H, W, 3) float32 the image's own noise estimate (A - B) / 2 of its two half
+        images (rendering/halves.py), or None where the samples carry no halves
     """
 
     linear: np.ndarray
@@ -86,6 +89,7 @@ class RenderResult:
     coverage: np.ndarray | None = None
     timings: dict = field(default_factory=dict)
     info: dict = field(default_factory=dict)
+    noise: np.ndarray | None = None
 
 
 def _resolve(model: Model, params, base: str | None, base_params):
@@ -130,7 +134,9 @@ class _Shader:
         for m in (base, term):
             if m is not None:
                 defines.update(m.shade)
-        self.kernel = cl.Kernel(env_cl.program("shade.cl", defines), "shade_samples")
+        program = env_cl.program("shade.cl", defines)
+        self.kernel = cl.Kernel(program, "shade_samples")
+        self.control_kernel = cl.Kernel(program, "shade_control")
         base_block = bparams.pack() if bparams is not None else np.zeros(4, np.float32)
         asp_block = asp.pack() if asp is not None else np.zeros(8, np.float32)
         albedo = px.surf["albedo"]
@@ -141,54 +147,105 @@ class _Shader:
                        to_device(env_cl, np.asarray(base_block, dtype=np.float32)),
                        to_device(env_cl, np.asarray(asp_block, dtype=np.float32))]
 
-    def __call__(self, gidx: np.ndarray, dirs: np.ndarray,
-                 wts: np.ndarray) -> tuple[np.ndarray, float]:
-        """f W cos(theta_i) of each sample of hit ``gidx``: (k, 3) float32, kernel seconds."""
+    def __call__(self, gidx: np.ndarray, dirs: np.ndarray, wts: np.ndarray,
+                 flags: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+        """Each sample of hit ``gidx``: f W cos(theta_i) where lit, minus the control term
+        (cl/shade.cl; ``flags`` None: all lit): (k, 3) float32, kernel seconds."""
         import pyopencl as cl  # optional until a kernel runs (pipeline/cl.py NoOpenCLError)
 
         env, k = self.env, len(gidx)
         out = np.empty((k, 3), dtype=np.float32)
         out_buf = cl.Buffer(env.context, cl.mem_flags.WRITE_ONLY, out.nbytes)
+        fl = (np.ascontiguousarray(flags, dtype=np.uint8) if flags is not None
+              else np.ones(1, np.uint8))
         ev = self.kernel(env.queue, global_size(k), None, to_device(env, gidx),
                          to_device(env, dirs), to_device(env, wts), np.int32(k), *self.inputs,
-                         out_buf)
+                         to_device(env, fl), np.int32(flags is not None), out_buf)
         cl.enqueue_copy(env.queue, out, out_buf, wait_for=[ev])
         env.queue.finish()
         return out, event_seconds(ev)
+
+    def control(self, control_bin: np.ndarray, table: np.ndarray) -> tuple[np.ndarray, float]:
+        """The control variate's integral alpha n_s . M_b of every hit: (M, 3) float32, kernel
+        seconds."""
+        import pyopencl as cl  # optional until a kernel runs (pipeline/cl.py NoOpenCLError)
+
+        env, m = self.env, len(control_bin)
+        out = np.empty((max(m, 1), 3), dtype=np.float32)
+        out_buf = cl.Buffer(env.context, cl.mem_flags.WRITE_ONLY, out.nbytes)
+        ev = self.control_kernel(env.queue, global_size(m), None, np.int32(m),
+                                 to_device(env, np.asarray(control_bin, np.int32)),
+                                 to_device(env, np.asarray(table, np.float32)),
+                                 *self.inputs[:3], *self.inputs[3:], out_buf)
+        cl.enqueue_copy(env.queue, out, out_buf, wait_for=[ev])
+        env.queue.finish()
+        return out[:m], event_seconds(ev)
 
 
 def shade(px: PixelSurface, shader, progress=None) -> tuple[np.ndarray, dict]:
     """Sum f W cos over every unoccluded light sample into its pixel, / spp.
 
-    Returns (H*W, 3) float64 radiance and a dict of seconds and counts.
+    Returns (H*W, 3) float64 radiance and a dict of seconds and counts; its ``"noise"``:
+    (H*W, 3) float64 the signed half difference of the samples' halves, / spp
+    (rendering/halves.py), or None where the samples carry no halves.
     """
     samples = px.samples
     n_pix = px.width * px.height
     owner = np.repeat(np.arange(len(samples.counts), dtype=np.int32), samples.counts)
     k_total = len(owner)
     radiance = np.zeros((n_pix, 3), dtype=np.float64)
+    flags = getattr(samples, "flags", None)
+    halves = flags is not None and len(flags) == k_total
+    noise = np.zeros((n_pix, 3), dtype=np.float64) if halves else None
     stats = {"kernel_seconds": 0.0, "shaded_samples": int(k_total)}
     for start in range(0, k_total, CHUNK_SAMPLES):
         sl = slice(start, min(k_total, start + CHUNK_SAMPLES))
         gidx = owner[sl]
-        out, seconds = shader(gidx, samples.directions[sl], samples.weights[sl])
+        out, seconds = shader(gidx, samples.directions[sl], samples.weights[sl],
+                              flags[sl] if flags is not None else None)
         stats["kernel_seconds"] += seconds
         pix = px.hit_idx[gidx]
         for ch in range(3):
             radiance[:, ch] += np.bincount(pix, weights=out[:, ch], minlength=n_pix)
+        if noise is not None:
+            out *= signs_of(flags[sl])[:, None]
+            for ch in range(3):
+                noise[:, ch] += np.bincount(pix, weights=out[:, ch], minlength=n_pix)
         if progress is not None:
             progress(min(1.0, sl.stop / max(k_total, 1)))
+    if getattr(samples, "control_bin", None) is not None:    # the control variate's integral
+        out, seconds = shader.control(samples.control_bin, samples.control_table)
+        stats["kernel_seconds"] += seconds
+        for ch in range(3):
+            radiance[:, ch] += np.bincount(px.hit_idx, weights=out[:, ch], minlength=n_pix)
+        if noise is not None:       # a hit's half: its first sample's (none: both halves)
+            first = np.cumsum(samples.counts) - samples.counts
+            hit_sign = np.where(samples.counts > 0,
+                                signs_of(flags[np.minimum(first, max(k_total - 1, 0))])
+                                if k_total else 0.0, 0.0)
+            out *= hit_sign[:, None]
+            for ch in range(3):
+                noise[:, ch] += np.bincount(px.hit_idx, weights=out[:, ch], minlength=n_pix)
+    stats["noise"] = noise / px.spp if noise is not None else None
     return radiance / px.spp, stats
 
 
-def _image(radiance: np.ndarray, px: PixelSurface) -> tuple[np.ndarray, int]:
-    """(H, W, 3) float32 image of per-pixel radiance; non-finite values zeroed, pixels counted."""
+def _image(radiance: np.ndarray, px: PixelSurface,
+           noise: np.ndarray | None = None) -> tuple[np.ndarray, int, np.ndarray | None]:
+    """(H, W, 3) float32 image of per-pixel radiance and its noise; non-finite values zeroed
+    (in both, where either is), pixels counted."""
     image = radiance.astype(np.float32)
     bad = ~np.isfinite(image)
+    if noise is not None:
+        noise = noise.astype(np.float32)
+        bad |= ~np.isfinite(noise)
     nonfinite = int(bad.any(axis=1).sum())
     if nonfinite:  # never hand a NaN on; the count is recorded (tests require 0)
         image[bad] = 0.0
-    return image.reshape(px.height, px.width, 3), nonfinite
+        if noise is not None:
+            noise[bad] = 0.0
+    shape = (px.height, px.width, 3)
+    return image.reshape(shape), nonfinite, None if noise is None else noise.reshape(shape)
 
 
 def render(mesh, light, model: Model, params, camera, options: RenderOptions = RenderOptions(),
@@ -254,7 +311,7 @@ def render(mesh, light, model: Model, params, camera, options: RenderOptions = R
     if options.indirect is not None:   # one diffuse bounce (rendering/indirect_shading.py)
         radiance += indirect_radiance(px, lambda hits: _Shader(env_cl, base, bparams, term, asp,
                                                                hits), mesh.faces, options.indirect)
-    image, nonfinite = _image(radiance, px)
+    image, nonfinite, noise = _image(radiance, px, stats["noise"])
     t_shading = time.perf_counter() - t0
     if progress is not None:
         progress(1.0)
@@ -285,4 +342,4 @@ def render(mesh, light, model: Model, params, camera, options: RenderOptions = R
         "nonfinite_pixels": nonfinite, "device": env_cl.description,
     }
     return RenderResult(linear=image, mask=px.mask, coverage=px.coverage, timings=timings,
-                        info=info)
+                        info=info, noise=noise)

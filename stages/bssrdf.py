@@ -9,6 +9,15 @@ term (Lafortune's specular lobes with rho_d = 0, so the images compare with the 
 models').  One node per BSSRDF model (``bssrdf``: the scene's profile model; ``bssrdf_mc``: the
 Monte Carlo-tabulated profile), lighting condition and geometry; pass 1 is the
 ``irradiance`` stage.
+
+The image carries no noise estimate of its own (``RenderedImage.noise`` None): besides the
+surface term's light samples, which split into halves as the BRDF images' do
+(rendering/halves.py), its noise comes from the irradiance of the points (pass 1), shared by
+every pixel within the profile's reach.  Halves of that would need the irradiance stage to
+keep two half irradiances and the gather to run on each of them (the octree's clusters are
+irradiance-weighted, subsurface/octree.py, so the gather of the halves' difference is not
+the difference of their gathers): about twice the gather's time.  The surface term's half
+alone would understate the image's noise.
 """
 from __future__ import annotations
 

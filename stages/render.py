@@ -95,7 +95,8 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     write_exr(ctx.out_dir / f"{name}.exr", result.linear)
     image = RenderedImage(result.linear, result.mask, dict(result.timings),
                           {**result.info, "model": model, "light": params["label"],
-                           "geometry": params["geometry"]})
+                           "geometry": params["geometry"]},
+                          noise=result.noise)
     return StageResult(image, files=[f"{name}.exr"],
                        info={"timings": result.timings,
                              "kernel_seconds": result.timings.get("kernel_seconds", 0.0)})

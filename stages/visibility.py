@@ -13,7 +13,7 @@ from dermis.lighting.emitters import light_params
 from dermis.lighting.visibility import EMBREE_SCENES, embree_scene
 from dermis.pipeline.config import CameraConfig, LightConfig
 from dermis.pipeline.graph import Node, StageResult
-from dermis.rendering.cast import CAMERA_HITS, cast, retro_lobe
+from dermis.rendering.cast import CAMERA_HITS, cast, glossy_lobes, retro_lobe
 from dermis.rendering.options import LightSampling, RenderOptions
 
 __all__ = ["NAME", "VERSION", "KERNELS", "node", "run"]
@@ -32,9 +32,12 @@ def node(scene, mesh_node: str, label: str, lights: tuple) -> Node:
     """One node per mesh x lighting condition (camera, spp and seed from the scene)."""
     params = {"mesh": mesh_node, "label": label, **light_params(lights),
               "camera": asdict(scene.camera), "spp": scene.render.spp, "seed": scene.mesh.seed}
-    retro = retro_lobe(scene) if any(lt.type == "environment" for lt in lights) else None
+    env = any(lt.type == "environment" for lt in lights)
+    retro = retro_lobe(scene) if env else None
     if retro is not None:          # only then: every other scene keeps its node keys
         params["retro_lobe"] = retro
+    elif env and glossy_lobes(scene):
+        params["glossy_lobes"] = True
     return Node(node_id(mesh_node, label), NAME, __name__, params, {"mesh": mesh_node},
                 label=f"rays {mesh_node} / {label}", locations=("lights[].map",))
 
@@ -44,7 +47,7 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     lights = [LightConfig(**d) for d in params["lights"]]
     retro = params.get("retro_lobe")
     sampling = (LightSampling(retro_fraction=retro["fraction"], retro_k=retro["k"])
-                if retro else None)
+                if retro else LightSampling(glossy_lobes=bool(params.get("glossy_lobes"))))
     options = RenderOptions(spp=params["spp"], seed=params["seed"], sampling=sampling,
                             visibility=embree_scene(mesh, ctx.shared, ctx.input_keys["mesh"]))
     samples = cast(mesh, lights, CameraConfig(**params["camera"]), options,

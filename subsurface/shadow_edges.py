@@ -20,6 +20,7 @@ import numpy as np
 
 from dermis.lighting.emitters import sample_lights
 from dermis.lighting.irradiance import irradiance as point_irradiance
+from dermis.pipeline.artifacts import SAMPLE_LIT
 from dermis.pipeline.cl import event_seconds, to_device
 from dermis.pipeline.errors import DermisError
 from dermis.subsurface.gather import _global, _local
@@ -356,6 +357,9 @@ def sharp_visibility(samples, hits: np.ndarray, positions: np.ndarray, lights) -
     qof = np.full(len(counts), -1, np.int64)
     qof[hits] = np.arange(len(hits))
     keep = qof[row_hit] >= 0
+    flags = getattr(samples, "flags", None)
+    if flags is not None:            # only the lit samples (the others: an environment's
+        keep &= (flags & SAMPLE_LIT) > 0       # control variate, lighting/control.py)
     rows, qi = np.flatnonzero(keep), qof[row_hit[keep]]
     d = np.asarray(samples.directions, np.float64)[rows]
     x = np.asarray(positions, np.float64)[qi]

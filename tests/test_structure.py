@@ -145,7 +145,8 @@ PROBE = {
     "cl/bssrdf_gather.cl": {"bssrdf"},
     "stages/render.py": {"render"},                    # others read GEOMETRY when planning
     # the BSSRDF's surface lobes and the entry transmittance they cap; a term's bases
-    "models/lafortune.py": {"render/lafortune", "render/asperity", "bssrdf", "irradiance"},
+    "models/lafortune.py": {"render/lafortune", "render/asperity", "bssrdf", "irradiance",
+                            "visibility"},             # and the lobes the rays sample
     "models/hk93.py": {"render/hk93", "render/asperity"},   # only the images of its model
     # the previews cast their rays on the renders' shared Embree scenes (lighting/visibility.py)
     "lighting/visibility.py": {"render", "bssrdf", "irradiance", "visibility", "mesh_previews",
@@ -158,6 +159,9 @@ PROBE = {
     "lighting/emitters.py": {"render", "bssrdf", "irradiance", "visibility"},
     "lighting/environment.py": {"render", "bssrdf", "irradiance", "visibility"},
     "lighting/lobes.py": {"render", "bssrdf", "visibility"},   # the irradiance pass draws none
+    # the renderer's environment estimator, imported with the light sampling everywhere
+    "lighting/mixture.py": {"render", "bssrdf", "irradiance", "visibility"},
+    "lighting/control.py": {"render", "bssrdf", "irradiance", "visibility"},
     "lighting/irradiance.py": {"irradiance", "bssrdf"},   # the gather's shadow edges use it
     "rendering/cast.py": {"visibility", "render", "bssrdf"},   # shared rays, hit attributes
     # the bounce itself: only the irradiance points read it when no indirect node is planned;
