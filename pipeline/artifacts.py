@@ -193,9 +193,11 @@ class PixelSamples:
     directions : (K, 3) float32 unit, towards the light; weights : (K, 3) float32 RGB, so a
         hit's radiance is sum f(wo, wi) weight cos(theta_i) (lighting/emitters.py)
     info : dict (rays traced, samples per hit, light names)
-    flags : (K,) uint8 or None (every sample lit): bit 0 (LIT) the sample is unoccluded and
-        above the geometric horizon, bit 1 (CONTROL) it lies in the control variate's region
-        of an environment light (lighting/control.py); a sample may be either or both
+    flags : (K,) uint8 (always set by rendering/cast.py; None in hand-made samples: every
+        sample lit, in both halves): bit 0 (LIT) the sample is unoccluded and above the
+        geometric horizon, bit 1 (CONTROL) it lies in the control variate's region of an
+        environment light (lighting/control.py), bits 2-3 the half image(s) it counts in
+        (rendering/halves.py: the image's own noise estimate)
     control_bin : (M,) int32 or None, each hit's control bin; control_table : (bins, 3, 3)
         float32 or None, the moments M_b (RGB x world xyz): the control variate's integral
         at a hit is n_s . M_b
