@@ -33,14 +33,13 @@ factor, a sphere: exactly 0).
 """
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from dermis.geometry.normals import vertex_normals
 from dermis.geometry.texture_lookup import SRGB8_TO_LINEAR, bilinear
 from dermis.lighting.emitters import SamplingOptions
-from dermis.lighting.irradiance import IRRADIANCE_THREADS, irradiance
+from dermis.lighting.irradiance import irradiance, run_batches
 from dermis.lighting.strata import stratified_2d
 from dermis.lighting.visibility import interpolate
 from dermis.lighting.warps import cosine_hemisphere
@@ -142,14 +141,7 @@ def bounce_irradiance(points: np.ndarray, normals: np.ndarray, mesh, direct: np.
             acc[:, k] = np.bincount(owner, weights=radiosity[:, k], minlength=len(ps))
         out[start:start + chunk] = acc / s
 
-    batches = range(-(-len(p) // chunk))
-    if IRRADIANCE_THREADS > 1 and len(batches) > 1:
-        # independent batches (own seed, own rows): the result does not depend on the threads
-        with ThreadPoolExecutor(IRRADIANCE_THREADS) as pool:
-            list(pool.map(batch, batches))
-    else:
-        for c in batches:
-            batch(c)
+    run_batches(batch, len(p), chunk)
     return out
 
 

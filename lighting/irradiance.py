@@ -21,7 +21,7 @@ import numpy as np
 from dermis.lighting.emitters import SamplingOptions, check_points, sample_lights
 from dermis.pipeline.errors import DermisError
 
-__all__ = ["irradiance", "IRRADIANCE_THREADS"]
+__all__ = ["irradiance", "run_batches", "IRRADIANCE_THREADS"]
 
 
 # Batches of the irradiance pass run on this many threads (results independent of it).
@@ -94,13 +94,19 @@ def irradiance(points: np.ndarray, normals: np.ndarray, light,
             w = np.multiply(w, t, out=w if w.flags.writeable else None)   # a fresh array
         out[start:start + chunk] = np.einsum("ns,nsk->nk", factor, w)
 
-    batches = range(-(-len(p) // chunk))
+    run_batches(batch, len(p), chunk)
+    return out
+
+
+def run_batches(batch: Callable[[int], None], count: int, chunk: int) -> None:
+    """``batch(c)`` for every chunk c of ``count`` points, on :data:`IRRADIANCE_THREADS`
+    threads: the batches are independent (own seed, own rows of the output), so the result
+    does not depend on the thread count; numpy and the ray caster release the GIL for their
+    bulk work."""
+    batches = range(-(-count // chunk))
     if IRRADIANCE_THREADS > 1 and len(batches) > 1:
-        # batches are independent (own seed, own rows of ``out``): the result does not depend
-        # on the thread count; numpy and the ray caster release the GIL for their bulk work
         with ThreadPoolExecutor(IRRADIANCE_THREADS) as pool:
             list(pool.map(batch, batches))
     else:
         for c in batches:
             batch(c)
-    return out

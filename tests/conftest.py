@@ -95,3 +95,16 @@ def pytest_collection_modifyitems(config, items):
         if any(s == module or s == f"{module}::{item.name[:len(s) - len(module) - 2]}"
                for s in SLOW):
             item.add_marker(slow)
+
+
+@pytest.fixture(scope="module")
+def mi():
+    """The Mitsuba module with a working variant (groundtruth/mitsuba.py), or the test skips
+    with the reason: not installed, or installed but no variant runs here."""
+    pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (bash .ci/setup, or "
+                                          "pip install mitsuba drjit): Mitsuba tests skipped")
+    from dermis.groundtruth.mitsuba import MitsubaUnavailable, load_mitsuba
+    try:
+        return load_mitsuba()
+    except MitsubaUnavailable as exc:
+        pytest.skip(str(exc))

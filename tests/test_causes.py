@@ -23,22 +23,10 @@ from scene_toml import scene_file  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 QUICK = REPO / "scenes" / "quick.toml"
-SKIP_REASON = ("Mitsuba 3 is not installed (pip install 'dermis[reference]'): the causes "
-               "tests are skipped")
 POINT = LightConfig(name="point", type="point", position=(350.0, 450.0, 600.0),
                     intensity=(4e5, 4e5, 4e5))
 AREA = LightConfig(name="area", type="disc", position=(350.0, 450.0, 600.0),
                    direction=(-0.35, -0.45, -0.6), radius=70.0, intensity=(4e5, 4e5, 4e5))
-
-
-@pytest.fixture(scope="module")
-def mi():
-    pytest.importorskip("mitsuba", reason=SKIP_REASON)
-    from dermis.groundtruth.mitsuba import MitsubaUnavailable, load_mitsuba
-    try:
-        return load_mitsuba()
-    except MitsubaUnavailable as exc:
-        pytest.skip(str(exc))
 
 
 @pytest.fixture(scope="module")

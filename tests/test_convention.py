@@ -39,8 +39,6 @@ from dermis.pipeline.config import load_scene
 
 REPO = Path(__file__).resolve().parents[1]
 QUICK = REPO / "scenes" / "quick.toml"
-SKIP_REASON = ("Mitsuba 3 is not installed (pip install 'dermis[reference]'): the reference "
-               "tests are skipped")
 
 K_SE = 4.0
 BATCHES = 16
@@ -58,16 +56,6 @@ BLACK_SAMPLES = 1 << 16
 ROUGH_SKY = (1.0081, 1.0168, 1.0250)
 ROUGH_SKY_SE = (0.0033, 0.0033, 0.0043)
 MODELS = ("lafortune", "hk93", "asperity", "bssrdf")
-
-
-@pytest.fixture(scope="module")
-def mi():
-    pytest.importorskip("mitsuba", reason=SKIP_REASON)
-    from dermis.groundtruth.mitsuba import MitsubaUnavailable, load_mitsuba
-    try:
-        return load_mitsuba()
-    except MitsubaUnavailable as exc:   # installed, but no variant runs here (it says why)
-        pytest.skip(str(exc))
 
 
 @pytest.fixture(scope="module")

@@ -18,18 +18,6 @@ from dermis.geometry.regions import REGION_LABELS, face_regions
 
 REPO = Path(__file__).resolve().parents[1]
 QUICK = REPO / "scenes" / "quick.toml"
-SKIP_REASON = ("Mitsuba 3 is not installed (pip install mitsuba): the reference "
-               "tests are skipped")
-
-
-@pytest.fixture(scope="module")
-def mi():
-    pytest.importorskip("mitsuba", reason=SKIP_REASON)
-    from dermis.groundtruth.mitsuba import MitsubaUnavailable, load_mitsuba
-    try:
-        return load_mitsuba()
-    except MitsubaUnavailable as exc:   # installed, but no variant runs here (it says why)
-        pytest.skip(str(exc))
 
 
 @pytest.fixture(scope="module")
