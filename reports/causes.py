@@ -191,11 +191,20 @@ def causes_table(metrics: dict, variants: dict, *, convention=0.0, images: dict 
     return {"causes": list(CAUSES), "convention": conv4, "rows": rows}
 
 
+# A variant's effect enters the table only when its standard error is known and at most this
+# (10 percentage points): the default budget's boundary variant read -2106 % (no standard
+# error: under 8 lit pixels) or +83 +- 57 % in small regions, noise that would swamp every
+# other part; such an effect stays in the remainder, shown as not measured.
+MAX_EFFECT_SE = 0.10
+
+
 def _effect(rec: dict | None, c: int):
     if not rec or rec.get("effect_lum") is None:
         return None, None
     v = _channels(rec, "effect_rgb", "effect_lum")[c]
     s = _channels(rec, "se_rgb", "se_lum")[c]
+    if v is None or s is None or not s <= MAX_EFFECT_SE:
+        return None, None
     return v, s
 
 
@@ -294,7 +303,9 @@ def causes_pages(pdf, table: dict, *, figsize=(11.69, 8.27), max_rows: int = 36)
                      f"{100 * conv:+.1f} % (given); interreflection and boundary = the "
                      "reference's controlled variants (diffuse head all/direct bounces; smooth "
                      "vs rough boundary). low+bump: the same model on the low mesh with the "
-                     "sharp bump, its geometry part. – = not measured.", fontsize=MIN_FONT_PT,
+                     "sharp bump, its geometry part. – = not measured, or a variant's standard "
+                     f"error above {100 * MAX_EFFECT_SE:.0f} points (left in the remainder).",
+                     fontsize=MIN_FONT_PT,
                      wrap=True)
             pdf.savefig(fig)
             plt.close(fig)

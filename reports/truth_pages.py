@@ -62,7 +62,9 @@ def noise_reached_text(ref: dict) -> str:
                if "stderr_rgb" in v and "mean_rgb" in v}
         rel = {k: v for k, v in rel.items() if v is not None}
     worst = max(rel.items(), key=lambda kv: kv[1]) if rel else None
-    parts = [f"{ref.get('width')}×{ref.get('height')} px, {spp} spp per pixel"]
+    spp_txt = f"{spp:.0f}" if isinstance(spp, (int, float)) else f"{spp}"
+    parts = [f"{ref.get('width')}×{ref.get('height')} px, {spp_txt} samples per pixel "
+             "(mean; more where the regions needed them)"]
     if passes is not None:
         parts.append(f"{passes} passes")
     if stopped == "target":
