@@ -34,7 +34,7 @@ from dermis.models import lafortune, lambert
 from dermis.pipeline.artifacts import SAMPLE_LIT
 from dermis.pipeline.config import CameraConfig, LightConfig
 from dermis.rendering.cast import cast
-from dermis.rendering.halves import HALF_A, HALF_B, signs_of
+from dermis.rendering.halves import signs_of
 from dermis.rendering.options import LightSampling, RenderOptions
 from dermis.rendering.shade import render
 
