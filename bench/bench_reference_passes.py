@@ -9,6 +9,8 @@ region's relative standard error, and per light:
 * the gain of the adaptive passes: the paths uniform sampling of every head pixel would need
   for the same worst-region error (every pixel at the samples the worst region needed,
   n_r (s_r / target)^2 scaled from the uniform passes) against the paths spent;
+* the wall time on 1, 10 and 100 two-core machines (``wall_estimate``, from each task's
+  logged seconds: the passes are sequential, a pass's tasks spread over the workers);
 * the gain of tracing only the head's pixels: a whole-frame ``mi.render`` pass timed against
   the same samples traced at the head's pixels (``--frame-check``, ``frame_check``).
 
@@ -37,6 +39,22 @@ def time_to(log: list, target: float) -> float | None:
         if p["worst_rel_se"] <= target:
             return t
     return None
+
+
+def wall_estimate(log: list, machines: int, scene_load_s: float) -> float | None:
+    """Wall seconds of the passes on ``machines`` workers of this machine's speed: the passes
+    run one after another (each decides the next), a pass's tasks spread longest first
+    (LPT) over the workers, plus one scene load per worker; None without task times."""
+    import heapq
+    if not log or any("task_seconds" not in p for p in log):
+        return None
+    total = scene_load_s
+    for p in log:
+        loads = [0.0] * min(machines, max(len(p["task_seconds"]), 1))
+        for t in sorted(p["task_seconds"], reverse=True):
+            heapq.heapreplace(loads, loads[0] + t) if loads else None
+        total += max(loads, default=0.0)
+    return total
 
 
 def frame_check(cache: str, spp: int = 8, repeats: int = 3) -> dict:
@@ -141,6 +159,9 @@ def main(argv=None) -> int:
                "paths_uniform_same_worst_error": paths_uniform,
                "adaptive_gain": (paths_uniform / info["paths"]) if paths_uniform else None,
                "seconds_per_path": ref.timings.get("render") / max(info["paths"], 1),
+               "tasks": sum(len(p.get("task_seconds", [])) for p in log),
+               "wall_estimate_s": {str(n): wall_estimate(log, n, ref.timings.get("scene_load", 0.0))
+                                   for n in (1, 10, 100)},
                "pass_log": log}
         out["lights"][info["light"]] = rec
         print(f"{info['light']:>20s}: {rec['seconds']:.0f} s, {info['passes']} passes, "
