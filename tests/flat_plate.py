@@ -118,24 +118,16 @@ def bssrdf_plate(cl_env, stack: LayerStack, albedos, *, n_query: int = 200) -> d
     profiles stage's exactly (models/hk93.py), and a uniform plate reads only its totals
     (the near field integrates it at each shading point)."""
     from dermis.lighting.irradiance import irradiance
-    from dermis.lighting.visibility import Visibility
     from dermis.models.hk93 import RD_GRID
     from dermis.optics.layer_profiles import MultipoleOptions, build_profiles
     from dermis.optics.transmittance import Transmittance
     from dermis.pipeline.config import BssrdfConfig, LightConfig
-    from dermis.subsurface import points as S
     from dermis.subsurface.exitance import ExitanceOptions, ShadingPoints, exitance
-    from dermis.subsurface.profile_table import BLUR_REACH
     from dermis.subsurface.radiance import exitance_to_radiance
     cfg = BssrdfConfig()
     prof = build_profiles(stack, options=MultipoleOptions(grid=RD_GRID))
-    spacing = S.spacing_from_mfp(stack, cfg.point_density)
-    reach = float(prof.cutoff_mm.max()) + BLUR_REACH * spacing
-    half = reach + 2 * spacing + S.POU_RADIUS * spacing
-    v = np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0.0]])
-    f = np.array([[0, 1, 2], [0, 2, 3]])
-    sp = S.sample_points(v, f, spacing_mm=spacing, seed=4)
-    vis = Visibility(v, f)
+    plate = flat_points(stack, prof, cfg)
+    sp, vis, reach, half = plate.points, plate.visibility, plate.reach, plate.half
     eta = stack.layers[0].eta / stack.eta_above
     t = Transmittance(eta, cfg.surface_reflection)
     inner = half - reach - 1.0
@@ -267,3 +259,22 @@ def keep_files(scene_dict: dict, folder: Path) -> dict:
             v = dict(v, filename=str(dst))
         out[k] = v
     return out
+
+
+def flat_points(stack, prof, cfg):
+    """A square plate in z = 0 wider than the profile's reach plus the points' blur, with its
+    irradiance points at the scene density (``cfg`` a BssrdfConfig) and its ray caster:
+    a namespace of vertices, faces, points, visibility, spacing, reach and half (its
+    half-width), mm."""
+    from types import SimpleNamespace
+    from dermis.lighting.visibility import Visibility
+    from dermis.subsurface import points as S
+    from dermis.subsurface.profile_table import BLUR_REACH
+    spacing = S.spacing_from_mfp(stack, cfg.point_density)
+    reach = float(prof.cutoff_mm.max()) + BLUR_REACH * spacing
+    half = reach + 2 * spacing + S.POU_RADIUS * spacing
+    v = np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0.0]])
+    f = np.array([[0, 1, 2], [0, 2, 3]])
+    return SimpleNamespace(vertices=v, faces=f,
+                           points=S.sample_points(v, f, spacing_mm=spacing, seed=4),
+                           visibility=Visibility(v, f), spacing=spacing, reach=reach, half=half)

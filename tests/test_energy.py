@@ -192,16 +192,10 @@ def _flat_slab_exitance(cl_env, stack, prof, thetas, n_query=300):
     """(theta, M / (E cos T(cos)), gather stats) on a flat slab under a directional light of
     irradiance E = 2, through the production path (test05's set-up)."""
     from dermis.lighting.irradiance import irradiance
-    from dermis.lighting.visibility import Visibility
-    from dermis.subsurface import points as S
+    from flat_plate import flat_points
     cfg = BssrdfConfig()
-    spacing = S.spacing_from_mfp(stack, cfg.point_density)
-    reach = float(prof.cutoff_mm.max()) + BLUR_REACH * spacing
-    half = reach + 2 * spacing + S.POU_RADIUS * spacing
-    v = np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0.0]])
-    f = np.array([[0, 1, 2], [0, 2, 3]])
-    sp = S.sample_points(v, f, spacing_mm=spacing, seed=4)
-    vis = Visibility(v, f)
+    plate = flat_points(stack, prof, cfg)
+    sp, vis, reach, half = plate.points, plate.visibility, plate.reach, plate.half
     t = Transmittance(stack.layers[0].eta, cfg.surface_reflection)
     out = []
     for theta in thetas:
