@@ -22,7 +22,7 @@ a model image without a ``noise`` field counts as noise-free and is said to be s
   computed against a noisy reference and are floored by its noise: they rank models, they
   do not measure them below that floor.
 * **Cost.**  The reference's noise falls as c / sqrt(spp) (``info["noise_fit"]``, measured
-  from two seeds at 1/16 .. 1 of the samples), so the path tracer reaches a relative error
+  over its uniform passes), so the path tracer reaches a relative error
   e at scale f after (c_f / e)^2 samples per pixel, i.e. after (c_f / e)^2 x
   seconds-per-spp.  The speed-up of a model is that time over the model's own time, at
   e = its e_true (an unresolved e_true is replaced by sigma: the speed-up is then a lower
@@ -518,7 +518,8 @@ def ground_truth_pages(pdf, metrics: dict | None, images: dict, references: dict
         fig = plt.figure(figsize=figsize)
         fig.suptitle("Distance to ground truth", fontsize=12)
         fig.text(0.06, 0.8, skip_reason or "No path-traced reference in this run: set "
-                 "[reference] enabled = true (pip install 'dermis[reference]').", fontsize=9,
+                 "[reference] enabled = true (the default; Mitsuba 3 installed by .ci/setup).",
+                 fontsize=9,
                  wrap=True)
         pdf.savefig(fig)
         plt.close(fig)
@@ -552,8 +553,8 @@ def ground_truth_pages(pdf, metrics: dict | None, images: dict, references: dict
         t.set_fontsize(7)
         t.scale(1, 1.25)
     ref0 = metrics["references"][lights[0]]
-    notes = [f"Reference: {ref0['width']}×{ref0['height']} px, {ref0['spp']} spp "
-             f"(two seeds), {ref0['variant']}, "
+    notes = [f"Reference: {ref0['width']}×{ref0['height']} px, {float(ref0['spp']):.0f} "
+             f"samples a pixel (mean of two half-buffers), {ref0['variant']}, "
              + ", ".join(f"{l} {metrics['references'][l]['seconds']:.0f} s" for l in lights),
              "± = the relative RMSE that noise alone gives at that scale (the reference's and "
              "the model's own, in quadrature).  n.r. = not resolved: the error is below "
