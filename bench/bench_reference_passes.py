@@ -52,8 +52,8 @@ def wall_estimate(log: list, machines: int, scene_load_s: float) -> float | None
     for p in log:
         loads = [0.0] * min(machines, max(len(p["task_seconds"]), 1))
         for t in sorted(p["task_seconds"], reverse=True):
-            heapq.heapreplace(loads, loads[0] + t) if loads else None
-        total += max(loads, default=0.0)
+            heapq.heapreplace(loads, loads[0] + t)     # the least loaded worker takes it
+        total += max(loads)
     return total
 
 

@@ -1,11 +1,11 @@
-"""The reference's own noise: two independent renders, their difference, its fall with spp.
+"""The reference's own noise: two independent half-buffers, their difference, its fall with spp.
 
-The reference is rendered twice with independent seeds (docs/ground-truth.md): the image is
-their mean and (A - B) / 2 estimates its per-pixel error.  The noise is the relative RMSE of
-that error on ``factor`` x ``factor`` block means (factor 1 = reference pixels), the same
-measure as the models' relative RMSE; measured at fractions of the samples it gives the
-constant c = noise x sqrt(spp), from which :mod:`dermis.reports.ground_truth` computes the
-path tracer's time to reach a given error.
+The reference is traced into two half-buffers with independent seeds (docs/ground-truth.md,
+:mod:`dermis.groundtruth.progressive`): the image is their mean and (A - B) / 2 estimates its
+per-pixel error.  The noise is the relative RMSE of that error on ``factor`` x ``factor``
+block means (factor 1 = reference pixels), the same measure as the models' relative RMSE;
+measured after each uniform pass it gives the constant c = noise x sqrt(spp), from which
+:mod:`dermis.reports.ground_truth` computes the path tracer's time to reach a given error.
 """
 from __future__ import annotations
 
@@ -15,18 +15,10 @@ import numpy as np
 
 from dermis.geometry.regions import block_mean
 
-__all__ = ["NOISE_FACTORS", "CURVE_FRACTIONS", "curve_checkpoints", "two_seed_noise",
-           "noise_curve", "noise_fit"]
+__all__ = ["NOISE_FACTORS", "two_seed_noise", "noise_fit"]
 
 # Block factors (on the reference's own pixel grid) at which noise and errors are reported.
 NOISE_FACTORS = (1, 2, 4, 8)
-# Fractions of the samples at which the two-seed noise is measured (the noise-vs-spp curve).
-CURVE_FRACTIONS = (1 / 16, 1 / 8, 1 / 4, 1 / 2, 1)
-
-
-def curve_checkpoints(spp: int) -> list[int]:
-    """Sample counts of one seed at which the noise curve is measured (:data:`CURVE_FRACTIONS`)."""
-    return sorted({max(1, int(round(spp * f))) for f in CURVE_FRACTIONS})
 
 
 def two_seed_noise(a: np.ndarray, b: np.ndarray, mask: np.ndarray, factors=NOISE_FACTORS
@@ -53,20 +45,9 @@ def two_seed_noise(a: np.ndarray, b: np.ndarray, mask: np.ndarray, factors=NOISE
     return out
 
 
-def noise_curve(curve_a: list, curve_b: list, mask: np.ndarray) -> list[dict]:
-    """The two-seed noise per block factor at each checkpoint of two
-    :func:`dermis.groundtruth.passes.render_passes` curves: ``{"spp": both seeds' samples,
-    "noise": {factor: rel}}`` per checkpoint."""
-    curve = []
-    for (n, a), (_, b) in zip(curve_a, curve_b):
-        curve.append({"spp": 2 * n, "noise": {f: v["rel"] for f, v in
-                                               two_seed_noise(a, b, mask).items()}})
-    return curve
-
-
 def noise_fit(noise: dict, curve: list, spp: int) -> dict:
-    """c = noise x sqrt(spp) per block factor of ``noise``, from a :func:`noise_curve` of
-    ``spp`` samples per seed."""
+    """c = noise x sqrt(spp) per block factor of ``noise``, from a noise curve (``{"spp": both
+    halves' samples, "noise": {factor: rel}}`` per pass) ending at ``spp`` samples per half."""
     # the mean over the checkpoints from 1/4 of the samples on (the early ones carry the
     # heavy-tailed start-up of the estimate)
     fit = {}

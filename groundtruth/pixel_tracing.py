@@ -28,6 +28,19 @@ from dermis.groundtruth.scene_export import HeadSceneOptions, head_scene, releas
 __all__ = ["trace_pixels", "sensor_mean", "TraceJob", "trace_tile", "job_scene", "forget"]
 
 
+def _sampler(mi, seed: int, lanes: int):
+    """An independent sampler of ``lanes`` lanes seeded with ``seed`` (mod 2^32)."""
+    sampler = mi.load_dict({"type": "independent"})
+    sampler.seed(int(seed) % (1 << 32), int(lanes))
+    return sampler
+
+
+def _lanes(spectrum, n: int) -> np.ndarray:
+    """(n, 3) float64 of a Dr.Jit RGB array of ``n`` lanes (numpy reads it channel-major)."""
+    v = np.asarray(spectrum, np.float64)
+    return (v.T if v.ndim == 2 and v.shape == (3, n) else v).reshape(n, 3)
+
+
 def trace_pixels(mi, scene, pixels: np.ndarray, spp: int, seed: int, *, width: int,
                  height: int) -> np.ndarray:
     """(M, 3) float64 sums of ``spp`` paths at each of ``pixels`` ((M, 2) x, y).
@@ -43,17 +56,15 @@ def trace_pixels(mi, scene, pixels: np.ndarray, spp: int, seed: int, *, width: i
     for k, lo in enumerate(range(0, len(px), per_call)):
         part = px[lo:lo + per_call]
         n = len(part) * int(spp)
-        sampler = mi.load_dict({"type": "independent"})
-        sampler.seed((int(seed) + k) % (1 << 32), n)
+        sampler = _sampler(mi, seed + k, n)
         x = mi.Float(np.repeat(part[:, 0], spp).astype(np.float32))
         y = mi.Float(np.repeat(part[:, 1], spp).astype(np.float32))
         u = sampler.next_2d()
         pos = mi.Point2f((x + u.x) / float(width), (y + u.y) / float(height))
         ray, weight = sensor.sample_ray(0.0, sampler.next_1d(), pos, sampler.next_2d())
         spec, _, _ = integrator.sample(scene, sampler, ray, None, True)
-        v = np.asarray(spec * weight, np.float64)
-        v = v.T if v.shape[0] == 3 and v.ndim == 2 and v.shape[1] == n else v
-        out[lo:lo + len(part)] = v.reshape(len(part), int(spp), 3).sum(axis=1)
+        out[lo:lo + len(part)] = _lanes(spec * weight, n).reshape(len(part), int(spp), 3
+                                                                  ).sum(axis=1)
     return out
 
 
@@ -68,14 +79,11 @@ def sensor_mean(mi, scene, samples: int, seed: int, sensor=None) -> np.ndarray:
     total, done, k = np.zeros(3), 0, 0
     while done < samples:
         n = min(int(samples) - done, MAX_LANES)
-        sampler = mi.load_dict({"type": "independent"})
-        sampler.seed((int(seed) + k) % (1 << 32), n)
+        sampler = _sampler(mi, seed + k, n)
         ray, weight = sensor.sample_ray_differential(0.0, sampler.next_1d(),
                                                      sampler.next_2d(), sampler.next_2d())
         spec, _, _ = integrator.sample(scene, sampler, mi.Ray3f(ray), None, True)
-        v = np.asarray(spec * weight, np.float64)
-        v = v.T if v.shape[0] == 3 and v.ndim == 2 and v.shape[1] == n else v
-        total += v.reshape(n, 3).sum(axis=0)
+        total += _lanes(spec * weight, n).sum(axis=0)
         done, k = done + n, k + 1
     return total / max(int(samples), 1)
 

@@ -151,7 +151,8 @@ def tile_seed(seed: int, pass_index: int, tile: int, half: int) -> int:
 def region_rel_se(buffers: HalfBuffers, labels: np.ndarray) -> dict:
     """Per face region with pixels: the relative standard error of its luminance mean,
     sqrt(sum over its pixels of (luminance of (A - B) / 2)^2) / N / mean luminance."""
-    img, hd = buffers.image() @ LUMINANCE, buffers.half_diff() @ LUMINANCE
+    a, b = buffers.halves()
+    img, hd = (a + b) / 2.0 @ LUMINANCE, (a - b) / 2.0 @ LUMINANCE
     out = {}
     for name in REGIONS:
         sel = labels == REGION_LABELS[name]

@@ -126,9 +126,9 @@ def render_halves(mi, scene, *, spp: int, seed: int, integrator=None,
     """``scene`` rendered twice with ``spp`` samples per pixel, seeds 2 ``seed`` and
     2 ``seed`` + 1 (:func:`dermis.groundtruth.passes.render_passes`); ``progress(samples
     done of both)``."""
-    a, _, ta = render_passes(mi, scene, spp=spp, seed=2 * seed, integrator=integrator,
+    a, ta = render_passes(mi, scene, spp=spp, seed=2 * seed, integrator=integrator,
                              progress=progress)
-    b, _, tb = render_passes(mi, scene, spp=spp, seed=2 * seed + 1, integrator=integrator,
+    b, tb = render_passes(mi, scene, spp=spp, seed=2 * seed + 1, integrator=integrator,
                              progress=(lambda n: progress(spp + n)) if progress else None)
     return Halves(a, b, int(spp), ta + tb)
 

@@ -45,7 +45,6 @@ from dermis.lighting.emitters import light_params
 from dermis.optics.layers import LayerStack
 from dermis.pipeline.artifacts import RenderedImage
 from dermis.pipeline.config import CameraConfig, LightConfig
-from dermis.pipeline.errors import ConfigError
 from dermis.pipeline.graph import Node, StageResult
 from dermis.pipeline.scene_rules import reference_size
 from dermis.pipeline.imageio import write_exr, write_png
@@ -184,11 +183,7 @@ def plan(scene, plan) -> None:
     if not scene.reference.enabled:
         return
     groups = dict(scene.light_groups())
-    wanted = scene.reference.lights or tuple(groups)
-    unknown = [l for l in wanted if l not in groups]
-    if unknown:
-        raise ConfigError(f"{scene.path}: reference.lights: {unknown[0]!r} is not a lighting "
-                          f"condition of [render] lights ({', '.join(groups)})")
+    wanted = scene.reference.lights or tuple(groups)   # names checked at load (scene_rules)
     reason = unavailable_reason()
     if reason:
         if reason not in _SKIP_NOTICES:
