@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import json
+import re
 import tomllib
 from pathlib import Path
 
@@ -68,4 +69,22 @@ def scene_file(folder: Path, over: dict | None = None, name: str = "scene.toml")
         d["output"]["output_dir"] = str(folder / "out")
     path = folder / name
     path.write_text(to_toml(d))
+    return path
+
+
+def quick_with_sweep(folder: Path, *, model: str, lights: str, sweep: str) -> Path:
+    """The quick scene's text cut to one ``model`` image per light of ``lights`` (a TOML
+    array) on the high mesh, no previews, its outputs in ``folder``, with ``sweep`` (a
+    [sweep] table) appended: folder/sweep.toml.  Edited as text, so the file keeps the quick
+    scene's comments and layout."""
+    src = QUICK.read_text()
+    for a, b in ((r"^models = .*$", f'models = ["{model}"]'),
+                 (r"^lights = .*$", f"lights = {lights}"),
+                 (r"^geometries = .*$", 'geometries = ["high"]'),
+                 (r"^previews = true$", "previews = false"),
+                 (r'^output_dir = "out"$', f'output_dir = "{folder / "out"}"')):
+        src, n = re.subn(a, b, src, count=1, flags=re.M)
+        assert n == 1, a
+    path = folder / "sweep.toml"
+    path.write_text(src + "\n" + sweep)
     return path

@@ -35,6 +35,7 @@ from dermis.pipeline.errors import DermisError
 
 sys.path.insert(0, str(Path(__file__).parent))
 from render_fixtures import icosphere, plane  # noqa: E402
+from scene_toml import quick_with_sweep  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 QUICK = REPO / "scenes" / "quick.toml"
@@ -212,17 +213,8 @@ def test05_subject_size_bounds():
 # --------------------------------------------------------------------------- 3. sweep
 def _sweep_scene(folder: Path, lights: str, knobs: str) -> Path:
     """The quick scene cut to one Lafortune image per light, with a [sweep] table."""
-    src = QUICK.read_text()
-    for a, b in ((r"^models = .*$", 'models = ["lafortune"]'),
-                 (r"^lights = .*$", f"lights = {lights}"),
-                 (r"^geometries = .*$", 'geometries = ["high"]'),
-                 (r"^previews = true$", "previews = false"),
-                 (r'^output_dir = "out"$', f'output_dir = "{folder / "out"}"')):
-        src, n = re.subn(a, b, src, count=1, flags=re.M)
-        assert n == 1, a
-    path = folder / "sweep.toml"
-    path.write_text(src + "\n[sweep]\n[sweep.knobs]\n" + knobs)
-    return path
+    return quick_with_sweep(folder, model="lafortune", lights=lights,
+                            sweep="[sweep]\n[sweep.knobs]\n" + knobs)
 
 
 def test06_sweep_of_a_knob_that_changes_no_node_is_refused(tmp_path, capsys):

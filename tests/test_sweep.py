@@ -5,6 +5,7 @@ import json
 import multiprocessing as mp
 import os
 import re
+import sys
 from pathlib import Path
 
 import pytest
@@ -14,22 +15,13 @@ from dermis.pipeline.errors import ConfigError
 from dermis.pipeline.store import Store
 from dermis.reports.sweep import pareto_front, parse_sweep, recommend, run_sweep
 
-QUICK = Path(__file__).resolve().parents[1] / "scenes" / "quick.toml"
+sys.path.insert(0, str(Path(__file__).parent))
+from scene_toml import quick_with_sweep  # noqa: E402
 
 
 def sweep_scene(tmp_path: Path, sweep: str, *, lights='["point"]') -> Path:
     """The quick scene cut to one BSSRDF image per light (CI-sized), with a [sweep] table."""
-    src = QUICK.read_text()
-    for a, b in ((r"^models = .*$", 'models = ["bssrdf"]'),
-                 (r"^lights = .*$", f"lights = {lights}"),
-                 (r"^geometries = .*$", 'geometries = ["high"]'),
-                 (r"^previews = true$", "previews = false"),
-                 (r'^output_dir = "out"$', f'output_dir = "{tmp_path / "out"}"')):
-        src, n = re.subn(a, b, src, count=1, flags=re.M)
-        assert n == 1, a
-    path = tmp_path / "sweep.toml"
-    path.write_text(src + "\n" + sweep)
-    return path
+    return quick_with_sweep(tmp_path, model="bssrdf", lights=lights, sweep=sweep)
 
 
 EPS = '[sweep]\n[sweep.knobs]\n"bssrdf.epsilon" = [1.0, 0.25]\n'
