@@ -25,12 +25,22 @@ from .registry import model
 from .scene_rules import (check_camera, check_environment_file, check_reference,
                           direction_problem, fmt, plain_name_problem)
 
-__all__ = ["Scene", "load_scene", "default_scene_path", "LENGTH_UNITS", "GEOMETRIES",
+__all__ = ["Scene", "ViewConfig", "VIEW_MARK", "MAIN_VIEW", "condition_of", "load_scene", "default_scene_path", "LENGTH_UNITS", "GEOMETRIES",
            "scene_warnings"]
 
 LENGTH_UNITS = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
 GEOMETRIES = ("high", "low", "low_bump", "low_bump_blur")
 LIGHT_TYPES = ("point", "disc", "directional", "environment")
+# joins a lighting condition and the view that sees it in a label ("point@nose"); the main
+# camera's conditions keep their plain labels
+VIEW_MARK = "@"
+MAIN_VIEW = "main"
+
+
+def condition_of(label: str) -> str:
+    """The lighting condition of a lighting label, without its view ("point@nose" -> "point"):
+    what a camera-independent pass (the irradiance of the BSSRDF's points) is keyed by."""
+    return label.split(VIEW_MARK)[0]
 
 
 def spec(default=MISSING, *, lo=None, hi=None, lo_open=False, hi_open=False, choices=None,
@@ -89,6 +99,21 @@ class CameraConfig:
                           doc="full field of view across the shorter image side")
     width: int = spec(800, lo=1, hi=16384, doc="pixels (thesis: 800)")
     height: int = spec(800, lo=1, hi=16384, doc="pixels (thesis: 800)")
+
+
+@dataclass(frozen=True)
+class ViewConfig:
+    """A close-up: a camera of its own and the lighting conditions rendered through it (its
+    images, references and differences carry the lighting label ``<condition>@<name>``)."""
+
+    name: str = spec(doc="unique name, used in output file names (not \"main\": the "
+                         "[camera])")
+    camera: CameraConfig = spec(factory=CameraConfig, doc="its camera: a [views.camera] table "
+                                "with the keys of [camera]")
+    lights: tuple = spec((), names=True, doc='lighting conditions seen in this view (names '
+                         'of [[lights]], "a+b" together); empty = those of [render] lights')
+    geometries: tuple = spec(("high",), choices=GEOMETRIES,
+                             doc="geometries rendered in this view (close-ups: the scan)")
 
 
 @dataclass(frozen=True)
@@ -269,6 +294,7 @@ class Scene:
     bake: BakeConfig = spec(factory=BakeConfig)
     camera: CameraConfig = spec(factory=CameraConfig)
     lights: tuple = spec((), doc="array of [[lights]] tables")
+    views: tuple = spec((), doc="array of [[views]] tables: close-ups beside [camera]")
     render: RenderConfig = spec(factory=RenderConfig)
     optics: Any = spec(None, doc='layer stack: preset = "two_layer" or [[optics.layers]]')
     bssrdf: BssrdfConfig = spec(factory=BssrdfConfig)
@@ -281,11 +307,31 @@ class Scene:
     def light_by_name(self) -> dict:
         return {l.name: l for l in self.lights}
 
-    def light_groups(self) -> tuple:
-        """The lighting conditions to render: (label, tuple of LightConfig) pairs."""
-        labels = self.render.lights or tuple(l.name for l in self.lights)
-        return tuple((label, tuple(self.light_by_name[n] for n in label.split("+")))
-                     for label in labels)
+    def light_groups(self, view: str | None = None) -> tuple:
+        """The lighting conditions to render: (label, tuple of LightConfig) pairs, those of
+        the main camera then each view's (labelled ``<condition>@<view>``); ``view``: only
+        that view's ("main": the camera's)."""
+        main = self.render.lights or tuple(l.name for l in self.lights)
+        labels = [(c, "main") for c in main] + [
+            (f"{c}{VIEW_MARK}{v.name}", v.name) for v in self.views for c in v.lights or main]
+        return tuple((label, tuple(self.light_by_name[n]
+                                   for n in condition_of(label).split("+")))
+                     for label, of in labels if view is None or of == view)
+
+    def view_of(self, label: str) -> ViewConfig | None:
+        """The view a lighting label belongs to (None: the main camera)."""
+        _, _, name = label.partition(VIEW_MARK)
+        return next((v for v in self.views if v.name == name), None) if name else None
+
+    def camera_of(self, label: str) -> CameraConfig:
+        """The camera that sees lighting condition ``label``."""
+        view = self.view_of(label)
+        return view.camera if view is not None else self.camera
+
+    def geometries_of(self, label: str) -> tuple:
+        """The geometries rendered under lighting condition ``label``."""
+        view = self.view_of(label)
+        return view.geometries if view is not None else self.render.geometries
 
     def mesh_path(self) -> Path | None:
         if self.mesh.source == "procedural":
@@ -470,7 +516,8 @@ def _fmt_rule(meta) -> str:
 
 
 SCHEMA_TABLES = (("scene", SceneInfo), ("mesh", MeshConfig), ("bake", BakeConfig),
-                 ("camera", CameraConfig), ("[lights]", LightConfig), ("render", RenderConfig),
+                 ("camera", CameraConfig), ("[lights]", LightConfig), ("[views]", ViewConfig),
+                 ("render", RenderConfig),
                  ("bssrdf", BssrdfConfig), ("reference", ReferenceConfig),
                  ("causes", CausesConfig), ("output", OutputConfig))
 
@@ -586,6 +633,52 @@ def _merge(base: dict, over: dict) -> dict:
     return out
 
 
+def condition_problems(labels, named, key: str, where: str) -> list[str]:
+    """The problems of lighting conditions ``labels`` (names of ``named`` lights, "a+b"
+    lights together) given at ``key``."""
+    problems = _Problems()
+    for label in labels:
+        parts = label.split("+")
+        for n in parts:
+            if n not in named:
+                problems.add(where, key, f": {fmt(n)} (in {fmt(label)}) names no [[lights]] "
+                             "entry; defined: " + (", ".join(fmt(x) for x in named) or "none"))
+        for n in sorted({n for n in parts if parts.count(n) > 1}):
+            problems.add(where, key, f": {fmt(label)} names light {fmt(n)} {parts.count(n)} "
+                         "times; each light may appear once in a lighting condition (raise its "
+                         "intensity to brighten it)")
+    return list(problems)
+
+
+def _views(raw, named, where: str, problems: _Problems, length_scale: float) -> tuple:
+    """The ``[[views]]`` tables, validated (problems added to ``problems``)."""
+    if not isinstance(raw, list):
+        problems.add(where, "views", ": must be an array of tables ([[views]])")
+        return ()
+    views = []
+    for i, table in enumerate(raw):
+        view = _build(ViewConfig, table, where, f"views[{i}].", problems, length_scale)
+        if view is None:
+            continue
+        why = plain_name_problem(view.name, extra="+" + VIEW_MARK)
+        if why or view.name == MAIN_VIEW:
+            problems.add(where, f"views[{i}].name", f" = {fmt(view.name)}: "
+                         + (why or "names the [camera] view") + " (a view's name becomes part "
+                         "of output file names and of its lighting labels, <condition>@<view>)")
+        problems += check_camera(view.camera, where, f"views[{i}].camera")
+        problems += condition_problems(view.lights, named, f"views[{i}].lights", where)
+        for key in ("lights", "geometries"):
+            values = getattr(view, key)
+            for v in sorted({v for v in values if values.count(v) > 1}):
+                problems.add(where, f"views[{i}].{key}", f": {fmt(v)} is listed twice; list "
+                             "each once")
+        views.append(view)
+    names = [v.name for v in views]
+    for n in sorted({n for n in names if names.count(n) > 1}):
+        problems.add(where, "views", f": name {fmt(n)} is used twice; names must be unique")
+    return tuple(views)
+
+
 def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | None = None) -> Scene:
     """Validate an already-parsed scene table (see :func:`load_scene`)."""
     layers = registry.section("optics")      # the layer optics own their validation
@@ -597,7 +690,7 @@ def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | No
     problems = _Problems()
     units = table.get("scene", {}).get("units", "mm") if isinstance(table.get("scene"), dict) else "mm"
     length_scale = LENGTH_UNITS.get(units, 1.0) if isinstance(units, str) else 1.0  # else: refused
-    body = {k: v for k, v in table.items() if k not in ("lights", "optics", "sweep")}
+    body = {k: v for k, v in table.items() if k not in ("lights", "views", "optics", "sweep")}
     if "sweep" in table and not isinstance(table["sweep"], dict):  # checked by `dermis sweep`
         problems.add(where, "sweep", f" = {fmt(table['sweep'])}: must be a table ([sweep])")
     scene = _build(Scene, body, where, "", problems, length_scale)
@@ -614,11 +707,11 @@ def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | No
             light_index.append(i)
     for k, light in enumerate(lights):  # map paths are relative to the scene file
         i = light_index[k]
-        why = plain_name_problem(light.name, extra="+")
+        why = plain_name_problem(light.name, extra="+" + VIEW_MARK)
         if why:
             problems.add(where, f"lights[{i}].name", f" = {fmt(light.name)}: {why} (light "
                          "names become parts of output file names; '+' joins lights in "
-                         "render.lights)")
+                         "render.lights, '@' a condition and its view)")
         why = direction_problem(light.direction)
         if light.type in ("directional", "disc") and why:
             problems.add(where, f"lights[{i}].direction", f" = {fmt(light.direction)}: {why} "
@@ -675,17 +768,7 @@ def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | No
                      "to output_dir/<scene.name>/)")
     render = sc.render
     if render is not None:
-        for label in render.lights:
-            parts = label.split("+")
-            for n in parts:
-                if n not in named:
-                    problems.add(where, "render.lights", f": {fmt(n)} (in {fmt(label)}) names "
-                                 "no [[lights]] entry; defined: "
-                                 + (", ".join(fmt(x) for x in named) or "none"))
-            for n in sorted({n for n in parts if parts.count(n) > 1}):
-                problems.add(where, "render.lights", f": {fmt(label)} names light {fmt(n)} "
-                             f"{parts.count(n)} times; each light may appear once in a lighting "
-                             "condition (raise its intensity to brighten it)")
+        problems += condition_problems(render.lights, named, "render.lights", where)
         for key in ("lights", "models", "geometries"):
             values = getattr(render, key)
             for v in sorted({v for v in values if values.count(v) > 1}):
@@ -697,6 +780,7 @@ def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | No
                          "render.models = [] to prepare the meshes only)")
     if sc.camera is not None:
         problems += check_camera(sc.camera, where)
+    views = _views(table.get("views", []), named, where, problems, length_scale)
     if render is not None and stack is not None:   # what each rendered model needs
         for name in render.models:
             check = model(name).check
@@ -705,6 +789,9 @@ def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | No
     given = table.get("reference")
     if sc.reference is not None and isinstance(given, dict):
         labels = (render.lights or tuple(names)) if render is not None else None
+        if labels is not None:
+            labels = tuple(labels) + tuple(f"{c}{VIEW_MARK}{v.name}" for v in views
+                                           for c in v.lights or labels)
         problems += check_reference(sc.reference, set(given), sc.camera, labels, where)
     if sc.mesh is not None:
         if sc.mesh.source != "procedural":
@@ -723,7 +810,7 @@ def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | No
     if problems:
         raise ConfigError("\n".join(problems))
     out = Scene(**{**{f.name: getattr(scene, f.name) for f in fields(Scene)},
-                   "lights": tuple(lights), "optics": stack, "path": where})
+                   "lights": tuple(lights), "views": views, "optics": stack, "path": where})
     from .resources import resource_problems   # resources reads this module's vocabulary
     problems += [f"{where}: {p}" for p in resource_problems(out)]
     if problems:

@@ -61,19 +61,19 @@ def plain_name_problem(value: str, extra: str = "") -> str | None:
     return None
 
 
-def check_camera(camera, where: str) -> list[str]:
-    """The problems of a CameraConfig the renderer would otherwise find only after the mesh
-    stages."""
+def check_camera(camera, where: str, key: str = "camera") -> list[str]:
+    """The problems of a CameraConfig (at ``key``: ``camera`` or a view's) the renderer would
+    otherwise find only after the mesh stages."""
     out = []
     pos, look, up = camera.position, camera.look_at, camera.up
     fwd = [b - a for a, b in zip(pos, look)]
     nf = math.hypot(*fwd)
     why = direction_problem(up)
     if not nf > 0:
-        out.append(f"{where}: camera.look_at = {fmt(look)}: must differ from "
-                   f"camera.position = {fmt(pos)}")
+        out.append(f"{where}: {key}.look_at = {fmt(look)}: must differ from "
+                   f"{key}.position = {fmt(pos)}")
     elif why:
-        out.append(f"{where}: camera.up = {fmt(up)}: {why}")
+        out.append(f"{where}: {key}.up = {fmt(up)}: {why}")
     else:   # unit vectors: the cross product of any two valid vectors stays finite
         nu = math.hypot(*up)
         f = [x / nf for x in fwd]
@@ -81,8 +81,8 @@ def check_camera(camera, where: str) -> list[str]:
         cross = (f[1] * u[2] - f[2] * u[1], f[2] * u[0] - f[0] * u[2],
                  f[0] * u[1] - f[1] * u[0])
         if not math.hypot(*cross) > 1e-9:
-            out.append(f"{where}: camera.up = {fmt(up)}: must not be parallel to the "
-                       "view direction camera.look_at - camera.position = "
+            out.append(f"{where}: {key}.up = {fmt(up)}: must not be parallel to the "
+                       f"view direction {key}.look_at - {key}.position = "
                        f"{fmt(tuple(fwd))}")
     return out
 

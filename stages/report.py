@@ -16,7 +16,7 @@ import json
 from dataclasses import asdict
 from pathlib import Path
 
-from dermis.pipeline.config import CameraConfig
+from dermis.pipeline.config import CameraConfig, condition_of
 from dermis.pipeline.graph import Node, StageResult
 from dermis.pipeline.registry import stage
 from dermis.reports import diff, pdf_report
@@ -85,6 +85,11 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     extra = {}
     for nid, (label, mesh_node) in params["irradiance"].items():
         extra[(label, mesh_node)] = float(inputs[nid].info.get("seconds", 0.0))
+    for im in images.values():   # a close-up's BSSRDF reads its condition's pass
+        for mesh_node in {m for _, m in params["irradiance"].values()}:
+            if (condition_of(im.info["light"]), mesh_node) in extra:
+                extra[(im.info["light"], mesh_node)] = extra[(condition_of(im.info["light"]),
+                                                              mesh_node)]
     thumbs = None
     if params.get("images"):   # the images stage's tone-mapped thumbnails for the image pages
         thumbs, _ = load_thumbnails(inputs[params["images"]])
