@@ -407,7 +407,7 @@ def _check_number(value, meta, where, key, problems, *, integer: bool, scale: fl
 
 def _check_value(value, tp, meta, where, key, problems, length_scale):
     scale = length_scale if meta.get("unit") == "length" else 1.0
-    choices = _choices(meta)
+    choices = choices_of(meta)
     if tp is bool:
         if not isinstance(value, bool):
             problems.add(where, key, f" = {fmt(value)}: must be true or false")
@@ -484,35 +484,11 @@ def _build(cls, table, where: str, prefix: str, problems: _Problems, length_scal
         return None
 
 
-def _fmt_default(f) -> str:
-    if f.default_factory is not MISSING or f.default is MISSING:
-        return ""
-    v = f.default
-    if isinstance(v, tuple) and all(isinstance(x, str) for x in v):
-        return "[" + ", ".join(v) + "]" if v else "[]"
-    if isinstance(v, float) and v.is_integer() and abs(v) >= 1e4:
-        return f"{int(v):,}"
-    if isinstance(v, int) and not isinstance(v, bool) and abs(v) >= 1e4:
-        return f"{v:,}"
-    return fmt(v).replace("True", "true").replace("False", "false")
-
-
-def _choices(meta) -> tuple | None:
+def choices_of(meta) -> tuple | None:
     """A field's allowed values: a tuple, or a function giving them (the registered models,
     which plugins may extend)."""
     choices = meta.get("choices")
     return choices() if callable(choices) else choices
-
-
-def _fmt_rule(meta) -> str:
-    if _choices(meta):
-        return "one of " + ", ".join(str(c) for c in _choices(meta))
-    parts = []
-    if meta.get("lo") is not None:
-        parts.append((">" if meta.get("lo_open") else ">=") + f" {meta['lo']}")
-    if meta.get("hi") is not None:
-        parts.append(("<" if meta.get("hi_open") else "<=") + f" {meta['hi']}")
-    return ", ".join(parts)
 
 
 SCHEMA_TABLES = (("scene", SceneInfo), ("mesh", MeshConfig), ("bake", BakeConfig),
@@ -520,19 +496,6 @@ SCHEMA_TABLES = (("scene", SceneInfo), ("mesh", MeshConfig), ("bake", BakeConfig
                  ("render", RenderConfig),
                  ("bssrdf", BssrdfConfig), ("reference", ReferenceConfig),
                  ("causes", CausesConfig), ("output", OutputConfig))
-
-
-def schema_markdown() -> str:
-    """The scene-format reference, generated from the schema's own field docs (README.md holds
-    this text between its ``scene-format`` markers; tests/test_config.py keeps them equal)."""
-    lines = ["| key | default | allowed | what |", "|---|---|---|---|"]
-    for table, cls in SCHEMA_TABLES:
-        for f in fields(cls):
-            unit = " (length)" if f.metadata.get("unit") == "length" else ""
-            doc = f.metadata.get("doc", "").replace("|", "/")
-            lines.append(f"| `[{table}] {f.name}` | {_fmt_default(f)} | {_fmt_rule(f.metadata)}"
-                         f"{unit} | {doc} |")
-    return "\n".join(lines)
 
 
 def _resolve(path: str, scene_path: str) -> Path:
