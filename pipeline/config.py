@@ -279,6 +279,19 @@ class CausesConfig:
 
 
 @dataclass(frozen=True)
+class ReportConfig:
+    # What a scene requires (reports/requirements.py, docs/science.md): an effect is visible
+    # above effect_threshold of a region's mean (1 %: the ground truth's own target,
+    # [reference] target_rel_se, so a visible effect is one the truth can resolve); a model
+    # is adequate within accuracy of the truth (2 %: twice that, the smallest error the
+    # default reference can confirm at RESOLVE_K = 2 standard errors of 1 %)
+    accuracy: float = spec(0.02, lo=0.0, hi=10.0, lo_open=True,
+                           doc="relative error a model may have in a region to be adequate")
+    effect_threshold: float = spec(0.01, lo=0.0, hi=10.0, lo_open=True,
+                                   doc="relative size above which an effect is visible")
+
+
+@dataclass(frozen=True)
 class OutputConfig:
     cache_dir: str = spec("", doc="empty: $DERMIS_CACHE or ./.dermis-cache")
     output_dir: str = spec("out", doc="outputs go to output_dir/<scene name>/")
@@ -300,6 +313,7 @@ class Scene:
     bssrdf: BssrdfConfig = spec(factory=BssrdfConfig)
     reference: ReferenceConfig = spec(factory=ReferenceConfig)
     causes: CausesConfig = spec(factory=CausesConfig)
+    report: ReportConfig = spec(factory=ReportConfig)
     output: OutputConfig = spec(factory=OutputConfig)
     path: str = ""
 
@@ -495,7 +509,7 @@ SCHEMA_TABLES = (("scene", SceneInfo), ("mesh", MeshConfig), ("bake", BakeConfig
                  ("camera", CameraConfig), ("[lights]", LightConfig), ("[views]", ViewConfig),
                  ("render", RenderConfig),
                  ("bssrdf", BssrdfConfig), ("reference", ReferenceConfig),
-                 ("causes", CausesConfig), ("output", OutputConfig))
+                 ("causes", CausesConfig), ("report", ReportConfig), ("output", OutputConfig))
 
 
 def _resolve(path: str, scene_path: str) -> Path:

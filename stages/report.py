@@ -24,6 +24,8 @@ from dermis.reports.comparison_images import load_thumbnails
 from dermis.reports.ground_truth import ground_truth_section
 from dermis.reports.light_differences import merge_light_differences
 from dermis.reports.profile_pages import profile_pages
+from dermis.reports.requirement_pages import requirement_pages
+from dermis.reports.requirements import requirements_of
 
 NAME = "report"
 VERSION = 4
@@ -52,6 +54,11 @@ def node(scene, render_ids: list[str], irradiance: dict[str, tuple[str, str]],
             + ((images_id,) if images_id else ()) + tuple(params["references"]))
     if reference_ids:
         params["camera"] = asdict(scene.camera)
+    if any("high" in scene.geometries_of(label) for label, _ in scene.light_groups()):
+        # what the scene requires: regions of every view's pixels, on the high mesh
+        params["requires"] = {**asdict(scene.report), "cameras": {
+            label: asdict(scene.camera_of(label)) for label, _ in scene.light_groups()}}
+    if reference_ids or "requires" in params:
         deps += (GROUND_TRUTH_MESH,)
     deps += tuple(params["profiles"]) + tuple(params["causes"])
     return Node(NAME, NAME, __name__, params, deps, label="grids + PDF")
@@ -107,14 +114,22 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
             metrics["causes"] = gt_info["causes"]
     else:
         metrics["ground_truth_skipped"] = gt_info["title"]["note"]
+    req = params.get("requires")
+    if req:
+        metrics["views"] = {view: {"requires": rec} for view, rec in requirements_of(
+            images, inputs[GROUND_TRUTH_MESH], req, metrics.get("ground_truth"), extra).items()}
     mpath = ctx.out_dir / "metrics.json"
     mpath.write_text(json.dumps(metrics, indent=1, sort_keys=True, default=float))
     if mpath.name not in {Path(f).name for f in files}:
         files.append(mpath)
     profiles = {nid: inputs[nid] for nid in params.get("profiles", ())}
-    added = {"profiles": 0}
+    added = {"profiles": 0, "requires": 0}
 
-    def extra_pages(pdf):   # the profile page, then the ground truth's details
+    def extra_pages(pdf):   # what the scene requires, the profile page, the truth's details
+        if metrics.get("views"):
+            added["requires"] = requirement_pages(
+                pdf, {v: r["requires"] for v, r in metrics["views"].items()},
+                accuracy=req["accuracy"], threshold=req["effect_threshold"])
         added["profiles"] = profile_pages(pdf, profiles)
         details(pdf)
     pdf = pdf_report.write_report(images, metrics, ctx.out_dir / "report.pdf",
@@ -123,7 +138,7 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
                                   image_tiles=thumbs, extra_pages=extra_pages, opening_pages=opening,
                                   truth=gt_info["title"])
     names = [Path(f).name for f in files] + [pdf.name]
-    pages = (pdf_report.report_page_count(images, metrics) + added["profiles"]
+    pages = (pdf_report.report_page_count(images, metrics) + added["profiles"] + added["requires"]
              + gt_info["pages"])
     summary = {k: gt_info[k] for k in ("references", "pages", "ranking", "thesis") if k in gt_info}
     return StageResult(files=names, info={"pages": pages, "ground_truth": summary})
