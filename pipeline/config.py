@@ -22,11 +22,12 @@ from typing import Any, get_type_hints
 from .errors import ConfigError
 from . import registry
 from .registry import model
+from .model_choice import AUTO, choice_problems, choose, condition_kind
 from .scene_rules import (check_camera, check_environment_file, check_reference,
                           direction_problem, fmt, plain_name_problem)
 
-__all__ = ["Scene", "ViewConfig", "VIEW_MARK", "MAIN_VIEW", "condition_of", "load_scene", "default_scene_path", "LENGTH_UNITS", "GEOMETRIES",
-           "scene_warnings"]
+__all__ = ["Scene", "ViewConfig", "VIEW_MARK", "MAIN_VIEW", "condition_of", "load_scene",
+           "default_scene_path", "LENGTH_UNITS", "GEOMETRIES"]
 
 LENGTH_UNITS = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
 GEOMETRIES = ("high", "low", "low_bump", "low_bump_blur")
@@ -139,8 +140,11 @@ class LightConfig:
 class RenderConfig:
     # default: the thesis's four; bssrdf_mc costs a Monte Carlo table (docs/profiles.md)
     # the registered models (dermis.MODELS), read when a scene is checked: plugins may add some
-    models: tuple = spec(registry.default_models(), choices=registry.model_names,
-                         doc="models to render (bssrdf is the reference of the difference "
+    models: tuple = spec(registry.default_models(), choices=lambda: registry.model_names()
+                         + (AUTO,),
+                         doc='models to render; ["auto"]: per view and lighting condition the '
+                             "cheapest measured to meet [report] accuracy "
+                             "(bssrdf is the reference of the difference "
                              "images; bssrdf_mc: the BSSRDF with the Monte Carlo profile)")
     lights: tuple = spec((), names=True,
                          doc='lighting conditions to render: names of [[lights]], "a+b" '
@@ -316,6 +320,8 @@ class Scene:
     report: ReportConfig = spec(factory=ReportConfig)
     output: OutputConfig = spec(factory=OutputConfig)
     path: str = ""
+    # (lighting label, model) of render.models = ["auto"] (pipeline/model_choice.py)
+    chosen: tuple = field(default=(), metadata={"internal": True})
 
     @property
     def light_by_name(self) -> dict:
@@ -331,6 +337,11 @@ class Scene:
         return tuple((label, tuple(self.light_by_name[n]
                                    for n in condition_of(label).split("+")))
                      for label, of in labels if view is None or of == view)
+
+    def models_of(self, label: str) -> tuple:
+        """The models rendered under lighting condition ``label``."""
+        chosen = dict(self.chosen)
+        return (chosen[label],) if label in chosen else self.render.models
 
     def view_of(self, label: str) -> ViewConfig | None:
         """The view a lighting label belongs to (None: the main camera)."""
@@ -472,7 +483,8 @@ def _build(cls, table, where: str, prefix: str, problems: _Problems, length_scal
         problems.add(where, prefix.rstrip("."), f" = {fmt(table)}: must be a table")
         return None
     hints = get_type_hints(cls)
-    known = {f.name: f for f in fields(cls) if f.name != "path"}
+    known = {f.name: f for f in fields(cls) if f.name != "path"
+             and not f.metadata.get("internal")}
     for key in table:
         if key not in known:
             problems.add(where, prefix + key, ": unknown key" + _did_you_mean(key, known)
@@ -552,40 +564,6 @@ def load_scene(path: str | Path | None = None, *, overrides: dict | None = None)
     return scene_from_dict(table, where=where, overrides=overrides)
 
 
-def scene_warnings(scene: Scene) -> list[str]:
-    """Settings that validate but make a run useless (it would render nothing, or black)."""
-    where = scene.path
-    out = []
-    r = scene.render
-    if not r.models:
-        out.append(f"{where}: render.models = []: nothing is rendered (only the meshes are "
-                   "prepared)")
-    elif not r.geometries:
-        out.append(f"{where}: render.geometries = []: nothing is rendered (only the meshes are "
-                   "prepared)")
-    for label, lights in scene.light_groups():
-        dark = [l for l in lights if not any(l.intensity if l.type != "environment"
-                                             else (l.scale,))]
-        if r.models and r.geometries and len(dark) == len(lights):
-            keys = ", ".join(f"lights.{l.name}." + ("scale = 0.0" if l.type == "environment"
-                                                    else f"intensity = {fmt(l.intensity)}")
-                             for l in dark)
-            out.append(f"{where}: lighting condition {fmt(label)} emits no light ({keys}); "
-                       "its renders will be black")
-    own = getattr(scene.optics, "profile", None)
-    readers: dict = {}      # layer-profile model -> the rendered models that read it
-    for name in r.models:
-        m = model(name)
-        if m.profiles:
-            readers.setdefault(m.profile or own, []).append(name)
-    for profile, names in readers.items():
-        if len(names) > 1:
-            out.append(f"{where}: render.models has {' and '.join(names)}, but optics.profile = "
-                       f"{fmt(profile)} makes them the same image (drop optics.profile to "
-                       "compare the multipole with the Monte Carlo profile)")
-    return out
-
-
 def _sections(body: dict, where: str, length_scale: float):
     """The scene's tables that validate on their own (None for the others): the cross-field
     checks then still run when some other table has a problem (all problems listed at once)."""
@@ -654,6 +632,19 @@ def _views(raw, named, where: str, problems: _Problems, length_scale: float) -> 
     for n in sorted({n for n in names if names.count(n) > 1}):
         problems.add(where, "views", f": name {fmt(n)} is used twice; names must be unique")
     return tuple(views)
+
+
+def _auto_models(render, report, lights, views, where: str) -> tuple:
+    """(label, model) for every lighting condition of ``render.models = ["auto"]``."""
+    types = {l.name: l.type for l in lights}
+    main = render.lights or tuple(types)
+    labels = [(c, False) for c in main] + [(f"{c}{VIEW_MARK}{v.name}", True) for v in views
+                                           for c in v.lights or main]
+    accuracy = report.accuracy if report is not None else ReportConfig().accuracy
+    return tuple((label, choose(condition_kind([types[n] for n in condition_of(label).split("+")
+                                                if n in types], close), accuracy,
+                                registry.model_names(), where))
+                 for label, close in labels)
 
 
 def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | None = None) -> Scene:
@@ -758,8 +749,17 @@ def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | No
     if sc.camera is not None:
         problems += check_camera(sc.camera, where)
     views = _views(table.get("views", []), named, where, problems, length_scale)
+    chosen = ()
+    if render is not None and render.models == (AUTO,):
+        chosen = _auto_models(render, sc.report, lights, views, where)
+        render = replace(render, models=tuple(m for m in registry.model_names()
+                                              if m in {c for _, c in chosen}))
+        if scene is not None:
+            scene = replace(scene, render=render)
+    elif render is not None:
+        problems += choice_problems(render.models, where)
     if render is not None and stack is not None:   # what each rendered model needs
-        for name in render.models:
+        for name in (m for m in render.models if m != AUTO):   # "auto" alone: refused above
             check = model(name).check
             found = check(stack, dict(vars(sc)), where) if check is not None else []
             problems += [p for p in found if p not in problems]   # bssrdf_mc shares bssrdf's
@@ -787,7 +787,8 @@ def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | No
     if problems:
         raise ConfigError("\n".join(problems))
     out = Scene(**{**{f.name: getattr(scene, f.name) for f in fields(Scene)},
-                   "lights": tuple(lights), "views": views, "optics": stack, "path": where})
+                   "lights": tuple(lights), "views": views, "optics": stack, "path": where,
+                   "chosen": chosen})
     from .resources import resource_problems   # resources reads this module's vocabulary
     problems += [f"{where}: {p}" for p in resource_problems(out)]
     if problems:

@@ -6,14 +6,17 @@ direction whose length squares outside double precision, a camera whose up vecto
 parallel to its view, a name that must become a file name, the reference's size against the
 camera's, an environment map's header.  (What a rendered model needs of the scene, its
 module declares: ``Model.check``.)  Each returns the problems it finds as messages naming
-the file, the key, the value and the rule.
+the file, the key, the value and the rule.  :func:`scene_warnings` lists what validates but
+makes a run useless (nothing rendered, a black lighting condition).
 """
 from __future__ import annotations
 
 import math
 from pathlib import Path
 
-__all__ = ["fmt", "direction_problem", "plain_name_problem", "check_camera", "check_reference",
+from .registry import model
+
+__all__ = ["scene_warnings", "fmt", "direction_problem", "plain_name_problem", "check_camera", "check_reference",
            "check_environment_file", "DIRECTION_LENGTH"]
 
 
@@ -145,3 +148,37 @@ def check_environment_file(path: Path, where: str, key: str, value: str) -> list
     finally:
         inp.close()
     return []
+
+
+def scene_warnings(scene) -> list[str]:
+    """Settings that validate but make a run useless (it would render nothing, or black)."""
+    where = scene.path
+    out = []
+    r = scene.render
+    if not r.models:
+        out.append(f"{where}: render.models = []: nothing is rendered (only the meshes are "
+                   "prepared)")
+    elif not r.geometries:
+        out.append(f"{where}: render.geometries = []: nothing is rendered (only the meshes are "
+                   "prepared)")
+    for label, lights in scene.light_groups():
+        dark = [l for l in lights if not any(l.intensity if l.type != "environment"
+                                             else (l.scale,))]
+        if r.models and r.geometries and len(dark) == len(lights):
+            keys = ", ".join(f"lights.{l.name}." + ("scale = 0.0" if l.type == "environment"
+                                                    else f"intensity = {fmt(l.intensity)}")
+                             for l in dark)
+            out.append(f"{where}: lighting condition {fmt(label)} emits no light ({keys}); "
+                       "its renders will be black")
+    own = getattr(scene.optics, "profile", None)
+    readers: dict = {}      # layer-profile model -> the rendered models that read it
+    for name in r.models:
+        m = model(name)
+        if m.profiles:
+            readers.setdefault(m.profile or own, []).append(name)
+    for profile, names in readers.items():
+        if len(names) > 1:
+            out.append(f"{where}: render.models has {' and '.join(names)}, but optics.profile = "
+                       f"{fmt(profile)} makes them the same image (drop optics.profile to "
+                       "compare the multipole with the Monte Carlo profile)")
+    return out

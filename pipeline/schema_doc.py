@@ -41,6 +41,8 @@ def schema_markdown() -> str:
     lines = ["| key | default | allowed | what |", "|---|---|---|---|"]
     for table, cls in SCHEMA_TABLES:
         for f in fields(cls):
+            if f.metadata.get("internal"):
+                continue
             unit = " (length)" if f.metadata.get("unit") == "length" else ""
             doc = f.metadata.get("doc", "").replace("|", "/")
             lines.append(f"| `[{table}] {f.name}` | {_fmt_default(f)} | {_fmt_rule(f.metadata)}"

@@ -43,10 +43,11 @@ def requirement_lines(requires: dict, view: str) -> list[tuple[str, str]]:
     return out
 
 
-def requirement_pages(pdf, requires: dict, *, accuracy: float, threshold: float,
+def requirement_pages(pdf, views: dict, *, accuracy: float, threshold: float,
                       figsize=(11.69, 8.27), max_rows: int = 34) -> int:
-    """One page (or more) per view of metrics.json's ``views.<view>.requires``; returns the
-    number of pages."""
+    """One page (or more) per view of metrics.json's ``views`` (``requires``, and ``auto``
+    where ``["auto"]`` chose the models); returns the number of pages."""
+    requires = {v: r["requires"] for v, r in views.items() if "requires" in r}
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -84,6 +85,9 @@ def requirement_pages(pdf, requires: dict, *, accuracy: float, threshold: float,
                     if cc == 0:
                         c.set_text_props(ha="left")
             lines = [f"{light}: {text}" for light, text in requirement_lines(requires, view)]
+            lines += [f"{light}: [\"auto\"] rendered {catalog.label(a['model'])}; the "
+                      f"{100 * a['accuracy']:.0f} % target {a['target']}"
+                      for light, a in sorted(views[view].get("auto", {}).items())]
             meaning = "; ".join(f"{e.name} = {e.meaning}" for e in EFFECTS)
             fig.text(0.02, 0.03, "\n".join(lines) + "\n\nEffect = image with / image without "
                      f"- 1 over the region's pixels, % of its mean: ● visible (above "

@@ -34,8 +34,8 @@ from dermis.geometry.regions import REGION_LABELS, REGIONS
 from dermis.pipeline.config import MAIN_VIEW, VIEW_MARK, condition_of
 from dermis.reports.truth_noise import RESOLVE_K, region_difference
 
-__all__ = ["Effect", "EFFECTS", "scene_requirements", "requirements_of", "view_of_label",
-           "COMPLETE_MODELS"]
+__all__ = ["Effect", "EFFECTS", "scene_requirements", "requirements_of", "auto_verdicts",
+           "view_of_label", "COMPLETE_MODELS"]
 
 
 @dataclass(frozen=True)
@@ -211,3 +211,21 @@ def requirements_of(images: dict, mesh, settings: dict, truth: dict | None,
     return scene_requirements(images, labels_of, accuracy=settings["accuracy"],
                               threshold=settings["effect_threshold"], truth=truth,
                               extra_seconds=extra_seconds)
+
+
+def auto_verdicts(requires: dict, chosen: dict, accuracy: float) -> dict:
+    """``views.<view>.auto``: for each lighting label whose model ``["auto"]`` chose
+    (``chosen``: label -> model), whether the accuracy held against the truth in every
+    region ("held"), failed somewhere ("missed"), or cannot be told from the noise or
+    without a reference ("unresolved" / "unverified")."""
+    out: dict = {}
+    for label, model in chosen.items():
+        rows = requires.get(view_of_label(label), {}).get(condition_of(label), {}).get(
+            "regions", {})
+        verdicts = {r: row["models"][model]["verdict"] for r, row in rows.items()
+                    if row.get("against") == "reference" and model in row["models"]}
+        held = ("unverified" if not verdicts else "missed" if "fails" in verdicts.values()
+                else "held" if set(verdicts.values()) == {"meets"} else "unresolved")
+        out.setdefault(view_of_label(label), {})[condition_of(label)] = {
+            "model": model, "accuracy": accuracy, "target": held, "regions": verdicts}
+    return out

@@ -25,7 +25,7 @@ from dermis.reports.ground_truth import ground_truth_section
 from dermis.reports.light_differences import merge_light_differences
 from dermis.reports.profile_pages import profile_pages
 from dermis.reports.requirement_pages import requirement_pages
-from dermis.reports.requirements import requirements_of
+from dermis.reports.requirements import auto_verdicts, requirements_of
 
 NAME = "report"
 VERSION = 4
@@ -57,7 +57,8 @@ def node(scene, render_ids: list[str], irradiance: dict[str, tuple[str, str]],
     if any("high" in scene.geometries_of(label) for label, _ in scene.light_groups()):
         # what the scene requires: regions of every view's pixels, on the high mesh
         params["requires"] = {**asdict(scene.report), "cameras": {
-            label: asdict(scene.camera_of(label)) for label, _ in scene.light_groups()}}
+            label: asdict(scene.camera_of(label)) for label, _ in scene.light_groups()},
+            "chosen": dict(scene.chosen)}
     if reference_ids or "requires" in params:
         deps += (GROUND_TRUTH_MESH,)
     deps += tuple(params["profiles"]) + tuple(params["causes"])
@@ -118,6 +119,9 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     if req:
         metrics["views"] = {view: {"requires": rec} for view, rec in requirements_of(
             images, inputs[GROUND_TRUTH_MESH], req, metrics.get("ground_truth"), extra).items()}
+        for view, rec in auto_verdicts({v: r["requires"] for v, r in metrics["views"].items()},
+                                       req["chosen"], req["accuracy"]).items():
+            metrics["views"].setdefault(view, {})["auto"] = rec
     mpath = ctx.out_dir / "metrics.json"
     mpath.write_text(json.dumps(metrics, indent=1, sort_keys=True, default=float))
     if mpath.name not in {Path(f).name for f in files}:
@@ -127,9 +131,9 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
 
     def extra_pages(pdf):   # what the scene requires, the profile page, the truth's details
         if metrics.get("views"):
-            added["requires"] = requirement_pages(
-                pdf, {v: r["requires"] for v, r in metrics["views"].items()},
-                accuracy=req["accuracy"], threshold=req["effect_threshold"])
+            added["requires"] = requirement_pages(pdf, metrics["views"],
+                                                  accuracy=req["accuracy"],
+                                                  threshold=req["effect_threshold"])
         added["profiles"] = profile_pages(pdf, profiles)
         details(pdf)
     pdf = pdf_report.write_report(images, metrics, ctx.out_dir / "report.pdf",
