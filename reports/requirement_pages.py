@@ -8,7 +8,7 @@ from dermis.reports.requirements import EFFECTS
 
 __all__ = ["requirement_pages", "requirement_lines"]
 
-_MARK = {"visible": "●", "absent": "·", "unresolved": "?"}
+_MARK = {"visible": "visible", "absent": "absent", "unresolved": "?"}
 
 
 def _effect_cell(e: dict | None) -> str:
@@ -90,9 +90,9 @@ def requirement_pages(pdf, views: dict, *, accuracy: float, threshold: float,
                       for light, a in sorted(views[view].get("auto", {}).items())]
             meaning = "; ".join(f"{e.name} = {e.meaning}" for e in EFFECTS)
             fig.text(0.02, 0.03, "\n".join(lines) + "\n\nEffect = image with / image without "
-                     f"- 1 over the region's pixels, % of its mean: ● visible (above "
-                     f"{100 * threshold:.0f} % by more than 2 s.e.), · absent (below by as "
-                     "much), ? unresolved, n.m. not measured (its pair of images was not "
+                     f"- 1 over the region's pixels, % of its mean: visible = above "
+                     f"{100 * threshold:.0f} % by more than 2 s.e., absent = below it by as "
+                     "much, ? = unresolved, n.m. not measured (its pair of images was not "
                      f"rendered). {meaning}. Cheapest adequate: the fastest model whose error "
                      f"against the truth is within {100 * accuracy:.0f} % by 2 s.e.",
                      fontsize=MIN_FONT_PT, va="bottom", wrap=True)
