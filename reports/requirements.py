@@ -4,7 +4,8 @@ accuracy (docs/science.md, "What a scene requires").
 
 **Effects.**  An effect is a pair of images that differ in one modelling choice and nothing
 else (same view, light and camera rays): the profile's shape (the BSSRDF with the Monte
-Carlo table against the multipole), the scan's geometric detail (the BSSRDF on the
+Carlo table against the multipole), the layering (the BSSRDF over the skin stack against
+one layer of the same total reflectance, optics/single_layer.py), the scan's geometric detail (the BSSRDF on the
 1M-triangle mesh against the low mesh with its bump map), subsurface transport at all (the
 BSSRDF against the local model carrying the profile's total reflectance), asperity
 scattering (the asperity model against its base BRDF).  Its size in a region is the relative
@@ -52,6 +53,8 @@ class Effect:
 EFFECTS = (
     Effect("profile shape", ("bssrdf_mc", "high"), ("bssrdf", "high"),
            "Monte Carlo profile table vs the multipole"),
+    Effect("layering", ("bssrdf", "high"), ("bssrdf_single", "high"),
+           "skin stack vs one layer of the same total reflectance"),
     Effect("mesh detail", ("bssrdf", "high"), ("bssrdf", "low_bump"),
            "1M-triangle scan vs low mesh + bump map"),
     Effect("subsurface transport", ("bssrdf", "high"), ("bssrdf_local", "high"),
@@ -90,6 +93,11 @@ def _pair(a, b, sel) -> dict:
     d = region_difference(np.asarray(a.linear, np.float64), np.asarray(b.linear, np.float64),
                           sel, model_hd=a.noise, ref_var=None, ref_hd=b.noise,
                           ref_region=None, calib=np.zeros(3))
+    if not (np.asarray(d["ref_rgb"]) > 0).any():
+        # the region is black without the effect: 0 if black with it too (a hard shadow in
+        # both), else all its light is the effect's (+100 % of what it shows)
+        lit = (np.asarray(d["model_rgb"]) > 0).any()
+        return {"size": float(lit), "signed": float(lit), "stderr": 0.0}
     return {"size": abs(d["rel_lum"]), "signed": d["rel_lum"], "stderr": d["sigma_lum"]}
 
 

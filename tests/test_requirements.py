@@ -141,3 +141,15 @@ def test06_auto_verdicts_say_whether_the_target_held():
     for row in rows.values():
         row["against"] = "bssrdf"
     assert auto_verdicts(req, {"point": "hk93"}, 0.02)["main"]["point"]["target"] == "unverified"
+
+
+def test07_a_region_black_in_both_images_has_no_effect_and_light_only_with_it_is_all_effect():
+    black = np.zeros((H, W, 3), np.float32)
+    lit_ear = black.copy()
+    lit_ear[:, 20:] = 0.5
+    rows = run([image("bssrdf", black), image("bssrdf_mc", lit_ear)])["main"]["point"][
+        "regions"]
+    assert rows["cheek"]["effects"]["profile shape"]["signed"] == 0.0
+    assert rows["cheek"]["effects"]["profile shape"]["verdict"] == "absent"
+    assert rows["ear"]["effects"]["profile shape"]["signed"] == 1.0
+    assert rows["ear"]["effects"]["profile shape"]["verdict"] == "visible"
