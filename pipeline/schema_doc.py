@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import MISSING, fields
 
-from .config import SCHEMA_TABLES, choices_of
+from .schema import SCHEMA_TABLES, choices_of
 from .scene_rules import fmt
 
 __all__ = ["schema_markdown"]
