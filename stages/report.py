@@ -22,11 +22,12 @@ from dermis.pipeline.registry import stage
 from dermis.reports import diff, pdf_report
 from dermis.reports.comparison_images import load_thumbnails
 from dermis.reports.ground_truth import ground_truth_section
+from dermis.reports.interactive_page import write_page
 from dermis.reports.light_differences import merge_light_differences
 from dermis.reports.profile_pages import profile_pages
 
 NAME = "report"
-VERSION = 4
+VERSION = 5
 KERNELS = ()
 GROUND_TRUTH_MESH = "mesh_high"   # the references are of the high mesh; regions are on it
 
@@ -117,7 +118,11 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
                                   timings_extra=extra, credits=params["credits"], tiles=tiles,
                                   image_tiles=thumbs, extra_pages=extra_pages, opening_pages=opening,
                                   truth=gt_info["title"])
-    names = [Path(f).name for f in files] + [pdf.name]
+    page = write_page(ctx.out_dir, images, refs, metrics, scene_name=params["scene_name"],
+                      device=ctx.cl.description, timings_extra=extra,
+                      mesh=inputs[GROUND_TRUTH_MESH] if refs else None,
+                      cameras={"main": CameraConfig(**params["camera"])} if refs else None)
+    names = [Path(f).name for f in files] + [pdf.name, page.name]
     pages = (pdf_report.report_page_count(images, metrics) + added["profiles"]
              + gt_info["pages"])
     summary = {k: gt_info[k] for k in ("references", "pages", "ranking", "thesis") if k in gt_info}
