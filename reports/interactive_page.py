@@ -35,6 +35,7 @@ from dermis.reports import page_data
 from dermis.reports.diff import diverging_lut
 from dermis.reports.ground_truth import GEOMETRY, region_labels_for
 from dermis.reports.pdf_report import THESIS_LIGHTS, THESIS_TIMES
+from dermis.reports.truth_noise import FAILS, HOLDS, UNRESOLVED
 from dermis.reports.tonemap import encode_srgb8, shared_exposure
 
 __all__ = ["PAGE", "write_page", "image_entries"]
@@ -66,14 +67,17 @@ def _irradiance(extra: dict, light: str, geometry: str) -> float | None:
 
 def _noise_sigma(a, b) -> float | None:
     """Relative RMSE that the two images' own noise alone gives (their ``noise`` fields:
-    per pixel variance estimates) over the pixels both cover, relative to ``b``'s RMS as
-    :func:`dermis.reports.diff.difference` measures ``rel_rmse``; None without noise."""
-    if a.noise is None or b.noise is None or a.linear.shape != b.linear.shape:
+    per pixel variance estimates; an image without one counts as noise-free, as in
+    :mod:`dermis.reports.ground_truth`) over the pixels both cover, relative to ``b``'s RMS
+    as :func:`dermis.reports.diff.difference` measures ``rel_rmse``; None when neither
+    image has a noise estimate."""
+    if (a.noise is None and b.noise is None) or a.linear.shape != b.linear.shape:
         return None
     m = a.mask & b.mask
     if not m.any():
         return None
-    var = (a.noise[m].astype(np.float64) ** 2 + b.noise[m].astype(np.float64) ** 2).mean()
+    var = sum((im.noise[m].astype(np.float64) ** 2).mean() for im in (a, b)
+              if im.noise is not None)
     rms = math.sqrt(float((b.linear[m].astype(np.float64) ** 2).mean()))
     return math.sqrt(float(var)) / rms if rms > 0 else None
 
@@ -250,6 +254,7 @@ def write_page(out_dir, images: dict, refs: dict, metrics: dict, *, scene_name: 
                                                  "views": regions},
         "baseline": metrics.get("reference_model"),
         "thesis": metrics.get("thesis", []),
+        "verdicts": {"holds": HOLDS, "fails": FAILS, "unresolved": UNRESOLVED},
         "truth_skipped": metrics.get("ground_truth_skipped"),
         "thesis_times": {"lights": list(THESIS_LIGHTS), "models": list(catalog.THESIS_MODELS),
                          "labels": [catalog.label(m) for m in catalog.THESIS_MODELS],

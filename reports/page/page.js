@@ -25,7 +25,11 @@ const uniq = (xs) => [...new Set(xs)];
 const fmtS = (s) => s == null ? "–" : s < 10 ? s.toFixed(2) + " s" : s < 600 ? s.toFixed(1) + " s"
   : Math.floor(s / 60) + ":" + String(Math.round(s % 60)).padStart(2, "0");
 const pct = (x, d = 1) => x == null ? "–" : (100 * x).toFixed(d) + " %";
-const pm = (x, s, d = 1) => x == null ? "–" : (100 * x).toFixed(d) + (s == null ? "" : " ± " + (100 * s).toFixed(d)) + " %";
+function p100(x, d) {   // a percentage: d decimals, or two significant digits below 1 %
+  const v = 100 * x;
+  return Math.abs(v) >= 1 || v === 0 ? v.toFixed(d) : v.toPrecision(2);
+}
+const pm = (x, s, d = 1) => x == null ? "–" : p100(x, d) + (s == null ? "" : " ± " + p100(s, d)) + " %";
 function fmtV(v) {
   if (!isFinite(v)) return String(v);
   if (v === 0) return "0";
@@ -473,7 +477,7 @@ function buildTimings() {
       "Hardware differs from the thesis's: compare ratios between models under one light, not absolute times." }));
 }
 function verdictPill(v) {
-  const cls = /holds/.test(v) ? "holds" : /fail/.test(v) ? "fails" : "unres";
+  const cls = v === M.verdicts.holds ? "holds" : v === M.verdicts.fails ? "fails" : "unres";
   return el("span", { class: "pill " + cls, text: v });
 }
 function buildConclusions() {
@@ -546,6 +550,7 @@ function init() {
 window.dermis = {
   manifest: M, ready: false, state: S, open: openCompare, setMode, setKind, zoomTo,
   // client coordinates of the centre of common-grid pixel (x, y) in panel A
+  centre(x, y) { const r = cvA.getBoundingClientRect(); S.ox = x + 0.5 - r.width / 2 / S.scale; S.oy = y + 0.5 - r.height / 2 / S.scale; S.fit = false; draw(); },
   clientOf(x, y) { const r = cvA.getBoundingClientRect(); return { x: r.left + (x + 0.5 - S.ox) * S.scale, y: r.top + (y + 0.5 - S.oy) * S.scale }; },
 };
 init();
