@@ -41,6 +41,9 @@ from dermis.reports.tonemap import encode_srgb8, shared_exposure
 __all__ = ["PAGE", "write_page", "image_entries"]
 
 PAGE = "report.html"
+# the page's own files, inlined into every page (their bytes enter the report's cache key,
+# pipeline/codehash.py)
+DATA_FILES = ("page/page.html", "page/page.css", "page/page.js")
 MAIN_VIEW = "main"
 VIEW_MARK = "@"          # as dermis.pipeline.config.VIEW_MARK: "<condition>@<view>"
 THUMB_PX = 200           # grid thumbnails: at most this many pixels across (block means)
@@ -193,9 +196,8 @@ def _flip_maps(pairs: list) -> list:
 
 
 def _assets() -> dict:
-    folder = resources.files("dermis.reports") / "page"
-    return {n: (folder / n).read_text(encoding="utf-8") for n in ("page.html", "page.css",
-                                                                 "page.js")}
+    folder = resources.files("dermis.reports")
+    return {Path(n).name: (folder / n).read_text(encoding="utf-8") for n in DATA_FILES}
 
 
 def _magma() -> list:

@@ -222,3 +222,4 @@ def test03_browser_grid_and_pixel_readout(study, tmp_path):
         for png in tmp_path.glob("*.png"):
             shutil.copy(png, Path(shots) / f"test-{png.name}")
     assert math.isfinite(sum(got_a))
+

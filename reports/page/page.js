@@ -113,7 +113,8 @@ const S = {
   a: null, b: null, mode: "side", kind: "signed", stops: 0, tone: "clip",
   scale: 1, ox: 0, oy: 0, W: 1, H: 1, fit: true, flipShowB: false, wipe: 0.5,
   srcA: null, srcB: null, diffSrc: null, linA: null, linB: null, labels: null, flipMap: null,
-  diffScale: {}, hover: null, region: 0,
+  diffScale: {}, hover: null, region: 0, bin: 1, rawA: null, rawB: null, showRegions: false,
+  regionSrc: null,
 };
 const cvA = $("#cv-a"), cvB = $("#cv-b");
 
@@ -206,11 +207,13 @@ async function openCompare(aId, bId) {
   $("#status").textContent = "loading…";
   const [la, lb] = await Promise.all([linearOf(S.a), linearOf(S.b)]);
   if (S.a.id !== aId || S.b.id !== bId) return;
-  S.linA = la; S.linB = lb;
+  S.rawA = la; S.rawB = lb;
   S.W = Math.max(la.w, lb.w); S.H = Math.max(la.h, lb.h);
+  S.linA = binned(la, S.bin); S.linB = binned(lb, S.bin);
   const reg = (M.regions.views || {})[S.a.view === S.b.view ? S.a.view : ""];
   S.labels = null;
   if (reg) S.labels = { w: reg.width, h: reg.height, px: await loadBytes(reg.key).catch(() => null) };
+  S.regionSrc = S.labels && S.labels.px ? regionCanvas(S.labels) : null;
   const flipOf = (x, y) => x.flip && x.flip.against === y.id ? x.flip : null;
   const fl = flipOf(S.a, S.b) || flipOf(S.b, S.a);
   S.flipMap = fl ? { w: fl.width, h: fl.height, mean: fl.mean, px: await loadBytes(fl.key) } : null;
@@ -224,6 +227,32 @@ async function openCompare(aId, bId) {
   regionTable();
   draw();
   window.dermis.ready = true;
+}
+function binned(img, b) {   // means over blocks covering b x b common-grid pixels
+  const k = Math.max(1, Math.round(b * img.w / S.W));
+  if (k === 1) return img;
+  const w = Math.floor(img.w / k), h = Math.floor(img.h / k), n = img.w * img.h, m = w * h;
+  const px = new Float32Array(3 * m);
+  for (let c = 0; c < 3; c++) for (let y = 0; y < h; y++) for (let x = 0; x < w; x++) {
+    let s = 0;
+    for (let j = 0; j < k; j++) for (let i = 0; i < k; i++) s += img.px[c * n + (y * k + j) * img.w + x * k + i];
+    px[c * m + y * w + x] = s / (k * k);
+  }
+  return { w, h, px, k };
+}
+function regionCanvas(lab) {
+  const img = new ImageData(lab.w, lab.h), d = img.data, cols = M.regions.colours;
+  for (let i = 0; i < lab.w * lab.h; i++) {
+    const v = lab.px[i];
+    if (v > 0 && v < cols.length) { const c = cols[v]; d[4 * i] = c[0]; d[4 * i + 1] = c[1]; d[4 * i + 2] = c[2]; d[4 * i + 3] = 120; }
+  }
+  return toCanvas(img);
+}
+function setBin(b) {
+  S.bin = b;
+  if (!S.rawA) return;
+  S.linA = binned(S.rawA, b); S.linB = binned(S.rawB, b);
+  retone(); draw(); if (S.last) readout(S.last.x, S.last.y);
 }
 function gain(e) { return 2 ** ((M.exposure_stops[e.light] || 0) + S.stops); }
 function retone() {
@@ -325,6 +354,7 @@ function drawPanel(cv, which) {
     ctx.setTransform(1, 0, 0, 1, 0, 0); ctx.fillStyle = "#fff"; ctx.fillRect(xw - dpr, 0, 2 * dpr, cv.height);
     ctx.beginPath(); ctx.arc(xw, cv.height / 2, 7 * dpr, 0, 2 * Math.PI); ctx.fill();
   } else drawSrc(ctx, which === "b" ? S.srcB : S.srcA, dpr);
+  if (S.showRegions && S.regionSrc) drawSrc(ctx, S.regionSrc, dpr);
   if (S.hover && S.scale >= 4) {   // the pixel under the cursor, outlined in every panel
     const k = S.scale * dpr;
     ctx.setTransform(1, 0, 0, 1, 0, 0); ctx.strokeStyle = "#ffd34d"; ctx.lineWidth = Math.max(1, dpr);
@@ -346,12 +376,18 @@ function draw() {
   tA.textContent = S.mode === "side" ? "A · " + imgTitle(S.a)
     : S.mode === "flip" ? (S.flipShowB ? "B · " + imgTitle(S.b) : "A · " + imgTitle(S.a)) + "  (F to flip)"
       : S.mode === "wipe" ? `A · ${S.a.label}  |  B · ${S.b.label}` : `A − B · ${S.kind}`;
-  $("#zoom-out").textContent = `${S.scale.toFixed(S.scale < 1 ? 2 : 1)} screen px per pixel`;
+  $("#zoom-out").textContent = `${S.scale.toFixed(S.scale < 1 ? 2 : 1)} screen px per pixel` +
+    (S.bin > 1 ? ` · means over ${S.bin}×${S.bin} pixels` : "");
+  const zs = $("#zoom"), preset = [1, 2, 4, 8, 16].find((z) => Math.abs(z - S.scale) < 1e-9);
+  if (S.fit) zs.value = "fit";
+  else if (preset) zs.value = String(preset);
+  else { $("#zoom-custom").textContent = S.scale.toFixed(2) + "×"; zs.value = "custom"; }
 }
 function zoomTo(z, cx, cy) {   // z screen px per common-grid pixel, about canvas point (cx, cy)
   const r = cvA.getBoundingClientRect();
   const fit = Math.min(r.width / S.W, r.height / S.H);
-  z = Math.max(Math.min(fit, 1), Math.min(16, z));
+  if (z <= fit) { fitView(); return draw(); }
+  z = Math.min(16, z);
   if (cx === undefined) { cx = r.width / 2; cy = r.height / 2; }
   const px = S.ox + cx / S.scale, py = S.oy + cy / S.scale;
   S.scale = z; S.ox = px - cx / z; S.oy = py - cy / z; S.fit = false;
@@ -373,8 +409,10 @@ function setRow(id, v) {
 }
 function readout(x, y) {
   const inside = S.linA && x >= 0 && y >= 0 && x < S.W && y < S.H;
+  S.last = { x, y };
   S.hover = inside ? { x, y } : null;
   $("#ro-xy").textContent = inside ? `x ${x}, y ${y}` : "—";
+  $("#ro-note").textContent = inside && S.bin > 1 ? `block means over ${S.bin}×${S.bin} pixels (at the silhouette including background)` : "";
   const a = inside ? rgbAt(S.linA, x, y) : null, b = inside ? rgbAt(S.linB, x, y) : null;
   setRow("#ro-a", a); setRow("#ro-b", b); setRow("#ro-d", a && b ? a.map((v, k) => v - b[k]) : null);
   let region = 0;
@@ -401,7 +439,7 @@ function numbers() {
       if (e.flip) rows.push(["FLIP vs truth", e.flip.mean.toFixed(3)]);
       if (e.baseline) rows.push([`to ${e.baseline.label}`, `${pm(e.baseline.rel_rmse, e.baseline.noise)} · SSIM ${e.baseline.ssim.toFixed(3)}`]);
     }
-    box.append(el("h3", {}, `${tag} · ${e.label}`, el("span", { class: "muted small", text: `  ${e.light}${e.kind === "model" ? " · " + e.geometry : ""}` })),
+    box.append(el("h3", {}, `${tag} · ${e.label}`, el("span", { class: "muted small", text: `${e.light}${e.kind === "model" ? " · " + e.geometry : ""}` })),
       el("table", { class: "facts-table num" }, rows.map(([k, v]) => el("tr", {}, el("th", { text: k }), el("td", { text: v })))));
   }
   box.append(el("div", { class: "muted small", text: "relative RMSE ± what the images' own noise alone gives (1 s.e. for the truth, on the reference's pixels)" }));
@@ -425,16 +463,24 @@ function regionTable() {
     const lum = rr ? rr.ref_mean_rgb.reduce((s, v, c) => s + LUM[c] * v, 0) : null;
     body.append(el("tr", { class: S.region === k + 1 ? "hl" : "", "data-region": name },
       el("td", {}, el("span", { class: "swatch", style: `background: rgb(${col})` }), name.replace("_", " ")),
-      el("td", { text: lum == null ? "–" : fmtV(lum) + (rr.ref_rel_se != null ? ` ±${(100 * rr.ref_rel_se).toFixed(0)}%` : "") }),
+      el("td", { text: lum == null ? "–" : lum.toPrecision(3) + (rr.ref_rel_se != null ? ` ± ${(100 * rr.ref_rel_se).toFixed(0)} %` : "") }),
       cell(S.a), cell(S.b)));
   });
   tb.append(body);
   $("#regions-box").hidden = !ref;
 }
+function relayout(change) {   // a panel changes size: keep the image point at its centre
+  const r = cvA.getBoundingClientRect();
+  const c = { x: S.ox + r.width / 2 / S.scale, y: S.oy + r.height / 2 / S.scale };
+  change();
+  if (!S.linA) return draw();
+  if (S.fit) fitView();
+  else { const q = cvA.getBoundingClientRect(); S.ox = c.x - q.width / 2 / S.scale; S.oy = c.y - q.height / 2 / S.scale; }
+  draw();
+}
 function setMode(m) {
-  S.mode = m;
   document.querySelectorAll("#mode button").forEach((b) => b.classList.toggle("on", b.dataset.mode === m));
-  requestAnimationFrame(() => { if (S.fit && S.linA) fitView(); draw(); });
+  relayout(() => { S.mode = m; $("#stage").className = "stage " + (m === "side" ? "side" : "single"); });
 }
 function setKind(k) {
   S.kind = k; S.diffSrc = null;
@@ -519,12 +565,14 @@ function init() {
   document.querySelectorAll("#mode button").forEach((b) => b.addEventListener("click", () => setMode(b.dataset.mode)));
   document.querySelectorAll("#diffkind button").forEach((b) => b.addEventListener("click", () => setKind(b.dataset.kind)));
   $("#exposure").addEventListener("input", (ev) => { S.stops = +ev.target.value; $("#exposure-out").textContent = S.stops.toFixed(1); retone(); draw(); });
+  $("#bin").addEventListener("change", (ev) => setBin(+ev.target.value));
+  $("#regions-on").addEventListener("change", (ev) => { S.showRegions = ev.target.checked; draw(); });
   $("#tonemap").addEventListener("change", (ev) => { S.tone = ev.target.value; retone(); draw(); });
   $("#zoom").addEventListener("change", (ev) => { if (ev.target.value === "fit") { fitView(); draw(); } else zoomTo(+ev.target.value); });
   $("#diffscale").addEventListener("change", (ev) => { const v = +ev.target.value; if (v > 0) { S.diffScale[S.a.id + "|" + S.b.id + "|" + S.kind] = v; S.diffSrc = null; draw(); } });
   for (const cv of [cvA, cvB]) {
     let drag = null;
-    cv.addEventListener("wheel", (ev) => { ev.preventDefault(); const p = pixelAt(cv, ev); zoomTo(S.scale * (ev.deltaY < 0 ? 1.25 : 0.8), p.cx, p.cy); $("#zoom").value = "fit"; }, { passive: false });
+    cv.addEventListener("wheel", (ev) => { ev.preventDefault(); const p = pixelAt(cv, ev); zoomTo(S.scale * (ev.deltaY < 0 ? 1.25 : 0.8), p.cx, p.cy); }, { passive: false });
     cv.addEventListener("mousedown", (ev) => {
       const p = pixelAt(cv, ev), w = cv.getBoundingClientRect().width;
       drag = S.mode === "wipe" && Math.abs(p.cx - S.wipe * w) < 12 ? { wipe: true } : { x: ev.clientX, y: ev.clientY, ox: S.ox, oy: S.oy };
