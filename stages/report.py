@@ -9,7 +9,9 @@ from their thumbnails and writes the PDF, so a changed light recomputes one ligh
 comparisons, not all of them.  With references the PDF leads with the distance to them
 (title page and the pages after it) and ``metrics.json`` gains ``ground_truth`` (per
 lighting condition) and ``thesis`` (docs/ground-truth.md "In metrics.json"); without,
-``ground_truth`` is empty and ``ground_truth_skipped`` says why, as the title page does."""
+``ground_truth`` is empty and ``ground_truth_skipped`` says why, as the title page does.
+Beside the PDF, ``report.html``: every image of the run to compare pixel by pixel, with the
+same numbers (:mod:`dermis.reports.interactive_page`, docs/report-page.md)."""
 from __future__ import annotations
 
 import json

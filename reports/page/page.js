@@ -314,13 +314,14 @@ function buildDiff() {
 function legend(sc, lut) {
   const cv = $("#legend-bar"), ctx = cv.getContext("2d");
   for (let i = 0; i < 256; i++) { const c = lut[Math.floor(i * lut.length / 256)]; ctx.fillStyle = `rgb(${c})`; ctx.fillRect(i, 0, 1, 12); }
-  const u = S.kind === "relative" ? (x) => (100 * x).toPrecision(3) + " %" : fmtV;
-  if (S.kind === "flip") { $("#lg-lo").textContent = "0"; $("#lg-mid").textContent = fmtV(sc / 2); $("#lg-hi").textContent = fmtV(sc); }
+  const short = (x) => String(Number(x.toPrecision(3)));
+  const u = S.kind === "relative" ? (x) => short(100 * x) + " %" : short;
+  if (S.kind === "flip") { $("#lg-lo").textContent = "0"; $("#lg-mid").textContent = short(sc / 2); $("#lg-hi").textContent = short(sc); }
   else { $("#lg-lo").textContent = u(-sc); $("#lg-mid").textContent = "0"; $("#lg-hi").textContent = u(sc); }
   $("#legend-note").textContent = S.kind === "signed" ? "luminance A − B, linear radiance (blue: A darker, red: A brighter)"
     : S.kind === "relative" ? "luminance (A − B) / max(B, 5 % of B's mean)"
       : `HDR-FLIP of the model against the reference on the reference's pixels (mean ${S.flipMap.mean.toFixed(3)})`;
-  $("#diffscale-unit").textContent = S.kind === "relative" ? "(fraction)" : S.kind === "flip" ? "(FLIP)" : "(radiance)";
+  $("#diffscale-unit").textContent = S.kind === "relative" ? "(fraction of B)" : S.kind === "flip" ? "(FLIP, 0 to scale)" : "(radiance)";
 }
 function sizeCanvas(cv) {
   const r = cv.getBoundingClientRect(), dpr = window.devicePixelRatio || 1;
@@ -557,6 +558,12 @@ function showTab(name) {
 function init() {
   $("#scene-name").textContent = `${M.scene} · ${IMAGES.length} images · interactive comparison`;
   document.querySelectorAll("#tabs button").forEach((b) => b.addEventListener("click", () => showTab(b.dataset.tab)));
+  const base = IMAGES.find((e) => e.model === M.baseline);
+  $("#grid-note").textContent = "Under each image: its seconds; its distance to the path-traced reference " +
+    "(relative RMSE on 4×4 blocks of reference pixels ± 1 standard error of both images' noise; n.r.: not resolved)" +
+    (base ? `; its distance to ${base.label} (relative RMSE ± what the two images' noise alone gives)` : "") +
+    ". Click an image to compare it with the reference pixel by pixel.";
+  if (M.truth_skipped) $("#grid-note").textContent += " " + M.truth_skipped;
   buildFilters(); buildGrid(); buildTimings(); buildConclusions();
   fillSelect($("#sel-a")); fillSelect($("#sel-b"));
   $("#sel-a").addEventListener("change", (ev) => openCompare(ev.target.value, S.b.id));
