@@ -93,14 +93,16 @@ def main(argv=None) -> int:
     ap.add_argument("--cache", default="/tmp/dermis-bench-report-page")
     ap.add_argument("--page", default=None, help="measure this page (no run)")
     args = ap.parse_args(argv)
-    write_s = None
+    write_s, load_before = None, os.getloadavg()
     if args.page:
         page = Path(args.page)
     else:
         page, write_s = run_default(args.cache)
     result = {"what": "report.html of the default scene (scenes/default.toml)",
               "host": {"cpu_count": os.cpu_count(), "machine": platform.machine(),
-                       "python": platform.python_version()},
+                       "python": platform.python_version(),
+                       # other jobs share the machine: its 1-minute load before and after
+                       "load_average_1min": [load_before[0], os.getloadavg()[0]]},
               "write_page_s": write_s, "sizes": sizes(page), "browser": browser_times(page)}
     RESULT.write_text(json.dumps(result, indent=1) + "\n")
     print(json.dumps(result, indent=1))
