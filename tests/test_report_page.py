@@ -137,6 +137,14 @@ def _browser():
     return sync_api.sync_playwright, CHROMIUM
 
 
+def _launch(p, exe):
+    try:   # --no-sandbox: CI runs as root, where Chromium's sandbox refuses to start
+        return p.chromium.launch(executable_path=exe, args=["--no-sandbox"])
+    except Exception as exc:   # Playwright's Error: the browser here cannot start
+        pytest.skip(f"{exe} does not start under Playwright ({str(exc).splitlines()[0]}): "
+                    "browser test skipped")
+
+
 def _pick_pixel(exr_a: Path) -> tuple[int, int]:
     """A pixel on the face away from the silhouette: the brightest of the image's central
     quarter."""
@@ -157,11 +165,7 @@ def test03_browser_grid_and_pixel_readout(study, tmp_path):
     man = _manifest((folder / PAGE).read_text())
     errors = []
     with sync_playwright() as p:
-        try:   # --no-sandbox: CI runs as root, where Chromium's sandbox refuses to start
-            browser = p.chromium.launch(executable_path=exe, args=["--no-sandbox"])
-        except Exception as exc:   # Playwright's Error: the browser here cannot start
-            pytest.skip(f"{exe} does not start under Playwright ({str(exc).splitlines()[0]}): "
-                        "browser test skipped")
+        browser = _launch(p, exe)
         page = browser.new_page(viewport={"width": 1400, "height": 900})
         page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
         page.on("pageerror", lambda e: errors.append(str(e)))
@@ -223,3 +227,80 @@ def test03_browser_grid_and_pixel_readout(study, tmp_path):
             shutil.copy(png, Path(shots) / f"test-{png.name}")
     assert math.isfinite(sum(got_a))
 
+
+
+def _image(model: str, light: str, geometry: str, value: float, size: int = 8):
+    from dermis.pipeline.artifacts import RenderedImage
+    lin = np.full((size, size, 3), value, np.float32)
+    lin[0] = 0.0                                   # a background row
+    mask = lin[..., 0] > 0
+    return RenderedImage(lin, mask, {"total": 1.5}, {"model": model, "light": light,
+                                                      "geometry": geometry})
+
+
+def _synthetic_page(folder: Path) -> tuple[Path, dict]:
+    from dermis.reports.interactive_page import write_page
+    images = {"a": _image("bssrdf", "point", "high", 0.5),
+              "b": _image("plugin_model", "point", "high", 0.25),
+              "c": _image("plugin_model", "point@nose", "high", 0.125),
+              "d": _image("bssrdf", "point@nose", "high", 0.0625)}
+    refs = {"point@nose": _image("reference", "point@nose", "high", 0.3, size=4)}
+    page = write_page(folder, images, refs, {"reference_model": "bssrdf"}, scene_name="x")
+    return page, images
+
+
+def test05_new_models_views_and_references_need_no_change(tmp_path):
+    """The page is built from the images' own keys: a model no registry knows, a close-up
+    view's lighting label ``<condition>@<view>`` and a reference of that view each appear
+    with their keys (the unknown model under its own name), every image's data included;
+    without references or metrics the page says so and lists the images alone."""
+    from dermis.reports.interactive_page import write_page
+    page, images = _synthetic_page(tmp_path)
+    man = _manifest(page.read_text())
+    got = {(e["kind"], e["model"], e["condition"], e["view"], e["label"])
+           for e in man["images"]}
+    assert ("model", "plugin_model", "point", "main", "plugin_model") in got
+    assert ("model", "plugin_model", "point", "nose", "plugin_model") in got
+    assert ("reference", "reference", "point", "nose", "Reference (Mitsuba 3)") in got
+    assert len(man["images"]) == 5
+    for e in man["images"]:
+        v = page_data.decode_linear(_block(page.read_text(), e["key"]), e["width"], e["height"])
+        assert v.shape == (e["height"], e["width"], 3) and v[-1, -1, 0] > 0
+    plugin = next(e for e in man["images"] if e["model"] == "plugin_model"
+                  and e["view"] == "main")
+    # no differences or ground truth in these metrics: no distances, the time all the same
+    assert "baseline" not in plugin and plugin["truth"] is None and plugin["seconds"] == 1.5
+    page = write_page(tmp_path, {"b": images["b"]}, {}, {"ground_truth_skipped": "no Mitsuba"},
+                      scene_name="x")
+    man = _manifest(page.read_text())
+    assert man["truth_skipped"] == "no Mitsuba" and len(man["images"]) == 1
+
+
+def test06_browser_shows_a_close_up_view_of_its_own(tmp_path):
+    """In Chromium, the synthetic study of test05: a View choice appears with the main
+    camera and the close-up; the close-up's grid holds its two images and its reference; its
+    comparator opens (a 4-pixel reference beside 8-pixel images) and reads the reference's
+    value at a pixel; no console error."""
+    sync_playwright, exe = _browser()
+    page_path, _ = _synthetic_page(tmp_path)
+    errors = []
+    with sync_playwright() as p:
+        browser = _launch(p, exe)
+        page = browser.new_page(viewport={"width": 1200, "height": 800})
+        page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(page_path.resolve().as_uri())
+        views = page.eval_on_selector_all('button[data-filter="view"]',
+                                          "els => els.map(e => e.dataset.value)")
+        assert sorted(views) == ["main", "nose"]
+        page.click('button[data-filter="view"][data-value="nose"]')
+        cards = page.eval_on_selector_all("#grid .card", "els => els.map(e => e.title)")
+        assert len(cards) == 3 and any("Reference" in c for c in cards)
+        page.locator("#grid .card").first.click()
+        page.wait_for_function("window.dermis.ready")
+        pos = page.evaluate("window.dermis.clientOf(7, 7)")
+        page.mouse.move(pos["x"], pos["y"])
+        got_b = json.loads(page.get_attribute("#ro-b", "data-rgb"))
+        assert _half_close(got_b, [0.3, 0.3, 0.3])
+        browser.close()
+    assert not errors, errors
