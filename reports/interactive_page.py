@@ -229,7 +229,10 @@ def write_page(out_dir, images: dict, refs: dict, metrics: dict, *, scene_name: 
               else refs[e["light"]] for e in entries]
     exposures = {}
     for light in sorted({e["light"] for e in entries}):
-        group = [a.linear for e, a in zip(entries, arrays) if e["light"] == light]
+        # the images stage's exposure: over the models' images of the condition (the
+        # reference's noisy pixels would move the percentile), else over what there is
+        here = [(e, a) for e, a in zip(entries, arrays) if e["light"] == light]
+        group = [a.linear for e, a in here if e["kind"] == "model"] or [a.linear for _, a in here]
         exposures[light] = math.log2(shared_exposure(group))
     with ThreadPoolExecutor(2) as pool:   # numpy and zlib release the GIL: ~1.8x on 2 cores
         encoded = pool.map(lambda im: page_data.encode_linear(im.linear), arrays)

@@ -202,6 +202,11 @@ def test03_browser_grid_and_pixel_readout(study, tmp_path):
         assert _half_close(got_a, want_a), (got_a, want_a.tolist())
         assert _half_close(got_b, want_b), (got_b, want_b.tolist())
         assert min(want_a) > 0
+        page.keyboard.press("ArrowRight")      # the read-out one pixel over
+        assert page.inner_text("#ro-xy") == f"x {x + 1}, y {y}"
+        assert _half_close(json.loads(page.get_attribute("#ro-a", "data-rgb")),
+                           read_image(exr_a, channels=3)[y, x + 1])
+        page.mouse.move(pos["x"], pos["y"])
         region = page.get_attribute("#ro-region", "data-region")
         assert region in (man["regions"]["names"] + [""])
         page.screenshot(path=str(tmp_path / "compare.png"))

@@ -599,6 +599,11 @@ function init() {
     else if (ev.key === "s" || ev.key === "S") openCompare(S.b.id, S.a.id);
     else if (ev.key === "0") { fitView(); draw(); }
     else if ("12345".includes(ev.key)) zoomTo(2 ** (+ev.key - 1));
+    else if (ev.key.startsWith("Arrow") && S.last) {   // the read-out one pixel further
+      ev.preventDefault();
+      const d = { ArrowLeft: [-1, 0], ArrowRight: [1, 0], ArrowUp: [0, -1], ArrowDown: [0, 1] }[ev.key];
+      readout(Math.max(0, Math.min(S.W - 1, S.last.x + d[0])), Math.max(0, Math.min(S.H - 1, S.last.y + d[1])));
+    }
   });
   window.addEventListener("resize", () => { if (S.fit && S.linA) fitView(); draw(); });
 }
