@@ -9,7 +9,9 @@ from their thumbnails and writes the PDF, so a changed light recomputes one ligh
 comparisons, not all of them.  With references the PDF leads with the distance to them
 (title page and the pages after it) and ``metrics.json`` gains ``ground_truth`` (per
 lighting condition) and ``thesis`` (docs/ground-truth.md "In metrics.json"); without,
-``ground_truth`` is empty and ``ground_truth_skipped`` says why, as the title page does."""
+``ground_truth`` is empty and ``ground_truth_skipped`` says why, as the title page does.
+Beside the PDF, ``report.html``: every image of the run to compare pixel by pixel, with the
+same numbers (:mod:`dermis.reports.interactive_page`, docs/report-page.md)."""
 from __future__ import annotations
 
 import json
@@ -22,13 +24,14 @@ from dermis.pipeline.registry import stage
 from dermis.reports import diff, pdf_report
 from dermis.reports.comparison_images import load_thumbnails
 from dermis.reports.ground_truth import ground_truth_section
+from dermis.reports.interactive_page import write_page
 from dermis.reports.light_differences import merge_light_differences
 from dermis.reports.profile_pages import profile_pages
 from dermis.reports.requirement_pages import requirement_pages
-from dermis.reports.requirements import auto_verdicts, requirements_of
+from dermis.reports.requirements import auto_verdicts, requirements_of, view_cameras
 
 NAME = "report"
-VERSION = 4
+VERSION = 5
 KERNELS = ()
 GROUND_TRUTH_MESH = "mesh_high"   # the references are of the high mesh; regions are on it
 
@@ -141,7 +144,11 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
                                   timings_extra=extra, credits=params["credits"], tiles=tiles,
                                   image_tiles=thumbs, extra_pages=extra_pages, opening_pages=opening,
                                   truth=gt_info["title"])
-    names = [Path(f).name for f in files] + [pdf.name]
+    page = write_page(ctx.out_dir, images, refs, metrics, scene_name=params["scene_name"],
+                      device=ctx.cl.description, timings_extra=extra,
+                      mesh=inputs[GROUND_TRUTH_MESH] if req or refs else None,
+                      cameras=view_cameras(req["cameras"]) if req else None)
+    names = [Path(f).name for f in files] + [pdf.name, page.name]
     pages = (pdf_report.report_page_count(images, metrics) + added["profiles"] + added["requires"]
              + gt_info["pages"])
     summary = {k: gt_info[k] for k in ("references", "pages", "ranking", "thesis") if k in gt_info}
