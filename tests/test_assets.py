@@ -54,8 +54,9 @@ def test03_default_scene_is_the_scan_under_the_real_sunset():
     assert src["file_sha256"] == _sums(Path(src["file"]).parent)["LeePerrySmith_cm.obj"]
     env = [l for l in scene.lights if l.type == "environment"]
     assert env and env[0].map.endswith("venice_sunset_1k.hdr")
-    assert [label for label, _ in scene.light_groups()] == ["point", "area",
+    assert [label for label, _ in scene.light_groups("main")] == ["point", "area",
                                                             "dir_left+dir_right", "sunset"]
+    assert [v.name for v in scene.views] == ["ear", "nose_shadow", "lips", "eyelid"]
     assert any(ATTRIBUTION in c for c in scene.credits())
 
 

@@ -301,6 +301,11 @@ def bssrdf_profiles(cl_env):
         m = registry.model(name)
         if m.stage == "bssrdf":
             kind = m.profile or "multipole"
+            if kind == "single_layer":     # the stack's single-layer twin (stages/profiles.py)
+                from dermis.optics.single_layer import single_layer_equivalent
+                single, _ = single_layer_equivalent(stack, build_profiles(stack).Rd)
+                out[name] = build_profiles(single)
+                continue
             out[name] = build_profiles(stack, model=kind, photons=20000, env=cl_env)
     return stack, out
 
