@@ -18,7 +18,7 @@ import json
 from dataclasses import asdict
 from pathlib import Path
 
-from dermis.pipeline.config import CameraConfig
+from dermis.pipeline.config import CameraConfig, condition_of
 from dermis.pipeline.graph import Node, StageResult
 from dermis.pipeline.registry import stage
 from dermis.reports import diff, pdf_report
@@ -27,6 +27,8 @@ from dermis.reports.ground_truth import ground_truth_section
 from dermis.reports.interactive_page import write_page
 from dermis.reports.light_differences import merge_light_differences
 from dermis.reports.profile_pages import profile_pages
+from dermis.reports.requirement_pages import requirement_pages
+from dermis.reports.requirements import auto_verdicts, requirements_of
 
 NAME = "report"
 VERSION = 5
@@ -55,6 +57,12 @@ def node(scene, render_ids: list[str], irradiance: dict[str, tuple[str, str]],
             + ((images_id,) if images_id else ()) + tuple(params["references"]))
     if reference_ids:
         params["camera"] = asdict(scene.camera)
+    if any("high" in scene.geometries_of(label) for label, _ in scene.light_groups()):
+        # what the scene requires: regions of every view's pixels, on the high mesh
+        params["requires"] = {**asdict(scene.report), "cameras": {
+            label: asdict(scene.camera_of(label)) for label, _ in scene.light_groups()},
+            "chosen": dict(scene.chosen)}
+    if reference_ids or "requires" in params:
         deps += (GROUND_TRUTH_MESH,)
     deps += tuple(params["profiles"]) + tuple(params["causes"])
     return Node(NAME, NAME, __name__, params, deps, label="grids + PDF")
@@ -88,6 +96,11 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     extra = {}
     for nid, (label, mesh_node) in params["irradiance"].items():
         extra[(label, mesh_node)] = float(inputs[nid].info.get("seconds", 0.0))
+    for im in images.values():   # a close-up's BSSRDF reads its condition's pass
+        for mesh_node in {m for _, m in params["irradiance"].values()}:
+            if (condition_of(im.info["light"]), mesh_node) in extra:
+                extra[(im.info["light"], mesh_node)] = extra[(condition_of(im.info["light"]),
+                                                              mesh_node)]
     thumbs = None
     if params.get("images"):   # the images stage's tone-mapped thumbnails for the image pages
         thumbs, _ = load_thumbnails(inputs[params["images"]])
@@ -105,14 +118,25 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
             metrics["causes"] = gt_info["causes"]
     else:
         metrics["ground_truth_skipped"] = gt_info["title"]["note"]
+    req = params.get("requires")
+    if req:
+        metrics["views"] = {view: {"requires": rec} for view, rec in requirements_of(
+            images, inputs[GROUND_TRUTH_MESH], req, metrics.get("ground_truth"), extra).items()}
+        for view, rec in auto_verdicts({v: r["requires"] for v, r in metrics["views"].items()},
+                                       req["chosen"], req["accuracy"]).items():
+            metrics["views"].setdefault(view, {})["auto"] = rec
     mpath = ctx.out_dir / "metrics.json"
     mpath.write_text(json.dumps(metrics, indent=1, sort_keys=True, default=float))
     if mpath.name not in {Path(f).name for f in files}:
         files.append(mpath)
     profiles = {nid: inputs[nid] for nid in params.get("profiles", ())}
-    added = {"profiles": 0}
+    added = {"profiles": 0, "requires": 0}
 
-    def extra_pages(pdf):   # the profile page, then the ground truth's details
+    def extra_pages(pdf):   # what the scene requires, the profile page, the truth's details
+        if metrics.get("views"):
+            added["requires"] = requirement_pages(pdf, metrics["views"],
+                                                  accuracy=req["accuracy"],
+                                                  threshold=req["effect_threshold"])
         added["profiles"] = profile_pages(pdf, profiles)
         details(pdf)
     pdf = pdf_report.write_report(images, metrics, ctx.out_dir / "report.pdf",
@@ -120,12 +144,14 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
                                   timings_extra=extra, credits=params["credits"], tiles=tiles,
                                   image_tiles=thumbs, extra_pages=extra_pages, opening_pages=opening,
                                   truth=gt_info["title"])
+    cameras = (params.get("requires") or {}).get("cameras") or {
+        light: params["camera"] for light in refs}   # lighting label -> its view's camera
     page = write_page(ctx.out_dir, images, refs, metrics, scene_name=params["scene_name"],
                       device=ctx.cl.description, timings_extra=extra,
-                      mesh=inputs[GROUND_TRUTH_MESH] if refs else None,
-                      cameras={"main": CameraConfig(**params["camera"])} if refs else None)
+                      mesh=inputs.get(GROUND_TRUTH_MESH),
+                      cameras={k: CameraConfig(**v) for k, v in cameras.items()})
     names = [Path(f).name for f in files] + [pdf.name, page.name]
-    pages = (pdf_report.report_page_count(images, metrics) + added["profiles"]
+    pages = (pdf_report.report_page_count(images, metrics) + added["profiles"] + added["requires"]
              + gt_info["pages"])
     summary = {k: gt_info[k] for k in ("references", "pages", "ranking", "thesis") if k in gt_info}
     return StageResult(files=names, info={"pages": pages, "ground_truth": summary})
