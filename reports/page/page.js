@@ -460,7 +460,7 @@ function regionTable() {
       if (!g) return el("td", { class: "unres-num", text: e && e.kind === "reference" ? "ref." : "–" });
       return el("td", { class: g.resolved ? "" : "unres-num", text: pm(g.rel_diff, g.stderr, 0) });
     };
-    const rr = ref && ref.regions[name];
+    const rr = ref && ref.regions[name] && ref.regions[name].pixels ? ref.regions[name] : null;
     const lum = rr ? rr.ref_mean_rgb.reduce((s, v, c) => s + LUM[c] * v, 0) : null;
     body.append(el("tr", { class: S.region === k + 1 ? "hl" : "", "data-region": name },
       el("td", {}, el("span", { class: "swatch", style: `background: rgb(${col})` }), name.replace("_", " ")),
