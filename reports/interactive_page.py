@@ -11,7 +11,8 @@ load time: docs/report-page.md).
 
 Nothing here names a model, light, view or geometry: the manifest lists every image of the
 run with the (view, lighting condition, geometry) its ``info`` gives (a lighting label
-``<condition>@<view>`` belongs to the scene's close-up view ``<view>``),
+``<condition>@<view>`` belongs to the close-up view ``<view>``,
+:data:`dermis.pipeline.schema.VIEW_MARK`),
 its label from :mod:`dermis.models.catalog`, its time and its distances from ``metrics.json``,
 and the page builds its selectors, grids and tables from that list.
 """
@@ -33,6 +34,7 @@ from dermis.pipeline.config import condition_of
 from dermis.reports.requirements import view_of_label
 from dermis.geometry.regions import REGION_COLOURS, REGIONS, block_mean
 from dermis.models import catalog
+from dermis.pipeline.schema import MAIN_VIEW
 from dermis.reports import page_data
 from dermis.reports.diff import diverging_lut
 from dermis.reports.ground_truth import GEOMETRY, region_labels_for
@@ -218,8 +220,8 @@ def write_page(out_dir, images: dict, refs: dict, metrics: dict, *, scene_name: 
     images : node id -> RenderedImage (the models'); refs : lighting label -> the reference
     RenderedImage; metrics : the report's ``metrics.json`` object; timings_extra : (lighting
     label, mesh node) -> seconds of the BSSRDF's irradiance pass; mesh, cameras : the high
-    mesh and {view name: CameraConfig}, for the face region of every pixel (without them
-    the page shows no regions).
+    mesh and {lighting label: the CameraConfig of its view}, for the face region of every
+    pixel of each view (without them the page shows no regions).
     """
     entries = image_entries(images, refs, metrics, timings_extra)
     by_key = {(im.info.get("model"), im.info.get("light"), im.info.get("geometry")): im
@@ -252,13 +254,14 @@ def write_page(out_dir, images: dict, refs: dict, metrics: dict, *, scene_name: 
             e["flip"] = {"key": key, "against": ref["id"], "mean": got[0],
                          "width": ref["width"], "height": ref["height"]}
     regions = {}
-    for view, camera in (cameras or {}).items() if mesh is not None else ():
+    views = {_split_label(label)[1]: cam for label, cam in sorted((cameras or {}).items())}
+    for view, camera in sorted(views.items()) if mesh is not None else ():
         labels = region_labels_for(mesh, camera, width=camera.width, height=camera.height)
         key = f"r{len(regions)}"
         blocks.append(page_data.data_block(key, page_data.encode_u8(labels)))
         regions[view] = {"key": key, "width": camera.width, "height": camera.height}
     manifest = {
-        "scene": scene_name, "device": device, "images": entries,
+        "scene": scene_name, "device": device, "images": entries, "main_view": MAIN_VIEW,
         "exposure_stops": exposures, "regions": {"names": list(REGIONS),
                                                  "colours": [list(c) for c in REGION_COLOURS],
                                                  "views": regions},

@@ -36,7 +36,7 @@ from dermis.pipeline.config import MAIN_VIEW, VIEW_MARK, condition_of
 from dermis.reports.truth_noise import RESOLVE_K, region_difference
 
 __all__ = ["Effect", "EFFECTS", "scene_requirements", "requirements_of", "auto_verdicts",
-           "view_of_label", "view_cameras", "COMPLETE_MODELS"]
+           "view_of_label", "COMPLETE_MODELS"]
 
 
 @dataclass(frozen=True)
@@ -198,12 +198,6 @@ def _cheapest(by, label, region, sel, accuracy, truth, extra) -> dict:
     meets = sorted((v["seconds"], m) for m, v in errors.items() if v["verdict"] == "meets")
     return {"against": against, "models": errors,
             "cheapest": meets[0][1] if meets else None}
-
-
-def view_cameras(cameras: dict) -> dict:
-    """{view name: CameraConfig} of {lighting label: camera dict} (the report's settings)."""
-    from dermis.pipeline.config import CameraConfig
-    return {view_of_label(label): CameraConfig(**c) for label, c in cameras.items()}
 
 
 def requirements_of(images: dict, mesh, settings: dict, truth: dict | None,

@@ -28,7 +28,7 @@ from dermis.reports.interactive_page import write_page
 from dermis.reports.light_differences import merge_light_differences
 from dermis.reports.profile_pages import profile_pages
 from dermis.reports.requirement_pages import requirement_pages
-from dermis.reports.requirements import auto_verdicts, requirements_of, view_cameras
+from dermis.reports.requirements import auto_verdicts, requirements_of
 
 NAME = "report"
 VERSION = 5
@@ -144,10 +144,12 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
                                   timings_extra=extra, credits=params["credits"], tiles=tiles,
                                   image_tiles=thumbs, extra_pages=extra_pages, opening_pages=opening,
                                   truth=gt_info["title"])
+    cameras = (params.get("requires") or {}).get("cameras") or {
+        light: params["camera"] for light in refs}   # lighting label -> its view's camera
     page = write_page(ctx.out_dir, images, refs, metrics, scene_name=params["scene_name"],
                       device=ctx.cl.description, timings_extra=extra,
-                      mesh=inputs[GROUND_TRUTH_MESH] if req or refs else None,
-                      cameras=view_cameras(req["cameras"]) if req else None)
+                      mesh=inputs.get(GROUND_TRUTH_MESH),
+                      cameras={k: CameraConfig(**v) for k, v in cameras.items()})
     names = [Path(f).name for f in files] + [pdf.name, page.name]
     pages = (pdf_report.report_page_count(images, metrics) + added["profiles"] + added["requires"]
              + gt_info["pages"])

@@ -36,8 +36,8 @@ function fmtV(v) {
   const a = Math.abs(v);
   return a >= 1e4 || a < 1e-3 ? v.toExponential(4) : v.toPrecision(5);
 }
-const viewName = (v) => v === "main" ? "main camera" : v;
-const imgTitle = (e) => `${e.label} · ${e.condition}${e.view !== "main" ? " @ " + e.view : ""}` +
+const viewName = (v) => v === M.main_view ? "main camera" : v;
+const imgTitle = (e) => `${e.label} · ${e.condition}${e.view !== M.main_view ? " @ " + e.view : ""}` +
   (e.kind === "model" ? ` · ${e.geometry}` : "");
 
 // ------------------------------------------------------------------ data blocks
@@ -124,7 +124,7 @@ function buildFilters() {
   const box = $("#filters");
   box.textContent = "";
   const views = uniq(IMAGES.map((e) => e.view));
-  if (filt.view === null) filt.view = views.includes("main") ? "main" : views[0];
+  if (filt.view === null) filt.view = views.includes(M.main_view) ? M.main_view : views[0];
   const conds = uniq(IMAGES.filter((e) => e.view === filt.view).map((e) => e.condition));
   const geoms = uniq(IMAGES.filter((e) => e.kind === "model" && e.view === filt.view).map((e) => e.geometry));
   const group = (title, key, values, all) => el("div", { class: "group" }, el("span", { text: title }),
@@ -420,7 +420,7 @@ function readout(x, y) {
   if (inside && S.labels && S.labels.px) region = S.labels.px[sample(S.labels, x, y, S.W, S.H)];
   const name = region > 0 && region <= M.regions.names.length ? M.regions.names[region - 1] : null;
   const ro = $("#ro-region");
-  ro.textContent = !inside ? "—" : !S.labels ? "not computed (no reference)" : name || "none";
+  ro.textContent = !inside ? "—" : !S.labels ? "not computed in this run" : name || "none";
   ro.dataset.region = name || "";
   if (region !== S.region) { S.region = region; regionTable(); }
   draw();
@@ -460,7 +460,7 @@ function regionTable() {
       if (!g) return el("td", { class: "unres-num", text: e && e.kind === "reference" ? "ref." : "–" });
       return el("td", { class: g.resolved ? "" : "unres-num", text: pm(g.rel_diff, g.stderr, 0) });
     };
-    const rr = ref && ref.regions[name];
+    const rr = ref && ref.regions[name] && ref.regions[name].pixels ? ref.regions[name] : null;
     const lum = rr ? rr.ref_mean_rgb.reduce((s, v, c) => s + LUM[c] * v, 0) : null;
     body.append(el("tr", { class: S.region === k + 1 ? "hl" : "", "data-region": name },
       el("td", {}, el("span", { class: "swatch", style: `background: rgb(${col})` }), name.replace("_", " ")),
