@@ -55,9 +55,9 @@ class Knob:
     also: settings a point of this knob needs besides its value (path -> value).
     order: convergence order p of the error in the knob's step h (``|I(h) - I(0)| ~ h^p``,
     h = 1/value or value) assumed for the extrapolation to the converged answer when the
-    three finest values do not fit one (reports/sweep_verify.py): 0.5 for sample counts
-    (Monte Carlo noise falls as N^-1/2), 1 otherwise (a first-order discretisation, the
-    slowest a consistent one converges).
+    three finest values fit no order (reports/sweep_verify.py): 0.5 for sample counts
+    (Monte Carlo noise, independent between values, falls as N^-1/2), 1 otherwise (a
+    first-order discretisation, the slowest a consistent one converges).
     """
 
     path: str
@@ -620,7 +620,7 @@ def _converged(rows: list[dict], spec: SweepSpec) -> dict:
                 r["error_uncertainty"] = 0.0 if r.get("rel_rmse") is not None else None
             continue
         ex = extrapolate([r["values"][name] for r in mine], [r.get("rel_rmse") for r in mine],
-                         knob.finer, knob.order)
+                         knob.finer, knob.order, noise=knob.order == 0.5)
         out[name] = ex
         if ex["finest_error"] is None:
             continue

@@ -6,11 +6,13 @@ recommendations that were rendered before they are made.
   round to round so that no point always runs first (first kernel launches, warm caches,
   background load drift); a point's cost is the median of its samples, with the min and max.
 * Error (:func:`extrapolate`): a knob whose reference is its own finest value is scored
-  against a Richardson extrapolation to the converged answer: with h the knob's step
-  (1/value for a knob that refines upwards, the value for one that refines downwards) and
-  the model ``|I(h) - I(0)| = C h^p`` (Richardson 1911; the order p fitted from the three
-  finest values, else the knob's stated order), the finest point's own error is
-  ``d_{n-1} h_n^p / (h_{n-1}^p - h_n^p)`` with ``d_{n-1}`` its distance to the next-finest.
+  against an extrapolation to the converged answer: with h the knob's step (1/value for a
+  knob that refines upwards, the value for one that refines downwards) and
+  ``|I(h) - I(0)| = C h^p``, the finest point's own error follows from its distance
+  ``d_{n-1}`` to the next-finest: ``d_{n-1} h_n^p / (h_{n-1}^p - h_n^p)`` where the errors
+  share a direction (Richardson 1911), ``d_{n-1} / sqrt(1 + (h_{n-1}/h_n)^2p)`` where they
+  are independent Monte Carlo noise; the order p (and the model) fitted from the three
+  finest values, else the knob's stated ones.
   Every point's error is then bounded by the triangle inequality: distance to the finest plus
   the finest's error, which is also stated as the error's uncertainty.
 * Recommendations (:func:`choose`): the candidate configurations predicted to meet a target
@@ -20,6 +22,7 @@ recommendations that were rendered before they are made.
 """
 from __future__ import annotations
 
+import math
 import statistics
 
 __all__ = ["repeat_seconds", "spread", "extrapolate", "candidates", "choose", "config_id"]
@@ -68,41 +71,66 @@ def _step(value, finer: str) -> float:
     return 1.0 / float(value) if finer == "higher" else float(value)
 
 
-def _order(h: list[float], d: list[float]) -> float | None:
-    """p with (h0^p - h2^p) / (h1^p - h2^p) = d0 / d1 (h0 > h1 > h2 > 0), by bisection."""
-    if not (h[0] > h[1] > h[2] > 0 and d[0] > d[1] > 0):
-        return None
-    want = d[0] / d[1]
-
-    def ratio(p):
-        return (h[0] ** p - h[2] ** p) / (h[1] ** p - h[2] ** p)
-
+def _bisect(f, want: float) -> float | None:
+    """p in [0.05, 6] with f(p) = want (f increasing), or None."""
     lo, hi = 0.05, 6.0
-    if not ratio(lo) <= want <= ratio(hi):
+    if not f(lo) <= want <= f(hi):
         return None
     for _ in range(80):
         mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if ratio(mid) < want else (lo, mid)
+        lo, hi = (mid, hi) if f(mid) < want else (lo, mid)
     return 0.5 * (lo + hi)
 
 
-def extrapolate(values: list, errors: list[float], finer: str, order: float) -> dict:
-    """The finest value's own error by Richardson extrapolation from the finest ones.
+def _order(h: list[float], d: list[float], noise: bool) -> float | None:
+    """The order p that fits the distances d of h[0] > h[1] to the finest h[2] (or None).
+
+    bias (errors share one direction): d_i = C (h_i^p - h_2^p);
+    noise (errors independent between values): d_i^2 = C^2 (h_i^2p + h_2^2p)."""
+    if not (h[0] > h[1] > h[2] > 0 and d[0] is not None and d[1] and d[0] > d[1] > 0):
+        return None
+    if noise:
+        return _bisect(lambda p: (h[0] ** (2 * p) + h[2] ** (2 * p))
+                       / (h[1] ** (2 * p) + h[2] ** (2 * p)), (d[0] / d[1]) ** 2)
+    return _bisect(lambda p: (h[0] ** p - h[2] ** p) / (h[1] ** p - h[2] ** p), d[0] / d[1])
+
+
+def _finest_error(h1: float, hn: float, d1: float, p: float, noise: bool) -> float:
+    if noise:
+        return float(d1 / math.sqrt(1.0 + (h1 / hn) ** (2 * p)))
+    return float(d1 * hn ** p / (h1 ** p - hn ** p))
+
+
+def extrapolate(values: list, errors: list[float], finer: str, order: float,
+                noise: bool = False) -> dict:
+    """The finest value's own error, extrapolated from the finest ones.
 
     ``values`` sorted coarse to fine, ``errors`` their distance (relative RMSE) to the finest
-    (the last is 0).  Returns ``{"order", "order_from", "finest_error"}``; ``finest_error``
-    is None with fewer than two values or a zero distance to the next-finest."""
-    if len(values) < 2:
-        return {"order": order, "order_from": "stated", "finest_error": None}
+    (the last is 0).  Two models of how a value's error |I(h) - I(0)| = C h^p relates to
+    the distances: bias (the errors of all values point one way, Richardson's case) and
+    noise (independent Monte Carlo errors, adding in quadrature).  The model whose order fits
+    the three finest distances is used (both: the larger finest error); neither: the knob's
+    stated model (``noise``) and ``order``.  Returns ``{"model", "order", "order_from",
+    "finest_error"}``; ``finest_error`` is None with fewer than two values."""
+    if len(values) < 2 or errors[-2] is None:
+        return {"model": "noise" if noise else "bias", "order": order,
+                "order_from": "stated for the knob", "finest_error": None}
     h = [_step(v, finer) for v in values]
-    p = _order(h[-3:], errors[-3:]) if len(values) >= 3 else None
-    src = "fit of the three finest values" if p is not None else "stated for the knob"
-    p = order if p is None else p
-    hn, h1, d1 = h[-1], h[-2], errors[-2]
-    if not (h1 > hn > 0) or d1 is None:
-        return {"order": p, "order_from": src, "finest_error": None}
-    return {"order": p, "order_from": src,
-            "finest_error": float(d1 * hn ** p / (h1 ** p - hn ** p))}
+    h1, hn, d1 = h[-2], h[-1], errors[-2]
+    fits = []
+    if len(values) >= 3:
+        for model in (False, True):
+            p = _order(h[-3:], errors[-3:], model)
+            if p is not None:
+                fits.append((_finest_error(h1, hn, d1, p, model), model, p))
+    if fits:
+        e, model, p = max(fits)
+        src = "fit of the three finest values"
+    else:
+        e, model, p = _finest_error(h1, hn, d1, order, noise), noise, order
+        src = "stated for the knob"
+    return {"model": "noise" if model else "bias", "order": p, "order_from": src,
+            "finest_error": e}
 
 
 # --------------------------------------------------------------------------- recommendations

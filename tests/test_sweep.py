@@ -135,9 +135,15 @@ def test02d_extrapolation_recovers_the_finest_error_of_a_power_law():
     d = [t - true[-1] for t in true]
     ex = extrapolate(n, d, "higher", order=1.0)
     assert abs(ex["order"] - 0.5) < 1e-6 and ex["order_from"].startswith("fit")
+    assert ex["model"] == "bias" and abs(ex["finest_error"] - true[-1]) < 1e-9
+    # independent Monte Carlo noise, sigma_i = 0.2 N^-1/2: the distances add in quadrature,
+    # d_i^2 = sigma_i^2 + sigma_n^2; the noise model fits p = 0.5 and returns sigma_n
+    dn = [(s ** 2 + true[-1] ** 2) ** 0.5 for s in true[:-1]] + [0.0]
+    ex = extrapolate(n, dn, "higher", order=1.0)
+    assert ex["model"] == "noise" and abs(ex["order"] - 0.5) < 1e-6
     assert abs(ex["finest_error"] - true[-1]) < 1e-9
     # two values: the stated order
-    ex = extrapolate(n[-2:], d[-2:], "higher", order=0.5)
+    ex = extrapolate(n[-2:], d[-2:], "higher", order=0.5, noise=False)
     assert ex["order_from"] == "stated for the knob" and abs(ex["finest_error"] - true[-1]) < 1e-9
     assert spread([3.0, 1.0, 2.0]) == {"seconds": 2.0, "seconds_min": 1.0, "seconds_max": 3.0,
                                        "seconds_samples": [3.0, 1.0, 2.0]}
