@@ -58,10 +58,13 @@ def test01_sweep_writes_points_fronts_and_error_falls_as_epsilon_is_refined(seri
     # error (against the brute-force gather) is that of the same configuration's point
     assert set(res["recommended"]) == {"rel_rmse<=0.01", "rel_rmse<=0.05", "defaults"}
     five = res["recommended"]["rel_rmse<=0.05"]
-    assert five["meets"] and five["measured"]["rel_rmse"] <= 0.05
-    assert five["config"] == {"bssrdf.epsilon": 1.0}       # the cheaper one meets 5 %
-    assert abs(five["measured"]["rel_rmse"] - pts[1.0]["rel_rmse"]) < 1e-12
-    assert five["predicted"]["rel_rmse"] == pts[1.0]["rel_rmse"]
+    assert five["meets"] and five["measured"]["rel_rmse"] <= 0.05 and not five["misses"]
+    # both values meet 5 %: the one predicted cheaper (median seconds) is rendered first
+    cheaper = min(pts.values(), key=lambda p: p["seconds"])["values"]
+    assert five["config"] == cheaper
+    eps = cheaper["bssrdf.epsilon"]
+    assert abs(five["measured"]["rel_rmse"] - pts[eps]["rel_rmse"]) < 1e-12
+    assert five["predicted"]["rel_rmse"] == pts[eps]["rel_rmse"]
     assert (tmp / "res" / "sweep-recommended.png").is_file()
     assert (tmp / "res" / "sweep.pdf").stat().st_size > 1000
     assert (tmp / "res" / "sweep-bssrdf_epsilon.png").is_file()
