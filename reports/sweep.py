@@ -577,7 +577,9 @@ def run_sweep(scene_path, *, cache, out_dir=None, workers: int = 1, scheduler: s
                      if r.get("rel_rmse") is not None]
             measured = {config_id(r["values"]): {"rel_rmse": r["rel_rmse"],
                                                  "seconds": r["seconds_total"]} for r in rows}
-            result["recommended"][key] = choose(candidates(cands, t, b, 1), measured, t, b)
+            rec = choose(candidates(cands, t, b, 1), measured, t, b)
+            rec["predicted"] = None        # measured, not predicted
+            result["recommended"][key] = rec
     out = Path(out_dir) if out_dir else Path(points[0].scene.output.output_dir) / \
         points[0].scene.scene.name / "sweep"
     out.mkdir(parents=True, exist_ok=True)
@@ -755,8 +757,8 @@ def run(args) -> int:
         m, pr = rec["measured"], rec["predicted"]
         print(f"recommended for {goal}: " + ", ".join(f"{k} = {_fmt(v)}" for k, v in
                                                      rec["config"].items())
-              + f"  (rendered: rel RMSE {m['rel_rmse']:.4f}, {m['seconds']:.2f} s; predicted "
-              f"{pr['rel_rmse']:.4f}, {pr['seconds']:.2f} s"
+              + f"  (rendered: rel RMSE {m['rel_rmse']:.4f}, {m['seconds']:.2f} s"
+              + (f"; predicted {pr['rel_rmse']:.4f}, {pr['seconds']:.2f} s" if pr else "")
               + (f"; {tried - 1} cheaper candidate(s) missed when rendered" if tried > 1 else "")
               + ")")
     return 0
