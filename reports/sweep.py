@@ -36,6 +36,9 @@ from dermis.pipeline.config import scene_from_dict
 from dermis.pipeline.errors import ConfigError, DermisError
 from dermis.pipeline.graph import key_parts, node_key, plan_order
 from dermis.pipeline.plan import build_graph
+from dermis.reports.sweep_plots import plots
+from dermis.reports.sweep_verify import (candidates, choose, config_id, extrapolate,
+                                         repeat_seconds, spread)
 
 __all__ = ["KNOBS", "Knob", "SweepSpec", "parse_sweep", "run_sweep", "pareto_front",
            "recommend", "idle_knobs", "add_parser", "run"]
@@ -50,6 +53,11 @@ class Knob:
     with the Monte Carlo profile table, ``[optics] profile = "monte_carlo"``).
     choices: a categorical knob's values, coarse to fine (``finer = "choices"``).
     also: settings a point of this knob needs besides its value (path -> value).
+    order: convergence order p of the error in the knob's step h (``|I(h) - I(0)| ~ h^p``,
+    h = 1/value or value) assumed for the extrapolation to the converged answer when the
+    three finest values fit no order (reports/sweep_verify.py): 0.5 for sample counts
+    (Monte Carlo noise, independent between values, falls as N^-1/2), 1 otherwise (a
+    first-order discretisation, the slowest a consistent one converges).
     """
 
     path: str
@@ -59,6 +67,7 @@ class Knob:
     doc: str = ""
     choices: tuple = ()
     also: tuple = ()           # ((path, value), ...)
+    order: float = 1.0
 
     def rank(self, value) -> float:
         """Larger = more refined."""
@@ -70,10 +79,11 @@ class Knob:
 KNOBS = {k.path: k for k in (
     Knob("bssrdf.epsilon", "lower", "brute_force", doc="gather solid-angle criterion"),
     Knob("bssrdf.point_density", "higher", doc="irradiance points per pi mfp^2"),
-    Knob("bssrdf.irradiance_samples", "higher", integer=True, doc="irradiance shadow samples"),
+    Knob("bssrdf.irradiance_samples", "higher", integer=True, order=0.5,
+         doc="irradiance shadow samples"),
     Knob("bssrdf.leaf_size", "lower", "brute_force", integer=True, doc="points per octree leaf"),
-    Knob("lights.samples", "higher", integer=True, doc="area/environment light samples"),
-    Knob("render.spp", "higher", integer=True, doc="camera samples per pixel (anti-aliasing)"),
+    Knob("lights.samples", "higher", integer=True, order=0.5, doc="area/environment light samples"),
+    Knob("render.spp", "higher", integer=True, order=0.5, doc="camera samples per pixel (anti-aliasing)"),
     Knob("bake.resolution", "higher", integer=True, doc="baked map resolution"),
     Knob("mesh.low_triangles", "higher", "high_mesh", integer=True,
          doc="triangles of the simplified mesh"),
@@ -82,7 +92,7 @@ KNOBS = {k.path: k for k in (
     # are not scene settings (stages/profiles.py node: model, photons, seed only), so not knobs.
     Knob("optics.profile", "choices", "monte_carlo", choices=("multipole", "monte_carlo"),
          doc="profile model of the BSSRDF (reference: the Monte Carlo table)"),
-    Knob("optics.photons", "higher", integer=True, also=(("optics.profile", "monte_carlo"),),
+    Knob("optics.photons", "higher", integer=True, order=0.5, also=(("optics.profile", "monte_carlo"),),
          doc="photons per channel of the Monte Carlo profile (sets profile = monte_carlo)"),
 )}
 
@@ -98,6 +108,8 @@ class SweepSpec:
     mode: str = "one_at_a_time"
     targets: tuple = (0.01, 0.05)
     budget_s: float | None = None
+    repeats: int = 3           # timing samples per point (median, min-max spread)
+    tries: int = 3             # candidates rendered per recommendation before giving up
 
 
 def _problem(where: str, key: str, msg: str) -> str:
@@ -155,10 +167,10 @@ def parse_sweep(table, where: str) -> SweepSpec:
     """Validate a ``[sweep]`` table; errors name the file, the key, the value and the rule."""
     if not isinstance(table, dict):
         raise ConfigError(f"{where}: sweep = {table!r}: must be a table ([sweep])")
-    extra = set(table) - {"knobs", "mode", "targets", "budget_s"}
+    extra = set(table) - {"knobs", "mode", "targets", "budget_s", "repeats", "tries"}
     if extra:
         raise ConfigError(f"{where}: sweep: unknown keys {sorted(extra)}; allowed: knobs, mode, "
-                          "targets, budget_s")
+                          "targets, budget_s, repeats, tries")
     mode = table.get("mode", "one_at_a_time")
     if mode not in MODES:
         raise ConfigError(_problem(where, "mode", f" = {mode!r}: must be one of {', '.join(MODES)}"))
@@ -185,8 +197,14 @@ def parse_sweep(table, where: str) -> SweepSpec:
     if budget is not None and (isinstance(budget, bool) or not isinstance(budget, (int, float))
                                or not budget > 0):
         raise ConfigError(_problem(where, "budget_s", f" = {budget!r}: must be seconds > 0"))
+    counts = {}
+    for key, lo, default in (("repeats", 1, 3), ("tries", 1, 3)):
+        n = table.get(key, default)
+        if isinstance(n, bool) or not isinstance(n, int) or n < lo:
+            raise ConfigError(_problem(where, key, f" = {n!r}: must be an integer >= {lo}"))
+        counts[key] = n
     return SweepSpec(values, mode, tuple(float(t) for t in targets),
-                     None if budget is None else float(budget))
+                     None if budget is None else float(budget), **counts)
 
 
 # ------------------------------------------------------------------------------ variants
@@ -405,28 +423,39 @@ def recommend(points: list[dict], targets, budget_s) -> dict:
     return out
 
 
-def combine(rows: list[dict], targets, budget_s, base_seconds: float) -> dict:
-    """Settings of every knob together (one-at-a-time sweeps): the cheapest combination of
-    swept values predicted to reach each error target, and the most accurate within the budget.
+def combos(rows: list[dict], base_seconds: float) -> list[tuple]:
+    """Every combination of the swept values of a one-at-a-time sweep with its first-order
+    prediction: (seconds, rel_rmse, config, all defaults).
 
-    Model (first order, stated in sweep.json): each knob's error is independent of the others',
-    so errors add in quadrature, sqrt(sum e_k^2); its time adds to the scene's, T = T_base +
-    sum (t_k(v) - t_k(default)) with t_k the seconds of the nodes knob k changes.  A knob whose
-    default is not among its values counts its full t_k(v)."""
+    Model: each knob's error is independent of the others', so errors add in quadrature,
+    sqrt(sum e_k^2); its time adds to the scene's, T = T_base + sum (t_k(v) - t_k(default))
+    with t_k the seconds of the nodes knob k changes.  A knob whose default is not among its
+    values counts its full t_k(v).  Empty when there are more than 500,000 combinations."""
     by: dict[str, list] = {}
     for r in rows:
         if r.get("rel_rmse") is not None and r["knob"] and len(r["values"]) == 1:
             by.setdefault(r["knob"], []).append(r)
     names = sorted(by)
     if not names or math.prod(len(by[k]) for k in names) > 500_000:
-        return {}
+        return []
     dflt = {k: next((r["seconds"] for r in by[k] if r["is_default"]), 0.0) for k in names}
-    cands = []
+    out = []
     for combo in itertools.product(*(by[k] for k in names)):
         t = base_seconds + sum(r["seconds"] - dflt[k] for k, r in zip(names, combo))
         e = math.sqrt(sum(r["rel_rmse"] ** 2 for r in combo))
-        cands.append((t, e, {k: r["values"][k] for k, r in zip(names, combo)},
-                      all(r["is_default"] for r in combo)))
+        out.append((t, e, {k: r["values"][k] for k, r in zip(names, combo)},
+                    all(r["is_default"] for r in combo)))
+    return out
+
+
+def combine(rows: list[dict], targets, budget_s, base_seconds: float) -> dict:
+    """Settings of every knob together (one-at-a-time sweeps): the cheapest combination of
+    swept values predicted to reach each error target, and the most accurate within the
+    budget, by the first-order model of :func:`combos` (predictions only: what is
+    recommended is rendered first, :mod:`dermis.reports.sweep_verify`)."""
+    cands = combos(rows, base_seconds)
+    if not cands:
+        return {}
 
     def pick(c):
         return None if c is None else {"values": c[2], "predicted_seconds": c[0],
@@ -467,14 +496,9 @@ def run_sweep(scene_path, *, cache, out_dir=None, workers: int = 1, scheduler: s
         raise ConfigError("\n".join(f"{where}: sweep.knobs.{name}: has no effect on this "
                                      f"scene: {why}; remove it from [sweep.knobs]"
                                      for name, why in idle.items()))
-    # only the images are scored: the images / differences / report nodes of every point
-    # would be work (and failure modes) the sweep never reads
-    graphs = []
-    for p in points:
-        nodes, _ = build_graph(p.scene)
-        graphs.append((nodes, [nid for nid, n in nodes.items() if n.stage in IMAGE_STAGES]))
-    summaries, stats = run_graphs(graphs, cache, workers=workers, scheduler=scheduler,
-                                  device=device, progress=progress, warm=WARM_IMPORTS)
+    graphs = [_image_graph(p.scene) for p in points]
+    run_kw = {"workers": workers, "scheduler": scheduler, "device": device}
+    summaries, stats = run_graphs(graphs, cache, progress=progress, warm=WARM_IMPORTS, **run_kw)
     store = Store(cache)
     groups = {}
     for i, p in enumerate(points):
@@ -488,13 +512,14 @@ def run_sweep(scene_path, *, cache, out_dir=None, workers: int = 1, scheduler: s
                               if ("reference", g) in by_role else []))
                for g, idx in groups.items()}
     images = [_images(store, s) for s in summaries]
-    rows = []
+    rows, at = [], []
     for i, p in enumerate(points):
         if p.role != "point":
             continue
-        errs = {}
+        errs, ref = {}, "finest"
         if spec.mode == "one_at_a_time":
             knob = KNOBS[p.knob]
+            ref = knob.reference
             if knob.reference in ("brute_force", "monte_carlo"):
                 errs = _errors(images[i], images[by_role[("reference", p.knob)]])
             elif knob.reference == "high_mesh":
@@ -508,85 +533,178 @@ def run_sweep(scene_path, *, cache, out_dir=None, workers: int = 1, scheduler: s
             j = max((k for k, q in enumerate(points) if q.role == "point"),
                     key=lambda k: sum(KNOBS[n].rank(v) for n, v in points[k].values.items()))
             errs = _errors(images[i], images[j])
-        secs = _seconds(store, summaries[i],
-                        varying[p.knob if spec.mode == "one_at_a_time" else "grid"])
         default = all(_current(table, points[0].scene, k) == v for k, v in p.values.items())
-        rows.append({"knob": p.knob, "values": p.values, "seconds": secs["changed"],
-                     "seconds_shared": secs["shared"], "seconds_total": secs["total"],
-                     "kernel_seconds": secs["kernel"],
-                     "is_default": default, **errs})
+        rows.append({"knob": p.knob, "values": p.values, "is_default": default,
+                     "error_reference": ref, **errs})
+        at.append(i)
+    # cost: every point's changed nodes (the scene as written: every node any knob changes)
+    # timed `repeats` times in rotated order; the median with its min-max spread
+    union = set().union(*varying.values())
+    ids = [[r.id for r in summaries[i].nodes
+            if r.id in varying[rows[n]["knob"] if spec.mode == "one_at_a_time" else "grid"]]
+           for n, i in enumerate(at)] + [[r.id for r in summaries[0].nodes if r.id in union]]
+    timed = _timed(store, [summaries[i] for i in at] + [summaries[0]],
+                   [graphs[i][0] for i in at] + [graphs[0][0]], ids, cache, spec.repeats, device)
+    for r, t in zip(rows, timed):
+        r.update(t)
+    base_total = timed[-1]["seconds_total"]
+    extrap = _converged(rows, spec) if spec.mode == "one_at_a_time" else {}
     result = {"scene": where, "mode": spec.mode, "targets": list(spec.targets),
-              "budget_s": spec.budget_s, "points": rows, "fronts": {}, "recommended": {},
-              "distributed": stats.to_dict(),
-              "reference_rules": {k: KNOBS[k].reference for k in spec.knobs}}
+              "budget_s": spec.budget_s, "repeats": spec.repeats, "points": rows,
+              "fronts": {}, "per_knob": {}, "distributed": stats.to_dict(),
+              "reference_rules": {k: KNOBS[k].reference for k in spec.knobs},
+              "extrapolation": extrap, "base_seconds": base_total,
+              "base_seconds_spread": [timed[-1]["seconds_min"] + timed[-1]["seconds_shared"],
+                                      timed[-1]["seconds_max"] + timed[-1]["seconds_shared"]]}
     for name in ({p["knob"] for p in rows} if spec.mode == "one_at_a_time" else {""}):
         sel = [k for k, r in enumerate(rows) if r["knob"] == name or spec.mode == "grid"]
         front = pareto_front([rows[k] for k in sel])
         result["fronts"][name or "grid"] = [sel[k] for k in front]
-        result["recommended"][name or "grid"] = recommend([rows[k] for k in sel], spec.targets,
-                                                          spec.budget_s)
+        result["per_knob"][name or "grid"] = recommend([rows[k] for k in sel], spec.targets,
+                                                       spec.budget_s)
     # across knobs only whole-scene times compare: each point's total node seconds
     total = [{**r, "seconds": r["seconds_total"]} for r in rows]
     result["fronts"]["joint"] = pareto_front(total)
-    result["recommended"]["joint"] = recommend(total, spec.targets, spec.budget_s)
-    base_total = _seconds(store, summaries[0], set())["total"]
-    result["base_seconds"] = base_total
+    result["per_knob"]["joint"] = recommend(total, spec.targets, spec.budget_s)
     if spec.mode == "one_at_a_time":
         result["combined"] = combine(rows, spec.targets, spec.budget_s, base_total)
+        result["recommended"] = _verified(table, where, spec, rows, result, summaries[0],
+                                          union, cache, run_kw)
+    else:   # every grid point is a rendered configuration: its measurement is the check
+        result["recommended"] = {}
+        for key, t, b in _goals(spec):
+            cands = [(r["seconds_total"], r["rel_rmse"], r["values"]) for r in rows
+                     if r.get("rel_rmse") is not None]
+            measured = {config_id(r["values"]): {"rel_rmse": r["rel_rmse"],
+                                                 "seconds": r["seconds_total"]} for r in rows}
+            rec = choose(candidates(cands, t, b, 1), measured, t, b)
+            rec["predicted"] = None        # measured, not predicted
+            result["recommended"][key] = rec
     out = Path(out_dir) if out_dir else Path(points[0].scene.output.output_dir) / \
         points[0].scene.scene.name / "sweep"
     out.mkdir(parents=True, exist_ok=True)
     (out / "sweep.json").write_text(json.dumps(result, indent=1, default=str))
-    _plots(result, out)
+    plots(result, out)
     return result
+
+
+def _image_graph(scene):
+    """The scene's graph and its image nodes: only the images are scored (the images /
+    differences / report nodes would be work, and failure modes, the sweep never reads)."""
+    nodes, _ = build_graph(scene)
+    return nodes, [nid for nid, n in nodes.items() if n.stage in IMAGE_STAGES]
+
+
+def _timed(store, summaries, graphs, ids, cache, repeats, device) -> list[dict]:
+    """Seconds of each run: the nodes ``ids[i]`` timed ``repeats`` times (the first from the
+    run's own metadata), median and spread, plus the rest from the metadata (shared)."""
+    extra = repeat_seconds(graphs, ids, cache, repeats, device)
+    out = []
+    for s, own, more in zip(summaries, ids, extra):
+        secs = _seconds(store, s, set(own))
+        sp = spread([secs["changed"], *more])
+        out.append({**sp, "seconds_first": secs["changed"], "seconds_shared": secs["shared"],
+                    "seconds_total": sp["seconds"] + secs["shared"],
+                    "kernel_seconds": secs["kernel"]})
+    return out
+
+
+def _converged(rows: list[dict], spec: SweepSpec) -> dict:
+    """Errors against the converged answer: a knob measured against its own finest value gets
+    that value's extrapolated error added (triangle inequality) and stated as uncertainty."""
+    out = {}
+    for name, vals in spec.knobs.items():
+        knob = KNOBS[name]
+        mine = sorted((r for r in rows if r["knob"] == name), key=lambda r: knob.rank(
+            r["values"][name]))
+        if knob.reference != "finest" or knob.choices or not mine:
+            for r in mine:
+                r["error_uncertainty"] = 0.0 if r.get("rel_rmse") is not None else None
+            continue
+        ex = extrapolate([r["values"][name] for r in mine], [r.get("rel_rmse") for r in mine],
+                         knob.finer, knob.order, noise=knob.order == 0.5)
+        out[name] = ex
+        if ex["finest_error"] is None:
+            continue
+        for r in mine:
+            if r.get("rel_rmse") is None:
+                continue
+            r["rel_rmse_vs_finest"] = r["rel_rmse"]
+            r["rel_rmse"] = r["rel_rmse"] + ex["finest_error"]
+            r["error_uncertainty"] = ex["finest_error"]
+            r["error_reference"] = "extrapolated"
+    return out
+
+
+def _goals(spec: SweepSpec):
+    """(key, error target, time budget) of each recommendation."""
+    yield from ((f"rel_rmse<={t:g}", t, None) for t in spec.targets)
+    if spec.budget_s is not None:
+        yield f"seconds<={spec.budget_s:g}", None, spec.budget_s
+
+
+def _verified(table, where, spec, rows, result, base_summary, union, cache, run_kw) -> dict:
+    """Render the candidate configurations of every goal (and the defaults) and the most
+    refined configuration; recommend, per goal, the first candidate whose measurement meets
+    it.  Measured error: relative RMSE against the most refined configuration (every knob at
+    its finest value, the brute-force gather / Monte Carlo profile where a knob's reference
+    is one) plus that configuration's own error bound, the sum of the knobs' extrapolated
+    finest errors (triangle inequality).  Measured seconds: as for the points."""
+    from dermis.pipeline.distributed import run_graphs
+    from dermis.pipeline.store import Store
+    all_c = combos(rows, result["base_seconds"])
+    plans = {key: candidates(all_c, t, b, spec.tries) for key, t, b in _goals(spec)}
+    configs = {config_id(c[2]): c[2] for cs in plans.values() for c in cs}
+    dflt = next((c for c in all_c if c[3]), None)
+    written = _scene(table, where, "(scene as written)")
+    mine = {k: _current(table, written, k) for k in spec.knobs}   # the scene as written
+    configs.setdefault(config_id(mine), mine)
+    ref_t = table
+    for name, vals in spec.knobs.items():
+        ref_t = _set(ref_t, name, max(vals, key=KNOBS[name].rank))
+        extra = {"brute_force": ("bssrdf.brute_force", True),
+                 "monte_carlo": ("optics.profile", "monte_carlo")}.get(KNOBS[name].reference)
+        if extra:
+            ref_t = _set(ref_t, *extra)
+    scenes = []
+    for cid, cfg in configs.items():
+        t = table
+        for k, v in cfg.items():
+            t = t if v is None else _set(t, k, v)
+        scenes.append(_scene(t, where, cid))
+    scenes.append(_scene(ref_t, where, "most refined configuration"))
+    graphs = [_image_graph(sc) for sc in scenes]
+    summaries, _ = run_graphs(graphs, cache, warm=WARM_IMPORTS, **run_kw)
+    store = Store(cache)
+    base_keys = {r.id: r.key for r in base_summary.nodes}
+    ids = [[r.id for r in s.nodes if r.id in union or base_keys.get(r.id) != r.key]
+           for s in summaries[:-1]]
+    timed = _timed(store, summaries[:-1], [g[0] for g in graphs[:-1]], ids, cache,
+                   spec.repeats, run_kw["device"])
+    ref_imgs = _images(store, summaries[-1])
+    ref_err = sum(e["finest_error"] or 0.0 for e in result["extrapolation"].values())
+    high = any(KNOBS[k].reference == "high_mesh" for k in spec.knobs)
+    measured = {}
+    for cid, s, t in zip(configs, summaries, timed):
+        e = _errors(_images(store, s), ref_imgs, high_mesh=high)
+        err = None if e["rel_rmse"] is None else e["rel_rmse"] + ref_err
+        measured[cid] = {"rel_rmse": err, "rel_rmse_vs_most_refined": e["rel_rmse"],
+                         "reference_error": ref_err, "flip": e["flip"],
+                         "seconds": t["seconds_total"],
+                         "seconds_spread": [t["seconds_min"] + t["seconds_shared"],
+                                            t["seconds_max"] + t["seconds_shared"]],
+                         "seconds_samples": t["seconds_samples"]}
+    out = {key: choose(plans[key], measured, t, b) for key, t, b in _goals(spec)}
+    # the scene as written, rendered and measured like the candidates (predicted where its
+    # values are among the swept ones)
+    out["defaults"] = {"config": mine, "measured": measured[config_id(mine)], "meets": None,
+                       "predicted": None if dflt is None else {"rel_rmse": dflt[1],
+                                                               "seconds": dflt[0]}}
+    return out
 
 
 def _fmt(v) -> str:
     return f"{v:g}" if isinstance(v, (int, float)) and not isinstance(v, bool) else str(v)
-
-
-def _plots(result: dict, out: Path) -> None:
-    """Error-vs-time per knob with the Pareto front and the default marked; a joint plot; PDF."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.backends.backend_pdf import PdfPages
-
-    rows = result["points"]
-    groups = {name: idx for name, idx in result["fronts"].items()}
-    with PdfPages(out / "sweep.pdf") as pdf:
-        for name, front in groups.items():
-            sel = [k for k, r in enumerate(rows) if name in ("joint", "grid") or r["knob"] == name]
-            sel = [k for k in sel if rows[k].get("rel_rmse") is not None]
-            if not sel:
-                continue
-            fig, ax = plt.subplots(figsize=(7, 4.5))
-            joint = name in ("joint",)
-            for k in sel:
-                r = {**rows[k], "seconds": rows[k]["seconds_total"]} if joint else rows[k]
-                ax.scatter(r["seconds"], r["rel_rmse"], marker="*" if r["is_default"] else "o",
-                           s=120 if r["is_default"] else 30,
-                           color="C3" if r["is_default"] else "C0", zorder=3)
-                ax.annotate(",".join(map(_fmt, r["values"].values())),
-                            (r["seconds"], r["rel_rmse"]), fontsize=7, xytext=(3, 3),
-                            textcoords="offset points")
-            f = [k for k in front if k in sel]
-            tkey = "seconds_total" if joint else "seconds"
-            ax.plot([rows[k][tkey] for k in f], [rows[k]["rel_rmse"] for k in f], "-",
-                    color="C1", label="Pareto front")
-            for t in result["targets"]:
-                ax.axhline(t, color="0.6", lw=0.8, ls=":")
-            ax.set_xlabel("seconds of all the point's nodes (from stage metadata)" if joint else
-                          "seconds of the nodes the knob changes (from stage metadata)")
-            ax.set_ylabel("relative RMSE against the reference")
-            ax.set_yscale("log") if all(rows[k]["rel_rmse"] > 0 for k in sel) else None
-            ax.set_title(f"{name}  (reference: {result['reference_rules'].get(name, 'per knob')})"
-                         f";  default = star", fontsize=9)
-            ax.legend(fontsize=8)
-            fig.tight_layout()
-            fig.savefig(out / f"sweep-{name.replace('.', '_')}.png", dpi=110)
-            pdf.savefig(fig)
-            plt.close(fig)
 
 
 # ------------------------------------------------------------------------------ CLI
@@ -616,12 +734,31 @@ def run(args) -> int:
                     workers=args.workers, scheduler=args.scheduler, device=args.device,
                     progress=progress)
     print()
-    print(f"{'knob':<28} {'value':>12} {'seconds':>9} {'rel RMSE':>9} {'FLIP':>7}")
+    print(f"{'knob':<28} {'value':>12} {'seconds':>9} {'min-max':>13} {'rel RMSE':>9} "
+          f"{'+-':>7} {'FLIP':>7}  reference")
     for r in res["points"]:
         for k, v in r["values"].items():
             err = "-" if r.get("rel_rmse") is None else f"{r['rel_rmse']:.4f}"
             fl = "-" if r.get("flip") is None else f"{r['flip']:.4f}"
             mark = " *" if r["is_default"] else ""
-            print(f"{k:<28} {_fmt(v):>12} {r['seconds']:>9.2f} {err:>9} {fl:>7}{mark}")
-    print("recommended:", json.dumps(res["recommended"]["joint"]))
+            unc = "-" if r.get("error_uncertainty") is None else f"{r['error_uncertainty']:.4f}"
+            mm = f"{r['seconds_min']:.2f}-{r['seconds_max']:.2f}"
+            print(f"{k:<28} {_fmt(v):>12} {r['seconds']:>9.2f} {mm:>13} {err:>9} {unc:>7} "
+                  f"{fl:>7}  {r['error_reference']}{mark}")
+    for goal, rec in res["recommended"].items():
+        if goal == "defaults":
+            continue
+        tried = len(rec["misses"]) + (rec["config"] is not None)
+        if rec["config"] is None:
+            print(f"recommended for {goal}: none: " + (
+                f"of the {tried} configurations rendered none met it (sweep.json lists them)"
+                if tried else "no combination of the swept values is predicted to meet it"))
+            continue
+        m, pr = rec["measured"], rec["predicted"]
+        print(f"recommended for {goal}: " + ", ".join(f"{k} = {_fmt(v)}" for k, v in
+                                                     rec["config"].items())
+              + f"  (rendered: rel RMSE {m['rel_rmse']:.4f}, {m['seconds']:.2f} s"
+              + (f"; predicted {pr['rel_rmse']:.4f}, {pr['seconds']:.2f} s" if pr else "")
+              + (f"; {tried - 1} cheaper candidate(s) missed when rendered" if tried > 1 else "")
+              + ")")
     return 0

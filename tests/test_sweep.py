@@ -47,7 +47,25 @@ def test01_sweep_writes_points_fronts_and_error_falls_as_epsilon_is_refined(seri
     assert 0 < pts[0.25]["rel_rmse"] < pts[1.0]["rel_rmse"] < 0.05
     assert res["reference_rules"] == {"bssrdf.epsilon": "brute_force"}
     assert res["fronts"]["bssrdf.epsilon"] and res["fronts"]["joint"]
-    assert set(res["recommended"]["joint"]) == {"rel_rmse<=0.01", "rel_rmse<=0.05"}
+    assert set(res["per_knob"]["joint"]) == {"rel_rmse<=0.01", "rel_rmse<=0.05"}
+    # each point's cost: the median of `repeats` (3) timings with their spread, all recorded
+    for p in pts.values():
+        assert len(p["seconds_samples"]) == 3
+        assert p["seconds_min"] <= p["seconds"] <= p["seconds_max"]
+        assert p["seconds"] == sorted(p["seconds_samples"])[1]
+        assert p["error_reference"] == "brute_force"
+    # every recommendation was rendered: its measurement meets its target, and the rendered
+    # error (against the brute-force gather) is that of the same configuration's point
+    assert set(res["recommended"]) == {"rel_rmse<=0.01", "rel_rmse<=0.05", "defaults"}
+    five = res["recommended"]["rel_rmse<=0.05"]
+    assert five["meets"] and five["measured"]["rel_rmse"] <= 0.05 and not five["misses"]
+    # both values meet 5 %: the one predicted cheaper (median seconds) is rendered first
+    cheaper = min(pts.values(), key=lambda p: p["seconds"])["values"]
+    assert five["config"] == cheaper
+    eps = cheaper["bssrdf.epsilon"]
+    assert abs(five["measured"]["rel_rmse"] - pts[eps]["rel_rmse"]) < 1e-12
+    assert five["predicted"]["rel_rmse"] == pts[eps]["rel_rmse"]
+    assert (tmp / "res" / "sweep-recommended.png").is_file()
     assert (tmp / "res" / "sweep.pdf").stat().st_size > 1000
     assert (tmp / "res" / "sweep-bssrdf_epsilon.png").is_file()
 
@@ -77,6 +95,61 @@ def test02b_combined_settings_follow_the_quadrature_model():
     assert abs(out["rel_rmse<=0.05"]["predicted_seconds"] - 7.0) < 1e-12
     assert out["rel_rmse<=0.01"]["values"] == {"a": 2, "b": 2}      # 12 s, error 0
     assert out["seconds<=8"]["values"] == {"a": 1, "b": 1}
+
+
+def test02c_a_configuration_that_misses_its_target_when_rendered_is_not_recommended():
+    """Two knobs whose errors add linearly, not in quadrature: the first-order prediction
+    puts a=1, b=1 at sqrt(0.03^2 + 0.04^2) = 0.05, meeting 5 %, but rendered it has
+    0.03 + 0.04 = 0.07.  It is not recommended; the next cheapest candidate predicted to meet
+    the target (a=2, b=1: 9 s) is, once its rendering (0.04) meets it; the miss is listed
+    with its prediction and measurement."""
+    from dermis.reports.sweep import combos
+    from dermis.reports.sweep_verify import candidates, choose, config_id
+    rows = [{"knob": "a", "values": {"a": 1}, "seconds": 1.0, "rel_rmse": 0.03, "is_default": True},
+            {"knob": "a", "values": {"a": 2}, "seconds": 3.0, "rel_rmse": 0.0, "is_default": False},
+            {"knob": "b", "values": {"b": 1}, "seconds": 2.0, "rel_rmse": 0.04, "is_default": False},
+            {"knob": "b", "values": {"b": 2}, "seconds": 5.0, "rel_rmse": 0.0, "is_default": True}]
+    err = {"a": {1: 0.03, 2: 0.0}, "b": {1: 0.04, 2: 0.0}}
+    cands = candidates(combos(rows, base_seconds=10.0), 0.05, None, tries=3)
+    assert [c[2] for c in cands] == [{"a": 1, "b": 1}, {"a": 2, "b": 1}, {"a": 1, "b": 2}]
+    measured = {config_id(c[2]): {"rel_rmse": sum(err[k][v] for k, v in c[2].items()),
+                                  "seconds": c[0]} for c in cands}
+    rec = choose(cands, measured, target=0.05)
+    assert rec["config"] == {"a": 2, "b": 1} and rec["meets"]
+    assert rec["measured"]["rel_rmse"] == 0.04 and rec["predicted"]["rel_rmse"] == 0.04
+    (miss,) = rec["misses"]
+    assert miss["config"] == {"a": 1, "b": 1} and not miss["meets"]
+    assert abs(miss["predicted"]["rel_rmse"] - 0.05) < 1e-12
+    assert abs(miss["measured"]["rel_rmse"] - 0.07) < 1e-12
+    # none of the candidates tried meets 3.5 %: nothing is recommended, all are listed
+    tight = candidates(combos(rows, base_seconds=10.0), 0.035, None, tries=1)
+    measured = {config_id(c[2]): {"rel_rmse": 0.036, "seconds": c[0]} for c in tight}
+    rec = choose(tight, measured, target=0.035)
+    assert rec["config"] is None and not rec["meets"] and len(rec["misses"]) == 1
+
+
+def test02d_extrapolation_recovers_the_finest_error_of_a_power_law():
+    """Errors that follow |I(h) - I(0)| = C h^p with h = 1/N (p = 0.5, Monte Carlo):
+    the distances to the finest are C (h_i^p - h_n^p); the extrapolation fits p from the
+    three finest and returns the finest's own error C h_n^p."""
+    from dermis.reports.sweep_verify import extrapolate, spread
+    n = [4, 8, 16, 32, 64]
+    true = [0.2 * (1 / v) ** 0.5 for v in n]
+    d = [t - true[-1] for t in true]
+    ex = extrapolate(n, d, "higher", order=1.0)
+    assert abs(ex["order"] - 0.5) < 1e-6 and ex["order_from"].startswith("fit")
+    assert ex["model"] == "bias" and abs(ex["finest_error"] - true[-1]) < 1e-9
+    # independent Monte Carlo noise, sigma_i = 0.2 N^-1/2: the distances add in quadrature,
+    # d_i^2 = sigma_i^2 + sigma_n^2; the noise model fits p = 0.5 and returns sigma_n
+    dn = [(s ** 2 + true[-1] ** 2) ** 0.5 for s in true[:-1]] + [0.0]
+    ex = extrapolate(n, dn, "higher", order=1.0)
+    assert ex["model"] == "noise" and abs(ex["order"] - 0.5) < 1e-6
+    assert abs(ex["finest_error"] - true[-1]) < 1e-9
+    # two values: the stated order
+    ex = extrapolate(n[-2:], d[-2:], "higher", order=0.5, noise=False)
+    assert ex["order_from"] == "stated for the knob" and abs(ex["finest_error"] - true[-1]) < 1e-9
+    assert spread([3.0, 1.0, 2.0]) == {"seconds": 2.0, "seconds_min": 1.0, "seconds_max": 3.0,
+                                       "seconds_samples": [3.0, 1.0, 2.0]}
 
 
 def _artifact_sums(cache: Path) -> dict:
@@ -160,6 +233,8 @@ def test05_a_killed_worker_is_retried(tmp_path):
     ('[sweep]\nmode = "random"\n[sweep.knobs]\n"bssrdf.epsilon" = [0.5]\n', "sweep.mode"),
     ('[sweep]\n[sweep.knobs]\n"optics.profile" = ["diffusion"]\n', "sweep.knobs.optics.profile"),
     ('[sweep]\n[sweep.knobs]\n"optics.photons" = [0]\n', "optics.photons"),
+    ('[sweep]\nrepeats = 0\n[sweep.knobs]\n"bssrdf.epsilon" = [0.5]\n', "sweep.repeats"),
+    ('[sweep]\ntries = 1.5\n[sweep.knobs]\n"bssrdf.epsilon" = [0.5]\n', "sweep.tries"),
 ])
 def test06_invalid_sweep_specs_exit_2_naming_the_key(tmp_path, capsys, sweep, key):
     path = sweep_scene(tmp_path, sweep)
