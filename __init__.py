@@ -44,6 +44,7 @@ MODELS = (
     ("hk93", "dermis.models.hk93"),
     ("bssrdf", "dermis.models.bssrdf"),
     ("bssrdf_mc", "dermis.models.bssrdf_mc"),
+    ("bssrdf_adaptive", "dermis.models.bssrdf_adaptive"),
 )
 
 # The thesis's four models, in its order: the default [render] models and the ones the
