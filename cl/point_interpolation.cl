@@ -6,7 +6,7 @@
  * the Gaussian the gather reconstructs irradiance with (cl/bssrdf_gather.cl), normalised
  * (Shepard 1968) so that a constant is reproduced exactly.  Also returned: the weighted mean
  * normal and mean squared distance (a curvature estimate, subsurface/adaptive.py) and the
- * total weight (0: no point in reach).
+ * total weight sum_p w_p (0: no point in reach).
  *
  * The points are bucketed on the host in a uniform grid of cells no smaller than CUT, sorted
  * by cell (cell_start: the first point of each cell, one past the last cell at the end), so
@@ -25,7 +25,8 @@ __kernel void interpolate_points(__global const float4 *qpos,    /* xyz */
                                  const float inv_two_s2, const float cut2,
                                  const float min_dot,
                                  __global float4 *out_val,       /* interpolated values */
-                                 __global float4 *out_geo)       /* mean normal, mean d^2 */
+                                 __global float4 *out_geo,       /* mean normal, mean d^2 */
+                                 __global float *out_sum)        /* sum of w */
 {
     const int i = get_global_id(0);
     if (i >= nq)
@@ -68,4 +69,5 @@ __kernel void interpolate_points(__global const float4 *qpos,    /* xyz */
         out_val[i] = (float4)(0.0f);
         out_geo[i] = (float4)(0.0f);
     }
+    out_sum[i] = wsum;
 }

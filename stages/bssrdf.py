@@ -128,6 +128,7 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
         keys=(ctx.input_keys["points"], ctx.input_keys["irradiance"], ctx.input_keys["profile"]))
     blend = stats.pop("blend_image", None)
     stats.pop("blend", None)
+    stats.pop("predicted_images", None)
     t_gather = time.perf_counter() - t0
     cos_o = np.einsum("ij,ij->i", surf["shading_normal"][front], surf["wo"][front])
     albedo = None if b["albedo_mode"] == "none" else surf["albedo"][front]

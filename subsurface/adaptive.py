@@ -66,9 +66,12 @@ KERNELS = ("point_interpolation.cl",)
 TARGET = 0.01
 # The blend starts at half the target (w = 0 below) and is complete at the target.
 BLEND_LOW = 0.5
-# Depth steps between neighbouring pixels larger than this many footprints are occlusions
-# (a surface tilted 83 deg from the view steps 8 footprints).
-DEPTH_JUMP_FOOTPRINTS = 8.0
+# Depth steps between neighbouring pixels larger than this many times a footprint x (1 +
+# the surface's slope) are occlusions (a continuous surface steps footprint x slope).
+DEPTH_JUMP_FOOTPRINTS = 4.0
+# A pixel has the profile's whole support on the image when the pixels that hit hold all but
+# this fraction of the profile's weight about it.
+FULL_SUPPORT = 0.02
 # Pixels whose local exitance is below this fraction of the image's mean are measured
 # against it (relative change of a near-black pixel is not the image's error).
 DARK_FLOOR = 0.05
@@ -89,23 +92,32 @@ class AdaptiveOptions:
 class PixelFrame:
     """Where the shading points lie in the image: ``pixel`` (Q,) flat pixel index,
     ``width``, ``height``, ``depth`` (Q,) distance along the view, mm, and
-    ``footprint`` (Q,) a pixel's width at that depth, mm."""
+    ``footprint`` (Q,) a pixel's width at that depth, mm; ``slope`` (Q,) the depth step
+    per unit of image distance of the surface there, tan of its normal's angle to the
+    view (capped at 20)."""
 
     pixel: np.ndarray
     width: int
     height: int
     depth: np.ndarray
     footprint: np.ndarray
+    slope: np.ndarray
 
 
-def pixel_frame(camera, pixel: np.ndarray, positions: np.ndarray) -> PixelFrame:
-    """The PixelFrame of shading points at ``positions`` seen through pixels ``pixel``."""
+def pixel_frame(camera, pixel: np.ndarray, positions: np.ndarray,
+                normals: np.ndarray) -> PixelFrame:
+    """The PixelFrame of shading points at ``positions`` (unit geometric ``normals``) seen
+    through pixels ``pixel``."""
     from dermis.rendering.camera import camera_vectors
     pos, fwd, _, _ = camera_vectors(camera)
-    depth = (np.asarray(positions, np.float64) - pos) @ fwd
+    x = np.asarray(positions, np.float64)
+    depth = (x - pos) @ fwd
     size = 2.0 * math.tan(math.radians(camera.fov_deg) / 2.0) / min(camera.width, camera.height)
+    view = pos - x
+    view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-30)
+    c = np.clip(np.abs(np.einsum("ij,ij->i", view, np.asarray(normals, np.float64))), 0.05, 1)
     return PixelFrame(np.asarray(pixel, np.int64), int(camera.width), int(camera.height),
-                      depth, depth * size)
+                      depth, depth * size, np.sqrt(1.0 - c * c) / c)
 
 
 # --------------------------------------------------------------------------- the profile
@@ -269,6 +281,7 @@ def irradiance_change(local_img: np.ndarray, mask: np.ndarray, profile,
     local exitance image (H, W, 3) convolved with the profile at ``footprint`` mm per pixel
     (normalised over ``mask``, the pixels that hit) minus itself, over itself (floored at
     DARK_FLOOR of the image's mean), the largest channel."""
+    from scipy.ndimage import distance_transform_edt
     from scipy.signal import fftconvolve
     m = mask.astype(np.float64)
     out = np.zeros(mask.shape)
@@ -283,16 +296,28 @@ def irradiance_change(local_img: np.ndarray, mask: np.ndarray, profile,
         conv = np.where(den > 1e-6, num / np.maximum(den, 1e-6), img)
         change = np.abs(conv - img) / np.maximum(img, DARK_FLOOR * mean)
         out = np.maximum(out, np.where(mask, change, 0.0))
+    # where the profile reaches past the outline the one-sided mean is biased by the
+    # gradient (a first-order error the gather, whose points go on round the head, does not
+    # make): those pixels take the prediction of the nearest pixel with the profile's whole
+    # support on the image
+    full = mask & (den > 1.0 - FULL_SUPPORT)
+    if full.any() and not full[mask].all():
+        _, (iy, ix) = distance_transform_edt(~full, return_indices=True)
+        out = np.where(mask & ~full, out[iy, ix], out)
     return out
 
 
 def occlusion_change(depth_img: np.ndarray, foot_img: np.ndarray, mask: np.ndarray, profile,
                      footprint: float) -> np.ndarray:
-    """(H, W) the profile's energy beyond the distance to the nearest depth discontinuity
-    (neighbouring pixels that both hit, depths differing by more than
-    DEPTH_JUMP_FOOTPRINTS footprints), as a fraction of Rd."""
+    """(H, W) at each pixel near a depth discontinuity (neighbouring pixels that both hit,
+    depths differing by more than DEPTH_JUMP_FOOTPRINTS footprints beyond what the surface's
+    slope steps, ``foot_img`` (H, W) footprint x (1 + slope)): the profile's energy,
+    as a fraction of Rd, beyond the larger of the distance to it on the image and the step
+    across it (the two surfaces are at least that far apart, and what the image shows
+    beside a pixel there is not the surface beside it)."""
     from scipy.ndimage import distance_transform_edt
     jump = np.zeros(mask.shape, bool)
+    size = np.zeros(mask.shape)
     for axis in (0, 1):
         a = [slice(None)] * 2
         b = [slice(None)] * 2
@@ -303,10 +328,13 @@ def occlusion_change(depth_img: np.ndarray, foot_img: np.ndarray, mask: np.ndarr
                                                                  foot_img[tuple(b)]))
         jump[tuple(a)] |= big
         jump[tuple(b)] |= big
+        size[tuple(a)] = np.maximum(size[tuple(a)], np.where(big, step, 0.0))
+        size[tuple(b)] = np.maximum(size[tuple(b)], np.where(big, step, 0.0))
     if not jump.any():
         return np.zeros(mask.shape)
-    dist = distance_transform_edt(~jump) * footprint
-    return np.where(mask, energy_beyond(profile, dist.ravel()).reshape(mask.shape), 0.0)
+    dist, (iy, ix) = distance_transform_edt(~jump, return_indices=True)
+    apart = np.maximum(dist * footprint, size[iy, ix])
+    return np.where(mask, energy_beyond(profile, apart.ravel()).reshape(mask.shape), 0.0)
 
 
 def predict(frame: PixelFrame, local: np.ndarray, it, rep_of: np.ndarray, pixels: np.ndarray,
@@ -320,7 +348,8 @@ def predict(frame: PixelFrame, local: np.ndarray, it, rep_of: np.ndarray, pixels
     footprint = float(np.median(frame.footprint))
     shape = (frame.height, frame.width)
     p_e = irradiance_change(local_img.reshape(shape + (3,)), mask, profile, footprint)
-    geo, _ = _image(np.stack([frame.depth, frame.footprint], 1), frame.pixel, size)
+    geo, _ = _image(np.stack([frame.depth, frame.footprint * (1.0 + frame.slope)], 1),
+                    frame.pixel, size)
     p_occ = occlusion_change(geo[:, 0].reshape(shape), geo[:, 1].reshape(shape), mask, profile,
                              footprint)
     nbar = np.linalg.norm(it.mean_normal, axis=1).astype(np.float64)
@@ -333,20 +362,19 @@ def predict(frame: PixelFrame, local: np.ndarray, it, rep_of: np.ndarray, pixels
 # --------------------------------------------------------------------------- the whole
 def _points_near(points, queries: np.ndarray, reach: float) -> np.ndarray:
     """Indices of the points within about ``reach`` of some query (every point within
-    ``reach``; some up to 2 sqrt(3) reach): cells of side ``reach`` around the queries'."""
+    ``reach``; some up to 2 sqrt(3) reach): the cells of side ``reach`` next to a query's."""
+    from scipy.ndimage import binary_dilation
     p = np.asarray(points.positions, np.float64)
-    lo = p.min(axis=0)
-
-    def cells(x):
-        return np.floor((x - lo) / reach).astype(np.int64) + 1
-    qc = np.unique(cells(np.asarray(queries, np.float64)), axis=0)
-    near = np.unique((qc[:, None, :] + np.stack(np.meshgrid(
-        *([np.arange(-1, 2)] * 3), indexing="ij"), -1).reshape(1, 27, 3)).reshape(-1, 3), axis=0)
-    dims = np.int64(1 << 20)
-
-    def key(c):
-        return (c[:, 0] * dims + c[:, 1]) * dims + c[:, 2]
-    return np.flatnonzero(np.isin(key(cells(p)), key(near)))
+    q = np.asarray(queries, np.float64)
+    lo = np.minimum(p.min(axis=0), q.min(axis=0))
+    hi = np.maximum(p.max(axis=0), q.max(axis=0))
+    dims = np.floor((hi - lo) / reach).astype(np.int64) + 1
+    occupied = np.zeros(tuple(dims), bool)
+    qc = np.floor((q - lo) / reach).astype(np.int64)
+    occupied[qc[:, 0], qc[:, 1], qc[:, 2]] = True
+    near = binary_dilation(occupied, np.ones((3, 3, 3), bool))
+    pc = np.floor((p - lo) / reach).astype(np.int64)
+    return np.flatnonzero(near[pc[:, 0], pc[:, 1], pc[:, 2]])
 
 
 def adaptive_exitance(points, irradiance, profile, shading: ShadingPoints, *, lights,
@@ -367,7 +395,7 @@ def adaptive_exitance(points, irradiance, profile, shading: ShadingPoints, *, li
     E = np.asarray(irradiance, np.float32)
     sigma = float(points.info.get("kernel_sigma_mm") or 0.0) or _spacing(points)
     q = np.asarray(shading.positions)
-    frame = pixel_frame(camera, pixels, q)
+    frame = pixel_frame(camera, pixels, q, shading.geo_normals)
     # one interpolation per pixel (its first sample): Ebar varies over sigma, ~3 pixels
     order = np.argsort(frame.pixel, kind="stable")
     pixels, first = np.unique(frame.pixel[order], return_index=True)
@@ -421,7 +449,13 @@ def adaptive_exitance(points, irradiance, profile, shading: ShadingPoints, *, li
     image[pixels] = w_pix
     flagged = {f"flagged_{k}": float(np.mean(blend_weight(pred[k], adaptive) > 0))
                for k in ("irradiance", "thickness", "curvature", "occlusion")}
+    maps = {}
+    for k in ("irradiance", "thickness", "curvature", "occlusion"):
+        maps[k] = np.zeros(size, np.float32)
+        maps[k][pixels] = pred[k] / adaptive.target
     stats.update({"blend": w.astype(np.float32),
+                  "predicted_images": {k: v.reshape(frame.height, frame.width)
+                                       for k, v in maps.items()},
                   "blend_image": image.reshape(frame.height, frame.width),
                   "gathered_fraction": float(len(idx)) / max(len(w), 1),
                   "gathered_pixel_fraction": float(np.mean(w_pix > 0)) if len(w_pix) else 0.0,

@@ -42,6 +42,9 @@ class Interpolated:
         they spread: curvature)
     mean_d2 : (Q,) float32 the weighted mean squared distance to the points, mm^2
     found : (Q,) bool some point lay in reach
+    weight : (Q,) float32 sum of A exp(-d^2 / 2 sigma^2) / (2 pi sigma^2) over the points
+        summed: the points' partition of unity as the gather's Gaussian sees it (1 on an
+        ideal point set, less the Gaussian's 13.5 % beyond the 2 sigma cut)
     seconds : kernel seconds
     """
 
@@ -49,6 +52,7 @@ class Interpolated:
     mean_normal: np.ndarray
     mean_d2: np.ndarray
     found: np.ndarray
+    weight: np.ndarray
     seconds: float
 
 
@@ -87,7 +91,8 @@ def interpolate_points(positions, normals, areas, values, queries, query_normals
     q = np.asarray(queries, np.float32)
     nq = len(q)
     out = Interpolated(np.zeros((nq, 4), np.float32), np.zeros((nq, 3), np.float32),
-                       np.zeros(nq, np.float32), np.zeros(nq, bool), 0.0)
+                       np.zeros(nq, np.float32), np.zeros(nq, bool),
+                       np.zeros(nq, np.float32), 0.0)
     if nq == 0 or len(p) == 0:
         return out
     env = env or get_env()
@@ -105,6 +110,7 @@ def interpolate_points(positions, normals, areas, values, queries, query_normals
     pv = f4(v[order])
     d_out = cl.Buffer(env.context, cl.mem_flags.WRITE_ONLY, nq * 16)
     d_geo = cl.Buffer(env.context, cl.mem_flags.WRITE_ONLY, nq * 16)
+    d_sum = cl.Buffer(env.context, cl.mem_flags.WRITE_ONLY, nq * 4)
     knl = env.kernel("point_interpolation.cl", "interpolate_points")
     ev = knl(env.queue, (-(-nq // 64) * 64,), None,
              to_device(env, f4(q)), to_device(env, f4(np.asarray(query_normals, np.float32))),
@@ -112,10 +118,12 @@ def interpolate_points(positions, normals, areas, values, queries, query_normals
              to_device(env, start), np.int32(dims[0]), np.int32(dims[1]), np.int32(dims[2]),
              cl.cltypes.make_float4(*(float(a) for a in lo), 0.0), np.float32(1.0 / cell),
              np.float32(0.5 / float(sigma) ** 2), np.float32(cut * cut), np.float32(min_dot),
-             d_out, d_geo)
+             d_out, d_geo, d_sum)
     geo = np.empty((nq, 4), np.float32)
     cl.enqueue_copy(env.queue, out.values, d_out)
     cl.enqueue_copy(env.queue, geo, d_geo)
+    cl.enqueue_copy(env.queue, out.weight, d_sum)
+    out.weight /= np.float32(2.0 * np.pi * float(sigma) ** 2)
     out.mean_normal, out.mean_d2 = geo[:, :3], geo[:, 3]
     out.found = np.linalg.norm(geo[:, :3], axis=1) > 0
     out.seconds = event_seconds(ev)
