@@ -285,6 +285,7 @@ def irradiance_change(local_img: np.ndarray, mask: np.ndarray, profile,
     from scipy.signal import fftconvolve
     m = mask.astype(np.float64)
     out = np.zeros(mask.shape)
+    support = np.ones(mask.shape)
     for c in range(3):
         img = local_img[..., c] * m
         mean = float(img[mask].mean()) if mask.any() else 0.0
@@ -293,6 +294,7 @@ def irradiance_change(local_img: np.ndarray, mask: np.ndarray, profile,
         k = _profile_kernel(profile, footprint, c)
         num = fftconvolve(img, k, mode="same")
         den = fftconvolve(m, k, mode="same")
+        support = np.minimum(support, den)
         conv = np.where(den > 1e-6, num / np.maximum(den, 1e-6), img)
         change = np.abs(conv - img) / np.maximum(img, DARK_FLOOR * mean)
         out = np.maximum(out, np.where(mask, change, 0.0))
@@ -300,7 +302,7 @@ def irradiance_change(local_img: np.ndarray, mask: np.ndarray, profile,
     # gradient (a first-order error the gather, whose points go on round the head, does not
     # make): those pixels take the prediction of the nearest pixel with the profile's whole
     # support on the image
-    full = mask & (den > 1.0 - FULL_SUPPORT)
+    full = mask & (support > 1.0 - FULL_SUPPORT)
     if full.any() and not full[mask].all():
         _, (iy, ix) = distance_transform_edt(~full, return_indices=True)
         out = np.where(mask & ~full, out[iy, ix], out)
