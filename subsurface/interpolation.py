@@ -12,6 +12,7 @@ offers a normal-gated Gaussian interpolation on OpenCL).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,9 +24,9 @@ __all__ = ["KERNELS", "CUT_SIGMAS", "MIN_DOT", "Interpolated", "interpolate_poin
 
 KERNELS = ("point_interpolation.cl",)
 
-# Points within CUT_SIGMAS sigma are summed: the Gaussian beyond 2 sigma holds 14 % of a
-# plane's weight, and the normalisation makes the interpolation exact for constants anyway.
-CUT_SIGMAS = 2.0
+# Points within CUT_SIGMAS sigma are summed: the Gaussian beyond 3 sigma holds 1.1 % of a
+# plane's weight (exp(-4.5)); ``Interpolated.weight`` is divided by what lies within.
+CUT_SIGMAS = 3.0
 # Points whose normal is more than 60 deg from the query's are another sheet of the surface
 # (the shadow-edge search uses the same bound, subsurface/shadow_edges.py PAIR_MIN_DOT).
 MIN_DOT = 0.5
@@ -43,8 +44,9 @@ class Interpolated:
     mean_d2 : (Q,) float32 the weighted mean squared distance to the points, mm^2
     found : (Q,) bool some point lay in reach
     weight : (Q,) float32 sum of A exp(-d^2 / 2 sigma^2) / (2 pi sigma^2) over the points
-        summed: the points' partition of unity as the gather's Gaussian sees it (1 on an
-        ideal point set, less the Gaussian's 13.5 % beyond the 2 sigma cut)
+        summed, over the plane's share within the cut (1 - exp(-cut^2 / 2)): the points'
+        partition of unity as the gather's Gaussian sees it (1 on an ideal point set);
+        ``values * weight`` is the gather's own reconstruction of the values
     seconds : kernel seconds
     """
 
@@ -123,7 +125,7 @@ def interpolate_points(positions, normals, areas, values, queries, query_normals
     cl.enqueue_copy(env.queue, out.values, d_out)
     cl.enqueue_copy(env.queue, geo, d_geo)
     cl.enqueue_copy(env.queue, out.weight, d_sum)
-    out.weight /= np.float32(2.0 * np.pi * float(sigma) ** 2)
+    out.weight /= np.float32(2.0 * np.pi * float(sigma) ** 2 * (1.0 - math.exp(-0.5 * cut_sigmas ** 2)))
     out.mean_normal, out.mean_d2 = geo[:, :3], geo[:, 3]
     out.found = np.linalg.norm(geo[:, :3], axis=1) > 0
     out.seconds = event_seconds(ev)
