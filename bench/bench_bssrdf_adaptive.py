@@ -9,15 +9,17 @@ How it measures.  The pipeline builds the scene's inputs and both images once (r
 included unless --no-reference); then, per lighting condition, each model's node is re-run
 in this process on its cached inputs, ``--repeats`` times, interleaved (full, adaptive,
 adaptive, full, ...: the 2-core machine is shared, load drifts), medians kept.  Each call
-gets a fresh set of run-wide intermediates except the mesh's Embree scene, built once here
-and handed to both as a run shares it between every image of the mesh; the gather's query
-tiles are dropped before each call (each image pays its own sort).  Times are the node's
+gets a fresh set of run-wide intermediates except those of the mesh, made once here and
+handed over as a run shares them between every image of the mesh: its Embree scene (both
+models) and the points' thickness (the adaptive model; 0.26-0.35 s of ray casts); the
+gather's query tiles are dropped before each call (each image pays its own sort).  Times are the node's
 own "total" (its work after the shared visibility: gather or local model + predictor +
 gather, exit to radiance, surface term, EXR) and its exitance part alone ("gather").
 Relative RMSE: sqrt(mean (a - b)^2) / sqrt(mean b^2) over the pixels that hit, all
 channels (reports/diff.py's); against the reference the model images are averaged over the
-reference's pixels first (plain, not noise-aware: reports/ground_truth.py ranks with the
-noise).  PNGs (tone-mapped full / adaptive, blend mask, |difference| at 1 % of the 99th
+reference's pixels first, then over blocks of 1 and 10 x 10 of them, with the share of the
+error the reference's own noise explains (its half-buffers; reports/ground_truth.py ranks
+the models by face region with it).  PNGs (tone-mapped full / adaptive, blend mask, |difference| at 1 % of the 99th
 percentile = white) go to --png-dir.
 
 Usage: python bench/bench_bssrdf_adaptive.py [--scene FILE] [--cache DIR] [--repeats 3]
@@ -30,6 +32,7 @@ import argparse
 import dataclasses
 import functools
 import importlib
+import math
 import os
 import re
 import statistics
@@ -67,14 +70,26 @@ def rel_rmse(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
     return float(np.sqrt((d ** 2).mean()) / np.sqrt((b[mask] ** 2).mean()))
 
 
-def against_reference(image: np.ndarray, mask: np.ndarray, ref) -> float:
-    """Relative RMSE of ``image`` (H, W, 3) averaged over the reference's pixels against it,
-    over the reference pixels whose whole block hit."""
+def against_reference(image: np.ndarray, mask: np.ndarray, ref, block: int) -> dict:
+    """``image`` (H, W, 3) averaged over the reference's pixels, both then over blocks of
+    ``block`` x ``block`` reference pixels whose every camera pixel hit: the relative RMSE
+    against the reference, the part of it the reference's own noise explains (its half-
+    buffer estimate, reports/ground_truth.py) and the rest, sqrt(rmse^2 - noise^2)."""
+    from dermis.geometry.regions import block_mean
     h, w = ref.linear.shape[:2]
-    f = image.shape[0] // h
-    blocks = image.reshape(h, f, w, f, 3).mean(axis=(1, 3))
-    full = mask.reshape(h, f, w, f).all(axis=(1, 3)) & np.asarray(ref.mask, bool)
-    return rel_rmse(blocks, np.asarray(ref.linear, np.float64), full)
+    m_img, m_ok = block_mean(image, mask, image.shape[0] // h)
+    ok = m_ok & np.asarray(ref.mask, bool)
+    r_img, b_ok = block_mean(np.asarray(ref.linear, np.float64), ok, block)
+    m_blk, _ = block_mean(m_img, ok, block)
+    rms = float(np.sqrt((r_img[b_ok] ** 2).mean()))
+    err = float(np.sqrt(((m_blk - r_img)[b_ok] ** 2).mean())) / rms
+    out = {"block_reference_pixels": block, "blocks": int(b_ok.sum()), "rel_rmse": err}
+    if ref.noise is not None:
+        n2, _ = block_mean(np.asarray(ref.noise, np.float64) ** 2, ok, block)
+        floor = float(np.sqrt((n2[b_ok] / block ** 2).mean())) / rms
+        out.update({"reference_noise": floor,
+                    "beyond_noise": math.sqrt(max(err * err - floor * floor, 0.0))})
+    return out
 
 
 class Runner:
@@ -89,7 +104,7 @@ class Runner:
         for nid in plan_order(self.nodes, targets):
             self.keys[nid] = node_key(key_parts(self.nodes[nid], self.keys))
         self.store = Store(cache)
-        self._inputs, self._scenes = {}, {}
+        self._inputs, self._scenes, self._thickness = {}, {}, {}
         self.env = None
 
     def load(self, nid: str):
@@ -103,6 +118,7 @@ class Runner:
         from dermis.pipeline.api import RunContext
         from dermis.pipeline.shared import RunCache
         from dermis.subsurface import gather
+        from dermis.subsurface.adaptive import THICKNESS, point_thickness
         node = self.nodes[nid]
         inputs = {d: self.load(d) for d in node.dep_ids}
         ctx = RunContext(shared=RunCache())
@@ -116,6 +132,12 @@ class Runner:
         if mesh_key not in self._scenes:
             self._scenes[mesh_key] = Visibility(mesh.vertices, mesh.faces)
         ctx.shared.get(EMBREE_SCENES, mesh_key, lambda: self._scenes[mesh_key])
+        if THICKNESS in node.shares:     # per mesh too: every lighting condition's image
+            pkey = ctx.input_keys["points"]
+            if pkey not in self._thickness:
+                self._thickness[pkey] = point_thickness(inputs[node.deps["points"]],
+                                                        self._scenes[mesh_key])
+            ctx.shared.get(THICKNESS, ("thickness", pkey), lambda: self._thickness[pkey])
         gather._QUERY_TILES._items.clear()
         ctx.out_dir = Path(tempfile.mkdtemp(prefix="bench-adaptive-"))
         t0 = time.perf_counter()
@@ -208,9 +230,10 @@ def main() -> None:
                 "time_ratio_exitance": med["bssrdf_adaptive"]["gather"] / med["bssrdf"]["gather"],
                 **{k: g[k] for k in g if k.startswith(("gathered", "flagged"))}}
             if ref is not None:
-                entry["rel_rmse_vs_reference"] = {
-                    "bssrdf": against_reference(full.linear, mask, ref),
-                    "bssrdf_adaptive": against_reference(ad.linear, mask, ref)}
+                entry["vs_reference"] = {m: [against_reference(img.linear, mask, ref, b)
+                                             for b in (1, 10)]
+                                         for m, img in (("bssrdf", full),
+                                                        ("bssrdf_adaptive", ad))}
             row["targets"][str(target)] = entry
             print(lab, target, {k: (round(v, 4) if isinstance(v, float) else v)
                                 for k, v in entry.items() if k not in ("seconds_all",

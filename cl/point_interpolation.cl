@@ -6,7 +6,8 @@
  * the Gaussian the gather reconstructs irradiance with (cl/bssrdf_gather.cl), normalised
  * (Shepard 1968) so that a constant is reproduced exactly.  Also returned: the weighted mean
  * normal and mean squared distance (a curvature estimate, subsurface/adaptive.py) and the
- * total weight sum_p w_p (0: no point in reach).
+ * total weight sum_p w_p (0: no point in reach; times the normalised value, the gather's
+ * own unnormalised reconstruction).
  *
  * The points are bucketed on the host in a uniform grid of cells no smaller than CUT, sorted
  * by cell (cell_start: the first point of each cell, one past the last cell at the end), so

@@ -7,8 +7,9 @@ Fresnel-weighted exit to radiance (:func:`dermis.subsurface.radiance.exitance_to
 and the surface reflection
 term (Lafortune's specular lobes with rho_d = 0, so the images compare with the BRDF
 models').  One node per BSSRDF model (``bssrdf``: the scene's profile model; ``bssrdf_mc``: the
-Monte Carlo-tabulated profile), lighting condition and geometry; pass 1 is the
-``irradiance`` stage.
+Monte Carlo-tabulated profile; a model with its own ``Model.exitance``, ``bssrdf_adaptive``:
+the local model with the gather where its predictor asks, its blend mask written beside the
+image), lighting condition and geometry; pass 1 is the ``irradiance`` stage.
 
 The image carries no noise estimate of its own (``RenderedImage.noise`` None): besides the
 surface term's light samples, which split into halves as the BRDF images' do
