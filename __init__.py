@@ -42,8 +42,10 @@ MODELS = (
     ("lafortune", "dermis.models.lafortune"),
     ("asperity", "dermis.models.asperity"),
     ("hk93", "dermis.models.hk93"),
+    ("lambert", "dermis.models.lambert"),
     ("bssrdf", "dermis.models.bssrdf"),
     ("bssrdf_mc", "dermis.models.bssrdf_mc"),
+    ("bssrdf_single", "dermis.models.bssrdf_single"),
     ("bssrdf_adaptive", "dermis.models.bssrdf_adaptive"),
 )
 

@@ -27,14 +27,18 @@ so the regions are disjoint):
   dermis's default camera) face;
 * ``shadowed_side``: the mirror image of ``cheek`` (-0.68 w < x < -0.25 w), the cheek
   away from the point and disc lights.  Its name follows the thesis's key light; under the
-  sunset (sun 36 deg towards -x) this cheek is the lit one.
+  sunset (sun 36 deg towards -x) this cheek is the lit one;
+* ``lips``: |x| < 0.27 w, -0.5 w < y < -0.22 w, z > -0.3 w, n_z > 0.3 (both lips and the
+  corners of the mouth; the close-up of the default scene's ``lips`` view);
+* ``eyelid``: 0.18 w < |x| < 0.5 w, 0.22 w < y < 0.45 w, z > -0.55 w, n_z > 0.4 (the lids
+  and the crease above them; on the procedural head also the open eyes' exposed eyeballs);
 
 The fractions were chosen by looking at label images of the Lee Perry-Smith scan and of the
 procedural head from the front, from below and from the side (tests/test_reference.py checks
 that every region is non-empty on both heads and that two cameras see the same faces).
 ``ear`` and ``nostril`` are the thin parts, where light crosses the tissue: a model of a
 locally flat surface misses that light, so they are measured apart.  Labels keep their
-numbers as regions are added (``nostril`` is the last).
+numbers as regions are added (``eyelid`` is the last).
 
 Pure functions only; numpy.
 """
@@ -47,13 +51,14 @@ from dermis.pipeline.errors import DermisError
 __all__ = ["REGIONS", "REGION_COLOURS", "region_colours", "landmarks", "face_regions",
            "block_mean", "region_stats", "REGION_LABELS", "THIN_REGIONS"]
 
-REGIONS = ("forehead", "cheek", "nose", "ear", "shadowed_side", "nostril")
+REGIONS = ("forehead", "cheek", "nose", "ear", "shadowed_side", "nostril", "lips", "eyelid")
 REGION_LABELS = {name: i + 1 for i, name in enumerate(REGIONS)}
 THIN_REGIONS = ("ear", "nostril")
 # Label-image colours (sRGB 8-bit): index 0 = no hit, k = REGIONS[k - 1], the last = a hit
 # outside every region.
 REGION_COLOURS = ((0, 0, 0), (230, 60, 60), (60, 200, 60), (60, 60, 230), (230, 200, 40),
-                  (160, 60, 200), (40, 210, 210), (128, 128, 128))
+                  (160, 60, 200), (40, 210, 210), (240, 130, 170), (150, 110, 60),
+                  (128, 128, 128))
 # Height band (mm) around the nose tip in which the half-width w is measured.
 _WIDTH_BAND_MM = 15.0
 
@@ -93,9 +98,13 @@ def face_regions(vertices, faces) -> np.ndarray:
                  & (n[:, 2] > 0.15),
         "shadowed_side": (x < -0.25) & (x > -0.68) & (y > -0.45) & (y < 0.25) & (z > -0.75)
                          & (n[:, 2] > 0.15),
+        "lips": (np.abs(x) < 0.27) & (y > -0.5) & (y < -0.22) & (z > -0.3) & (n[:, 2] > 0.3),
+        "eyelid": (np.abs(x) > 0.18) & (np.abs(x) < 0.5) & (y > 0.22) & (y < 0.45)
+                  & (z > -0.55) & (n[:, 2] > 0.4),
     }
     out = np.zeros(len(f), np.int8)
-    for name in ("nostril", "nose", "ear", "forehead", "cheek", "shadowed_side"):  # first wins
+    for name in ("nostril", "nose", "ear", "forehead", "cheek", "shadowed_side", "lips",
+                 "eyelid"):  # first wins
         out[(out == 0) & rules[name]] = REGION_LABELS[name]
     return out
 

@@ -17,7 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from .config import Scene, load_scene, scene_warnings
+from .config import Scene, load_scene
+from .scene_rules import scene_warnings
 from .errors import DermisError
 from .graph import RunSummary, execute, plan_order
 from .imageio import ImageRangeWarning

@@ -10,8 +10,10 @@ estimates, the CLI) cannot change a stage's output and are neither hashed nor fo
 the scene schema (pipeline/config.py: its dataclasses and defaults, which stages rebuild
 their config slices from) is hashed like any module a stage imports.  Every module in the
 closure may declare ``KERNELS`` (``.cl`` file names it builds); those files and the
-headers they ``#include`` are hashed too.  A node also hashes the modules it names in
-``Node.code`` (the model a render node looks up by name).
+headers they ``#include`` are hashed too, and so are the files it declares in ``DATA_FILES``
+(paths relative to its own folder: the HTML, CSS and JavaScript the report page inlines).
+A node also hashes the modules it names in ``Node.code`` (the model a render node looks up
+by name).
 
 Probe: tests/test_structure.py (``PROBE``) appends a comment to files and checks that
 exactly the nodes executing them get new keys.
@@ -75,11 +77,12 @@ def _is_module(name: str) -> bool:
 
 
 @functools.lru_cache(maxsize=None)
-def _module_facts(name: str) -> tuple[frozenset, tuple]:
-    """(the ``dermis.*`` modules imported anywhere in module ``name``, the ``KERNELS`` it
-    declares), from one parse of its source."""
+def _module_facts(name: str) -> tuple[frozenset, tuple, tuple]:
+    """(the ``dermis.*`` modules imported anywhere in module ``name``, the ``KERNELS`` and
+    the ``DATA_FILES`` it declares), from one parse of its source."""
     tree = ast.parse(read_source(_module_file(name)))
-    return frozenset(_imported_names(name, tree)), _declared_kernels(tree)
+    return (frozenset(_imported_names(name, tree)), _declared(tree, "KERNELS"),
+            _declared(tree, "DATA_FILES"))
 
 
 def _imported_names(name: str, tree: ast.AST) -> set[str]:
@@ -128,11 +131,11 @@ def _kernels_of(name: str) -> tuple[str, ...]:
     return _module_facts(name)[1]
 
 
-def _declared_kernels(tree: ast.Module) -> tuple[str, ...]:
+def _declared(tree: ast.Module, what: str) -> tuple[str, ...]:
     for node in tree.body:
         targets = node.targets if isinstance(node, ast.Assign) else (
             [node.target] if isinstance(node, ast.AnnAssign) else [])
-        if any(isinstance(t, ast.Name) and t.id == "KERNELS" for t in targets):
+        if any(isinstance(t, ast.Name) and t.id == what for t in targets):
             return tuple(ast.literal_eval(node.value))
     return ()
 
@@ -147,6 +150,8 @@ def closure_hash(name: str) -> str:
     for mod in module_closure(name):
         h.update(mod.encode() + b"\0" + read_source(_module_file(mod)) + b"\0")
         kernels.update(_kernels_of(mod))
+        for rel in _module_facts(mod)[2]:
+            h.update(rel.encode() + b"\0" + read_source(_module_file(mod).parent / rel) + b"\0")
     for path in kernel_closure(sorted(kernels)):
         h.update(path.name.encode() + b"\0" + read_source(path) + b"\0")
     return h.hexdigest()

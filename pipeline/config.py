@@ -1,7 +1,7 @@
 """Scene files: TOML -> validated, typed dataclasses with defaults.
 
-Every field is declared once, with its type, default, allowed range and unit, in
-the dataclasses below; one generic walker (:func:`_build`) validates a TOML
+Every field is declared once, with its type, default, allowed range and unit, in the
+dataclasses of :mod:`dermis.pipeline.schema` (re-exported here); one generic walker (:func:`_build`) validates a TOML
 table against them.  Errors name the file, the dotted key, the bad value and
 what is allowed; unknown keys are errors with a did-you-mean, and all problems
 found in one file are reported together.
@@ -14,7 +14,7 @@ from __future__ import annotations
 import difflib
 import math
 import tomllib
-from dataclasses import MISSING, dataclass, field, fields, is_dataclass, replace
+from dataclasses import MISSING, fields, is_dataclass, replace
 from importlib import resources
 from pathlib import Path
 from typing import Any, get_type_hints
@@ -22,294 +22,22 @@ from typing import Any, get_type_hints
 from .errors import ConfigError
 from . import registry
 from .registry import model
+from .model_choice import AUTO, choice_problems, choose, condition_kind
+# the schema's names are config's too (callers import both from here)
+from .schema import (GEOMETRIES, LENGTH_UNITS, LIGHT_TYPES, MAIN_VIEW, SCHEMA_TABLES,
+                     VIEW_MARK, BakeConfig, BssrdfConfig, CameraConfig, CausesConfig,
+                     LightConfig, MeshConfig, OutputConfig, ReferenceConfig, RenderConfig,
+                     ReportConfig, Scene, SceneInfo, ViewConfig, choices_of, condition_of,
+                     resolve_path, spec)
 from .scene_rules import (check_camera, check_environment_file, check_reference,
                           direction_problem, fmt, plain_name_problem)
 
-__all__ = ["Scene", "load_scene", "default_scene_path", "LENGTH_UNITS", "GEOMETRIES",
-           "scene_warnings"]
-
-LENGTH_UNITS = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
-GEOMETRIES = ("high", "low", "low_bump", "low_bump_blur")
-LIGHT_TYPES = ("point", "disc", "directional", "environment")
-
-
-def spec(default=MISSING, *, lo=None, hi=None, lo_open=False, hi_open=False, choices=None,
-         unit=None, doc="", factory=None, names=False):
-    """A dataclass field with validation metadata.  A tuple field is a vector of 3 numbers,
-    unless it has ``choices`` or ``names`` (a list of strings: names of lights)."""
-    meta = dict(lo=lo, hi=hi, lo_open=lo_open, hi_open=hi_open, choices=choices, unit=unit,
-                doc=doc, names=names)
-    if factory is not None:
-        return field(default_factory=factory, metadata=meta)
-    return field(default=default, metadata=meta)
-
-
-# --------------------------------------------------------------------------- schema
-@dataclass(frozen=True)
-class SceneInfo:
-    name: str = spec("dermis", doc="label used in output paths and reports")
-    units: str = spec("mm", choices=tuple(LENGTH_UNITS), doc="units of lengths in this file")
-
-
-@dataclass(frozen=True)
-class MeshConfig:
-    source: str = spec("procedural", doc='"procedural" (embedded head) or a mesh file path')
-    units: str = spec("mm", choices=tuple(LENGTH_UNITS), doc="units of the mesh file")
-    texture: str = spec("", doc="albedo texture path (else the file's material)")
-    displacement: str = spec("", doc="grey displacement map for the high mesh (optional)")
-    displacement_scale_mm: float = spec(0.0, lo=0.0, hi=100.0, doc="mm per unit map value")
-    displacement_mid: float = spec(0.5, lo=0.0, hi=1.0, doc="map value of zero displacement")
-    high_triangles: int = spec(1_000_000, lo=1_000, hi=20_000_000,
-                               doc="triangles of the high mesh (thesis: ~1M-triangle scan)")
-    low_triangles: int = spec(16_750, lo=100, hi=5_000_000, doc="thesis: 16,750 (QSlim)")
-    procedural_detail: bool = spec(True, doc="pores and wrinkles on the procedural head")
-    procedural_texture_size: int = spec(2048, lo=64, hi=16384,
-                                        doc="albedo texture size of the procedural head")
-    seed: int = spec(0, lo=0, doc="seed of every random choice (head, points, light samples)")
-
-
-@dataclass(frozen=True)
-class BakeConfig:
-    resolution: int = spec(4096, lo=16, hi=16384, doc="thesis: 4096x4096")
-    blur_sigma_px: float = spec(8.0, lo=0.0, hi=1000.0,
-                                doc="Gaussian sigma of the blurred bump map (thesis 3.2; value ours)")
-    max_distance: float = spec(0.0, lo=0.0, unit="length", doc="0 = automatic")
-    dilate_px: int = spec(16, lo=0, hi=4096, doc="texels the maps are grown past chart borders")
-    reference: str = spec("phong", choices=("phong", "flat"),
-                          doc="surface bump heights are measured from: the low mesh's smooth "
-                              "Phong surface, or the flat triangles (thesis; facets show)")
-
-
-@dataclass(frozen=True)
-class CameraConfig:
-    position: tuple = spec((0.0, 0.0, 900.0), unit="length", doc="eye point")
-    look_at: tuple = spec((0.0, 0.0, 0.0), unit="length", doc="point the camera looks at")
-    up: tuple = spec((0.0, 1.0, 0.0), doc="up direction (not parallel to the view)")
-    fov_deg: float = spec(30.0, lo=0.0, hi=179.0, lo_open=True,
-                          doc="full field of view across the shorter image side")
-    width: int = spec(800, lo=1, hi=16384, doc="pixels (thesis: 800)")
-    height: int = spec(800, lo=1, hi=16384, doc="pixels (thesis: 800)")
-
-
-@dataclass(frozen=True)
-class LightConfig:
-    name: str = spec(doc="unique name, used in output file names")
-    type: str = spec(choices=LIGHT_TYPES, doc="kind of light")
-    position: tuple = spec((0.0, 0.0, 0.0), unit="length", doc="point / disc centre")
-    direction: tuple = spec((0.0, 0.0, 1.0), doc="directional: towards the light; disc: normal")
-    # hi: float32 light samples, irradiance and radiance stay finite down to the 1e-6 mm
-    # distance floor of point lights (1e20 / 1e-12 = 1e32 < 3.4e38; tests/test_stability.py)
-    intensity: tuple = spec((1.0, 1.0, 1.0), lo=0.0, hi=1e20, doc="point/disc: W/sr-like "
-                                                                  "units; directional: irradiance")
-    radius: float = spec(70.0, lo=0.0, lo_open=True, unit="length", doc="disc radius (thesis 70 mm)")
-    map: str = spec("procedural_sunset", doc='environment: "procedural_sunset" or an HDR/EXR path')
-    scale: float = spec(1.0, lo=0.0, hi=1e20, doc="environment radiance multiplier")
-    rotation_deg: float = spec(0.0, lo=-360.0, hi=360.0, doc="environment: turn about +y")
-    # Swept (bench/results/sweep_default.json, default scan at 400x400, area light, vs 64):
-    # 4 / 8 / 16 / 32 -> 1.22 / 1.01 / 0.42 / 0.52 % relative RMSE: 16 is the cheapest < 1 %
-    samples: int = spec(16, lo=1, hi=4096, doc="shadow samples (thesis: 16)")
-
-
-@dataclass(frozen=True)
-class RenderConfig:
-    # default: the thesis's four; bssrdf_mc costs a Monte Carlo table (docs/profiles.md)
-    # the registered models (dermis.MODELS), read when a scene is checked: plugins may add some
-    models: tuple = spec(registry.default_models(), choices=registry.model_names,
-                         doc="models to render (bssrdf is the reference of the difference "
-                             "images; bssrdf_mc: the BSSRDF with the Monte Carlo profile)")
-    lights: tuple = spec((), names=True,
-                         doc='lighting conditions to render: names of [[lights]], "a+b" '
-                             "lights several together (the thesis's two directional "
-                             "lights); empty = each light alone")
-    geometries: tuple = spec(("high", "low_bump", "low_bump_blur"), choices=GEOMETRIES,
-                             doc="high mesh; low mesh plain, with the sharp or the blurred bump map")
-    # Lambert default: in the thesis's timings asperity renders beat Lafortune for every light
-    # (docs/science.md §7), so its base cannot have been a costlier model (an inference; see asperity.cl)
-    asperity_base: str = spec("lambert", choices=registry.term_bases,
-                              doc="model under the asperity term")
-    # Measured (bench/bench_render.py --spp, bench/results/render_spp.json; Lafortune, high
-    # mesh): point light, error vs 64 spp over the head 0.0196 / 0.0110 / 0.0058 / 0.0039 at
-    # spp 1 / 4 / 9 / 16 for 2.9 / 5.0 / 12.7 / 35 s; under the sunset the noise stays 0.162 up
-    # to 4 and grows beyond (0.175, 0.251: a pixel's 16 light samples leave < 4 per camera
-    # sample for the MIS).  4 halves the aliasing for 1.7x the time and costs no noise.
-    # Swept (bench/results/sweep_default.json, default scan at 400x400, point + area, vs 8):
-    # 1 / 2 / 4 -> 2.40 / 2.13 / 1.55 %; 8 costs +20 s of 136 s: kept at 4 (5 % target met;
-    # 1 % needs 8, where the sweep has no finer reference to confirm it)
-    spp: int = spec(4, lo=1, hi=256,
-                    doc="camera samples per pixel, stratified (anti-aliasing); a pixel's disc "
-                        "and environment light samples are spread over them")
-    # the thesis shades with direct light only; true adds one diffuse bounce (lighting/indirect.py)
-    indirect: bool = spec(False, doc="add one bounce of indirect light (Lambertian, the skin's "
-                                     "albedo) to every model")
-    # Measured (bench/bench_indirect.py, bench/results/indirect.json "samples"; default scan,
-    # point light, 6000 face vertices vs 4096 rays): RMS noise / mean light over the face
-    # 4.5 / 2.8 / 1.8 / 1.3 / 0.67 % at 16 / 32 / 64 / 128 / 256 rays; 256 is the first below
-    # the BRDF images' own 1.1 % at the default spp (render_spp.json)
-    indirect_samples: int = spec(256, lo=1, hi=4096,
-                                 doc="bounce rays per vertex of the indirect light")
-
-
-@dataclass(frozen=True)
-class BssrdfConfig:
-    # Jensen-Buhler's rule (one point per pi*mfp^2, smallest mfp of the stack) asks for 12M
-    # points on a head with the two-layer skin (mfp 0.1 mm); 0.02 gives ~250k, the size the
-    # issue's targets assume, and the gather's cell-averaged profile keeps energy exact.
-    # Swept (bench/results/sweep_default.json, default scan at 400x400, vs 0.04): 0.005 / 0.01
-    # / 0.02 -> 3.12 / 1.96 / 1.02 %; 0.04 costs +86 s of 136 s: kept (with spp, the largest
-    # error of the defaults)
-    point_density: float = spec(0.02, lo=0.0, lo_open=True, hi=100.0,
-                                doc="multiplier on one point per pi*mfp^2")
-    # Swept (bench/results/sweep_default.json, vs 128): point + area 16 / 32 / 64 -> 0.10 /
-    # 0.07 / 0.05 %, but under the sunset 2.63 / 1.58 / 1.06 %: kept at 64 for the sky
-    irradiance_samples: int = spec(64, lo=1, hi=4096, doc="thesis: 64 shadow samples")
-    # Measured on the LPS head (250k points, 640k pixels; bench/results/gather.json): eps 0.5
-    # gives 0.38% relative RMSE vs brute force at 543x its speed (0.18 s kernel); 0.4: 0.27%;
-    # 0.2: 0.06%. A scene with sharper irradiance (bumpy sheet, 20x shadow step) needs 0.2.
-    # Swept (bench/results/sweep_default.json, default scan at 400x400, vs brute force): 1.0 /
-    # 0.5 / 0.25 / 0.1 -> 0.54 (max 1.04) / 0.17 / 0.02 / 0.003 %: kept (1.0 exceeds 1 % on one
-    # of the 2 images); the sweep's time of 0.5 carries the first point's one-time costs
-    epsilon: float = spec(0.5, lo=0.0, lo_open=True, hi=10.0, doc="solid-angle criterion")
-    # Jensen-Buhler used <= 8 points per leaf; 16 measured 8-10% faster at lower error
-    leaf_size: int = spec(16, lo=1, hi=256, doc="points per octree leaf")
-    normalisation: str = spec("energy", choices=("energy", "thesis"),
-                              doc="profile normalisation in the gather (energy: exact Rd)")
-    albedo_mode: str = spec("replace", choices=("replace", "modulate", "none"),
-                            doc="replace: texture = total diffuse reflectance (profile shapes "
-                                "the blur); modulate: texture tints the profile; none: ignore")
-    surface_reflection: str = spec("lafortune_lobes", choices=("lafortune_lobes", "none"),
-                                   doc="specular surface term added to the subsurface image")
-    brute_force: bool = spec(False, doc="reference gather over every point (slow)")
-
-
-@dataclass(frozen=True)
-class ReferenceConfig:
-    # Mitsuba 3 path-traced ground truth (stages/reference.py, docs/ground-truth.md), rendered
-    # in progressive passes of two half-buffers over the head's pixels until every face
-    # region's mean is known to target_rel_se or budget_s runs out (groundtruth/progressive.py).
-    # 1 % everywhere took 0.6-3.8 M paths per lighting condition of the default scene
-    # (bench/results/reference_passes.json), ~30 us a path on 2 idle cores: 340 s for the
-    # four, so the default budget (40 s each) reaches ~1.5-2 % and keeps a cold default run
-    # near 5 minutes; a larger budget_s continues from the cached passes.
-    enabled: bool = spec(True, doc="render Mitsuba 3 references (skipped with one message where "
-                                   "Mitsuba cannot run)")
-    # 100 reference pixels across the default camera's 800: 8x8-pixel blocks, where the
-    # reference's noise resolves the models (bench/results/reference.json)
-    width: int = spec(0, lo=0, hi=16384, doc="pixels; must divide camera.width (block-averaged "
-                                             "comparison); 0 = about 100 (reference_size)")
-    height: int = spec(0, lo=0, hi=16384, doc="pixels; must divide camera.height; 0 = with width")
-    target_rel_se: float = spec(0.01, lo=0.0, lo_open=True, hi=1.0,
-                                doc="stop when every face region's luminance mean has this "
-                                    "relative standard error")
-    budget_s: float = spec(40.0, lo=0.0, hi=1e7, doc="seconds of rendering per lighting condition "
-                                                     "(0 = no limit); a larger budget continues "
-                                                     "from the cached passes")
-    max_passes: int = spec(0, lo=0, hi=1 << 20, doc="stop after this many passes (0 = no limit); "
-                                                    "like budget_s, continued from the cache")
-    min_spp: int = spec(32, lo=1, hi=1 << 20, doc="samples per pixel of each half-buffer every "
-                                                 "head pixel gets")
-    max_spp: int = spec(4096, lo=1, hi=1 << 24, doc="samples per pixel of each half-buffer no "
-                                                   "pixel exceeds")
-    pass_spp: int = spec(8, lo=1, hi=1 << 20, doc="fewest samples per pixel and half a pass adds")
-    seed: int = spec(1, lo=0, hi=30000, doc="seeds every pass, tile and half-buffer")
-    lights: tuple = spec((), names=True,
-                         doc="lighting conditions to reference (names as in [render] lights); empty = all")
-    roughness: float = spec(0.3, lo=0.0, lo_open=True, hi=1.0, doc="GGX alpha of the skin boundary")
-    # ground-truth.md trap 7, and rr_depth measured here: Mitsuba's Russian roulette keeps a
-    # path with probability <= 0.99 per event, so in skin (hundreds of events) it biases red
-    max_depth: int = spec(-1, lo=-1, doc="path events, -1 = unlimited")
-    rr_depth: int = spec(1024, lo=1, doc="events before Russian roulette starts")
-    env_clamp: float = spec(0.0, lo=0.0, doc="clamp environment radiance (0 = none, as the models)")
-    slab_samples: int = spec(1 << 18, lo=1024, doc="paths of the flat-slab Rd that normalises the albedo tint")
-    variant: str = spec("auto", choices=("auto", "cuda_ad_rgb", "llvm_ad_rgb"),
-                        doc="Mitsuba variant (auto: cuda, else llvm)")
-
-
-@dataclass(frozen=True)
-class CausesConfig:
-    # The reference's controlled variants (stages/causes.py, groundtruth/variants.py,
-    # docs/ground-truth.md "Causes of the distance"), one node per referenced lighting
-    # condition at the reference's size.  Samples are per half-buffer; the default scan,
-    # 100x100, 2 cores at load 5-9: the diffuse head 0.009 s/spp, the rough skin 0.8-0.9,
-    # the smooth 0.7-0.8 s/spp with 9x the rough one's variance per sample (so 3x its
-    # samples); this budget: 9-10 s per lighting condition, 59 s with the boundary variant
-    # (bench/results/causes.json)
-    enabled: bool = spec(True, doc="measure interreflection and boundary effects on the "
-                                   "reference (only when [reference] is enabled)")
-    diffuse_spp: int = spec(64, lo=1, hi=1 << 20,
-                            doc="samples per pixel of each half of the diffuse head (direct "
-                                "and all bounces)")
-    rough_spp: int = spec(4, lo=1, hi=1 << 20,
-                          doc="samples per pixel of each half of the rough-boundary skin head")
-    smooth_spp: int = spec(12, lo=1, hi=1 << 20,
-                           doc="samples per pixel of each half of the smooth-boundary skin head")
-    smooth_roughness: float = spec(0.0, lo=0.0, hi=1.0,
-                                   doc="GGX alpha of the smooth variant (0 = smooth dielectric, "
-                                       "the models' Fresnel boundary)")
-    boundary_lights: tuple = spec((), names=True,
-                                  doc="lighting conditions of the boundary variant (disc or "
-                                      "environment lights); empty = those of disc lights only")
-    slab_samples: int = spec(1 << 14, lo=1024, hi=1 << 26,
-                             doc="paths of each flat-slab Rd normalising a boundary variant")
-    seed: int = spec(1, lo=0, hi=30000, doc="half-buffers use seeds 2 seed and 2 seed + 1")
-
-
-@dataclass(frozen=True)
-class OutputConfig:
-    cache_dir: str = spec("", doc="empty: $DERMIS_CACHE or ./.dermis-cache")
-    output_dir: str = spec("out", doc="outputs go to output_dir/<scene name>/")
-    previews: bool = spec(True, doc="PNG previews of meshes and baked maps")
-
-
-@dataclass(frozen=True)
-class Scene:
-    """A whole validated scene; ``path`` is the file it came from (or the embedded default)."""
-
-    scene: SceneInfo = spec(factory=SceneInfo)
-    mesh: MeshConfig = spec(factory=MeshConfig)
-    bake: BakeConfig = spec(factory=BakeConfig)
-    camera: CameraConfig = spec(factory=CameraConfig)
-    lights: tuple = spec((), doc="array of [[lights]] tables")
-    render: RenderConfig = spec(factory=RenderConfig)
-    optics: Any = spec(None, doc='layer stack: preset = "two_layer" or [[optics.layers]]')
-    bssrdf: BssrdfConfig = spec(factory=BssrdfConfig)
-    reference: ReferenceConfig = spec(factory=ReferenceConfig)
-    causes: CausesConfig = spec(factory=CausesConfig)
-    output: OutputConfig = spec(factory=OutputConfig)
-    path: str = ""
-
-    @property
-    def light_by_name(self) -> dict:
-        return {l.name: l for l in self.lights}
-
-    def light_groups(self) -> tuple:
-        """The lighting conditions to render: (label, tuple of LightConfig) pairs."""
-        labels = self.render.lights or tuple(l.name for l in self.lights)
-        return tuple((label, tuple(self.light_by_name[n] for n in label.split("+")))
-                     for label in labels)
-
-    def mesh_path(self) -> Path | None:
-        if self.mesh.source == "procedural":
-            return None
-        return _resolve(self.mesh.source, self.path)
-
-    def credits(self) -> tuple[str, ...]:
-        """Attribution lines of the asset files this scene uses (``ATTRIBUTION.txt`` beside them)."""
-        paths = [self.mesh_path(), self.resolve(self.mesh.texture), self.resolve(self.mesh.displacement)]
-        paths += [Path(l.map) for l in self.lights if l.type == "environment"
-                  and l.map != "procedural_sunset"]
-        out = []
-        for p in paths:
-            note = p.parent / "ATTRIBUTION.txt" if p is not None else None
-            if note is not None and note.is_file():
-                text = note.read_text().strip()
-                if text not in out:
-                    out.append(text)
-        return tuple(out)
-
-    def resolve(self, value: str) -> Path | None:
-        """A path value of this scene resolved against the scene file's folder (None if empty)."""
-        return _resolve(value, self.path) if value else None
-
+__all__ = ["load_scene", "scene_from_dict", "default_scene_path", "condition_problems",
+           "LENGTH_UNITS", "GEOMETRIES", "LIGHT_TYPES", "MAIN_VIEW", "SCHEMA_TABLES", "VIEW_MARK",
+           "BakeConfig", "BssrdfConfig", "CameraConfig", "CausesConfig", "LightConfig",
+           "MeshConfig", "OutputConfig", "ReferenceConfig", "RenderConfig", "ReportConfig",
+           "Scene", "SceneInfo", "ViewConfig", "choices_of", "condition_of", "resolve_path",
+           "spec"]
 
 # --------------------------------------------------------------------------- validation
 class _Problems(list):
@@ -361,7 +89,7 @@ def _check_number(value, meta, where, key, problems, *, integer: bool, scale: fl
 
 def _check_value(value, tp, meta, where, key, problems, length_scale):
     scale = length_scale if meta.get("unit") == "length" else 1.0
-    choices = _choices(meta)
+    choices = choices_of(meta)
     if tp is bool:
         if not isinstance(value, bool):
             problems.add(where, key, f" = {fmt(value)}: must be true or false")
@@ -412,7 +140,8 @@ def _build(cls, table, where: str, prefix: str, problems: _Problems, length_scal
         problems.add(where, prefix.rstrip("."), f" = {fmt(table)}: must be a table")
         return None
     hints = get_type_hints(cls)
-    known = {f.name: f for f in fields(cls) if f.name != "path"}
+    known = {f.name: f for f in fields(cls) if f.name != "path"
+             and not f.metadata.get("internal")}
     for key in table:
         if key not in known:
             problems.add(where, prefix + key, ": unknown key" + _did_you_mean(key, known)
@@ -436,63 +165,6 @@ def _build(cls, table, where: str, prefix: str, problems: _Problems, length_scal
         return cls(**values)
     except TypeError:
         return None
-
-
-def _fmt_default(f) -> str:
-    if f.default_factory is not MISSING or f.default is MISSING:
-        return ""
-    v = f.default
-    if isinstance(v, tuple) and all(isinstance(x, str) for x in v):
-        return "[" + ", ".join(v) + "]" if v else "[]"
-    if isinstance(v, float) and v.is_integer() and abs(v) >= 1e4:
-        return f"{int(v):,}"
-    if isinstance(v, int) and not isinstance(v, bool) and abs(v) >= 1e4:
-        return f"{v:,}"
-    return fmt(v).replace("True", "true").replace("False", "false")
-
-
-def _choices(meta) -> tuple | None:
-    """A field's allowed values: a tuple, or a function giving them (the registered models,
-    which plugins may extend)."""
-    choices = meta.get("choices")
-    return choices() if callable(choices) else choices
-
-
-def _fmt_rule(meta) -> str:
-    if _choices(meta):
-        return "one of " + ", ".join(str(c) for c in _choices(meta))
-    parts = []
-    if meta.get("lo") is not None:
-        parts.append((">" if meta.get("lo_open") else ">=") + f" {meta['lo']}")
-    if meta.get("hi") is not None:
-        parts.append(("<" if meta.get("hi_open") else "<=") + f" {meta['hi']}")
-    return ", ".join(parts)
-
-
-SCHEMA_TABLES = (("scene", SceneInfo), ("mesh", MeshConfig), ("bake", BakeConfig),
-                 ("camera", CameraConfig), ("[lights]", LightConfig), ("render", RenderConfig),
-                 ("bssrdf", BssrdfConfig), ("reference", ReferenceConfig),
-                 ("causes", CausesConfig), ("output", OutputConfig))
-
-
-def schema_markdown() -> str:
-    """The scene-format reference, generated from the schema's own field docs (README.md holds
-    this text between its ``scene-format`` markers; tests/test_config.py keeps them equal)."""
-    lines = ["| key | default | allowed | what |", "|---|---|---|---|"]
-    for table, cls in SCHEMA_TABLES:
-        for f in fields(cls):
-            unit = " (length)" if f.metadata.get("unit") == "length" else ""
-            doc = f.metadata.get("doc", "").replace("|", "/")
-            lines.append(f"| `[{table}] {f.name}` | {_fmt_default(f)} | {_fmt_rule(f.metadata)}"
-                         f"{unit} | {doc} |")
-    return "\n".join(lines)
-
-
-def _resolve(path: str, scene_path: str) -> Path:
-    p = Path(path).expanduser()
-    if not p.is_absolute() and scene_path and not scene_path.startswith("<"):
-        p = Path(scene_path).parent / p
-    return p
 
 
 def default_scene_path() -> Path:
@@ -528,40 +200,6 @@ def load_scene(path: str | Path | None = None, *, overrides: dict | None = None)
     return scene_from_dict(table, where=where, overrides=overrides)
 
 
-def scene_warnings(scene: Scene) -> list[str]:
-    """Settings that validate but make a run useless (it would render nothing, or black)."""
-    where = scene.path
-    out = []
-    r = scene.render
-    if not r.models:
-        out.append(f"{where}: render.models = []: nothing is rendered (only the meshes are "
-                   "prepared)")
-    elif not r.geometries:
-        out.append(f"{where}: render.geometries = []: nothing is rendered (only the meshes are "
-                   "prepared)")
-    for label, lights in scene.light_groups():
-        dark = [l for l in lights if not any(l.intensity if l.type != "environment"
-                                             else (l.scale,))]
-        if r.models and r.geometries and len(dark) == len(lights):
-            keys = ", ".join(f"lights.{l.name}." + ("scale = 0.0" if l.type == "environment"
-                                                    else f"intensity = {fmt(l.intensity)}")
-                             for l in dark)
-            out.append(f"{where}: lighting condition {fmt(label)} emits no light ({keys}); "
-                       "its renders will be black")
-    own = getattr(scene.optics, "profile", None)
-    readers: dict = {}      # layer-profile model -> the rendered models that read it
-    for name in r.models:
-        m = model(name)
-        if m.profiles and m.exitance is None:    # an own exitance: another image
-            readers.setdefault(m.profile or own, []).append(name)
-    for profile, names in readers.items():
-        if len(names) > 1:
-            out.append(f"{where}: render.models has {' and '.join(names)}, but optics.profile = "
-                       f"{fmt(profile)} makes them the same image (drop optics.profile to "
-                       "compare the multipole with the Monte Carlo profile)")
-    return out
-
-
 def _sections(body: dict, where: str, length_scale: float):
     """The scene's tables that validate on their own (None for the others): the cross-field
     checks then still run when some other table has a problem (all problems listed at once)."""
@@ -586,6 +224,65 @@ def _merge(base: dict, over: dict) -> dict:
     return out
 
 
+def condition_problems(labels, named, key: str, where: str) -> list[str]:
+    """The problems of lighting conditions ``labels`` (names of ``named`` lights, "a+b"
+    lights together) given at ``key``."""
+    problems = _Problems()
+    for label in labels:
+        parts = label.split("+")
+        for n in parts:
+            if n not in named:
+                problems.add(where, key, f": {fmt(n)} (in {fmt(label)}) names no [[lights]] "
+                             "entry; defined: " + (", ".join(fmt(x) for x in named) or "none"))
+        for n in sorted({n for n in parts if parts.count(n) > 1}):
+            problems.add(where, key, f": {fmt(label)} names light {fmt(n)} {parts.count(n)} "
+                         "times; each light may appear once in a lighting condition (raise its "
+                         "intensity to brighten it)")
+    return list(problems)
+
+
+def _views(raw, named, where: str, problems: _Problems, length_scale: float) -> tuple:
+    """The ``[[views]]`` tables, validated (problems added to ``problems``)."""
+    if not isinstance(raw, list):
+        problems.add(where, "views", ": must be an array of tables ([[views]])")
+        return ()
+    views = []
+    for i, table in enumerate(raw):
+        view = _build(ViewConfig, table, where, f"views[{i}].", problems, length_scale)
+        if view is None:
+            continue
+        why = plain_name_problem(view.name, extra="+" + VIEW_MARK)
+        if why or view.name == MAIN_VIEW:
+            problems.add(where, f"views[{i}].name", f" = {fmt(view.name)}: "
+                         + (why or "names the [camera] view") + " (a view's name becomes part "
+                         "of output file names and of its lighting labels, <condition>@<view>)")
+        problems += check_camera(view.camera, where, f"views[{i}].camera")
+        problems += condition_problems(view.lights, named, f"views[{i}].lights", where)
+        for key in ("lights", "geometries"):
+            values = getattr(view, key)
+            for v in sorted({v for v in values if values.count(v) > 1}):
+                problems.add(where, f"views[{i}].{key}", f": {fmt(v)} is listed twice; list "
+                             "each once")
+        views.append(view)
+    names = [v.name for v in views]
+    for n in sorted({n for n in names if names.count(n) > 1}):
+        problems.add(where, "views", f": name {fmt(n)} is used twice; names must be unique")
+    return tuple(views)
+
+
+def _auto_models(render, report, lights, views, where: str) -> tuple:
+    """(label, model) for every lighting condition of ``render.models = ["auto"]``."""
+    types = {l.name: l.type for l in lights}
+    main = render.lights or tuple(types)
+    labels = [(c, False) for c in main] + [(f"{c}{VIEW_MARK}{v.name}", True) for v in views
+                                           for c in v.lights or main]
+    accuracy = report.accuracy if report is not None else ReportConfig().accuracy
+    return tuple((label, choose(condition_kind([types[n] for n in condition_of(label).split("+")
+                                                if n in types], close), accuracy,
+                                registry.model_names(), where))
+                 for label, close in labels)
+
+
 def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | None = None) -> Scene:
     """Validate an already-parsed scene table (see :func:`load_scene`)."""
     layers = registry.section("optics")      # the layer optics own their validation
@@ -597,7 +294,7 @@ def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | No
     problems = _Problems()
     units = table.get("scene", {}).get("units", "mm") if isinstance(table.get("scene"), dict) else "mm"
     length_scale = LENGTH_UNITS.get(units, 1.0) if isinstance(units, str) else 1.0  # else: refused
-    body = {k: v for k, v in table.items() if k not in ("lights", "optics", "sweep")}
+    body = {k: v for k, v in table.items() if k not in ("lights", "views", "optics", "sweep")}
     if "sweep" in table and not isinstance(table["sweep"], dict):  # checked by `dermis sweep`
         problems.add(where, "sweep", f" = {fmt(table['sweep'])}: must be a table ([sweep])")
     scene = _build(Scene, body, where, "", problems, length_scale)
@@ -614,11 +311,11 @@ def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | No
             light_index.append(i)
     for k, light in enumerate(lights):  # map paths are relative to the scene file
         i = light_index[k]
-        why = plain_name_problem(light.name, extra="+")
+        why = plain_name_problem(light.name, extra="+" + VIEW_MARK)
         if why:
             problems.add(where, f"lights[{i}].name", f" = {fmt(light.name)}: {why} (light "
                          "names become parts of output file names; '+' joins lights in "
-                         "render.lights)")
+                         "render.lights, '@' a condition and its view)")
         why = direction_problem(light.direction)
         if light.type in ("directional", "disc") and why:
             problems.add(where, f"lights[{i}].direction", f" = {fmt(light.direction)}: {why} "
@@ -626,7 +323,7 @@ def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | No
                          + ("direction towards the light)" if light.type == "directional"
                             else "disc normal)"))
         if light.type == "environment" and light.map != "procedural_sunset":
-            p = _resolve(light.map, where)
+            p = resolve_path(light.map, where)
             if not p.is_file():
                 problems.add(where, f"lights[{i}].map", f" = {fmt(light.map)}: file not found "
                              f'({p}); use "procedural_sunset" for the embedded sky')
@@ -675,17 +372,7 @@ def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | No
                      "to output_dir/<scene.name>/)")
     render = sc.render
     if render is not None:
-        for label in render.lights:
-            parts = label.split("+")
-            for n in parts:
-                if n not in named:
-                    problems.add(where, "render.lights", f": {fmt(n)} (in {fmt(label)}) names "
-                                 "no [[lights]] entry; defined: "
-                                 + (", ".join(fmt(x) for x in named) or "none"))
-            for n in sorted({n for n in parts if parts.count(n) > 1}):
-                problems.add(where, "render.lights", f": {fmt(label)} names light {fmt(n)} "
-                             f"{parts.count(n)} times; each light may appear once in a lighting "
-                             "condition (raise its intensity to brighten it)")
+        problems += condition_problems(render.lights, named, "render.lights", where)
         for key in ("lights", "models", "geometries"):
             values = getattr(render, key)
             for v in sorted({v for v in values if values.count(v) > 1}):
@@ -697,33 +384,47 @@ def scene_from_dict(table: dict, *, where: str = "<scene>", overrides: dict | No
                          "render.models = [] to prepare the meshes only)")
     if sc.camera is not None:
         problems += check_camera(sc.camera, where)
+    views = _views(table.get("views", []), named, where, problems, length_scale)
+    chosen = ()
+    if render is not None and render.models == (AUTO,):
+        chosen = _auto_models(render, sc.report, lights, views, where)
+        render = replace(render, models=tuple(m for m in registry.model_names()
+                                              if m in {c for _, c in chosen}))
+        if scene is not None:
+            scene = replace(scene, render=render)
+    elif render is not None:
+        problems += choice_problems(render.models, where)
     if render is not None and stack is not None:   # what each rendered model needs
-        for name in render.models:
+        for name in (m for m in render.models if m != AUTO):   # "auto" alone: refused above
             check = model(name).check
             found = check(stack, dict(vars(sc)), where) if check is not None else []
             problems += [p for p in found if p not in problems]   # bssrdf_mc shares bssrdf's
     given = table.get("reference")
     if sc.reference is not None and isinstance(given, dict):
         labels = (render.lights or tuple(names)) if render is not None else None
+        if labels is not None:
+            labels = tuple(labels) + tuple(f"{c}{VIEW_MARK}{v.name}" for v in views
+                                           for c in v.lights or labels)
         problems += check_reference(sc.reference, set(given), sc.camera, labels, where)
     if sc.mesh is not None:
         if sc.mesh.source != "procedural":
-            p = _resolve(sc.mesh.source, where)
+            p = resolve_path(sc.mesh.source, where)
             if not p.is_file():
                 problems.add(where, "mesh.source", f" = {fmt(sc.mesh.source)}: file not found "
                              f"({p}); use \"procedural\" for the embedded head")
         for key in ("texture", "displacement"):
             val = getattr(sc.mesh, key)
-            if val and not _resolve(val, where).is_file():
+            if val and not resolve_path(val, where).is_file():
                 problems.add(where, f"mesh.{key}", f" = {fmt(val)}: file not found "
-                             f"({_resolve(val, where)})")
+                             f"({resolve_path(val, where)})")
         if sc.mesh.low_triangles >= sc.mesh.high_triangles:
             problems.add(where, "mesh.low_triangles", f" = {sc.mesh.low_triangles}: must be "
                          f"< mesh.high_triangles ({sc.mesh.high_triangles})")
     if problems:
         raise ConfigError("\n".join(problems))
     out = Scene(**{**{f.name: getattr(scene, f.name) for f in fields(Scene)},
-                   "lights": tuple(lights), "optics": stack, "path": where})
+                   "lights": tuple(lights), "views": views, "optics": stack, "path": where,
+                   "chosen": chosen})
     from .resources import resource_problems   # resources reads this module's vocabulary
     problems += [f"{where}: {p}" for p in resource_problems(out)]
     if problems:

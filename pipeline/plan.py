@@ -60,7 +60,9 @@ class Plan:
             if model(name).stage != stage_name:
                 continue
             for label, lights in self.scene.light_groups():
-                for geometry in self.scene.render.geometries:
+                if name not in self.scene.models_of(label):
+                    continue
+                for geometry in self.scene.geometries_of(label):
                     yield name, label, lights, geometry
 
     def provided(self, what: str) -> list[Node]:

@@ -6,14 +6,17 @@ direction whose length squares outside double precision, a camera whose up vecto
 parallel to its view, a name that must become a file name, the reference's size against the
 camera's, an environment map's header.  (What a rendered model needs of the scene, its
 module declares: ``Model.check``.)  Each returns the problems it finds as messages naming
-the file, the key, the value and the rule.
+the file, the key, the value and the rule.  :func:`scene_warnings` lists what validates but
+makes a run useless (nothing rendered, a black lighting condition).
 """
 from __future__ import annotations
 
 import math
 from pathlib import Path
 
-__all__ = ["fmt", "direction_problem", "plain_name_problem", "check_camera", "check_reference",
+from .registry import model
+
+__all__ = ["scene_warnings", "fmt", "direction_problem", "plain_name_problem", "check_camera", "check_reference",
            "check_environment_file", "DIRECTION_LENGTH"]
 
 
@@ -61,19 +64,19 @@ def plain_name_problem(value: str, extra: str = "") -> str | None:
     return None
 
 
-def check_camera(camera, where: str) -> list[str]:
-    """The problems of a CameraConfig the renderer would otherwise find only after the mesh
-    stages."""
+def check_camera(camera, where: str, key: str = "camera") -> list[str]:
+    """The problems of a CameraConfig (at ``key``: ``camera`` or a view's) the renderer would
+    otherwise find only after the mesh stages."""
     out = []
     pos, look, up = camera.position, camera.look_at, camera.up
     fwd = [b - a for a, b in zip(pos, look)]
     nf = math.hypot(*fwd)
     why = direction_problem(up)
     if not nf > 0:
-        out.append(f"{where}: camera.look_at = {fmt(look)}: must differ from "
-                   f"camera.position = {fmt(pos)}")
+        out.append(f"{where}: {key}.look_at = {fmt(look)}: must differ from "
+                   f"{key}.position = {fmt(pos)}")
     elif why:
-        out.append(f"{where}: camera.up = {fmt(up)}: {why}")
+        out.append(f"{where}: {key}.up = {fmt(up)}: {why}")
     else:   # unit vectors: the cross product of any two valid vectors stays finite
         nu = math.hypot(*up)
         f = [x / nf for x in fwd]
@@ -81,8 +84,8 @@ def check_camera(camera, where: str) -> list[str]:
         cross = (f[1] * u[2] - f[2] * u[1], f[2] * u[0] - f[0] * u[2],
                  f[0] * u[1] - f[1] * u[0])
         if not math.hypot(*cross) > 1e-9:
-            out.append(f"{where}: camera.up = {fmt(up)}: must not be parallel to the "
-                       "view direction camera.look_at - camera.position = "
+            out.append(f"{where}: {key}.up = {fmt(up)}: must not be parallel to the "
+                       f"view direction {key}.look_at - {key}.position = "
                        f"{fmt(tuple(fwd))}")
     return out
 
@@ -145,3 +148,37 @@ def check_environment_file(path: Path, where: str, key: str, value: str) -> list
     finally:
         inp.close()
     return []
+
+
+def scene_warnings(scene) -> list[str]:
+    """Settings that validate but make a run useless (it would render nothing, or black)."""
+    where = scene.path
+    out = []
+    r = scene.render
+    if not r.models:
+        out.append(f"{where}: render.models = []: nothing is rendered (only the meshes are "
+                   "prepared)")
+    elif not r.geometries:
+        out.append(f"{where}: render.geometries = []: nothing is rendered (only the meshes are "
+                   "prepared)")
+    for label, lights in scene.light_groups():
+        dark = [l for l in lights if not any(l.intensity if l.type != "environment"
+                                             else (l.scale,))]
+        if r.models and r.geometries and len(dark) == len(lights):
+            keys = ", ".join(f"lights.{l.name}." + ("scale = 0.0" if l.type == "environment"
+                                                    else f"intensity = {fmt(l.intensity)}")
+                             for l in dark)
+            out.append(f"{where}: lighting condition {fmt(label)} emits no light ({keys}); "
+                       "its renders will be black")
+    own = getattr(scene.optics, "profile", None)
+    readers: dict = {}      # layer-profile model -> the rendered models that read it
+    for name in r.models:
+        m = model(name)
+        if m.profiles and m.exitance is None:    # an own exitance: another image
+            readers.setdefault(m.profile or own, []).append(name)
+    for profile, names in readers.items():
+        if len(names) > 1:
+            out.append(f"{where}: render.models has {' and '.join(names)}, but optics.profile = "
+                       f"{fmt(profile)} makes them the same image (drop optics.profile to "
+                       "compare the multipole with the Monte Carlo profile)")
+    return out

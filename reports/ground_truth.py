@@ -50,6 +50,7 @@ import numpy as np
 from dermis.models import catalog
 from dermis.models.catalog import THESIS_MODELS
 from dermis.pipeline.registry import MODEL_NAMES
+from dermis.pipeline.config import CameraConfig
 from dermis.rendering.color import LUMINANCE
 from dermis.geometry.regions import REGION_LABELS, REGIONS, block_mean, face_regions
 from dermis.groundtruth.noise import NOISE_FACTORS
@@ -173,6 +174,25 @@ def _ref_block_var(ref_var, ref_hd, valid, f: int, Mb, mb, sigma: float) -> np.n
     return vb * (want / have) if have > 0 and want > 0 else vb
 
 
+def reference_camera(ref, camera):
+    """The camera a reference was rendered through (its own, else ``camera``)."""
+    own = ref.info.get("camera")
+    return CameraConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in own.items()}
+                        ) if own else camera
+
+
+def reference_labels(ref, mesh, camera, cache: dict):
+    """The region labels of reference ``ref``'s pixels (``cache``: by size and camera; a
+    cache given as {(height, width): labels} serves references without a camera of their
+    own)."""
+    h, w = ref.linear.shape[:2]
+    cam = reference_camera(ref, camera)
+    key = (h, w) if cam is camera else (h, w, repr(cam))
+    if key not in cache:
+        cache[key] = region_labels_for(mesh, cam, width=w, height=h)
+    return cache[key]
+
+
 def ground_truth_metrics(images: dict, references: dict, *, mesh, camera,
                          extra_seconds: dict | None = None,
                          region_labels: dict | None = None) -> dict:
@@ -189,7 +209,8 @@ def ground_truth_metrics(images: dict, references: dict, *, mesh, camera,
     mesh : Mesh
         The high mesh (region labels of the models' pixels).
     camera : CameraConfig
-        The scene camera (the models' camera; the reference's at its own size).
+        The scene camera (the models' camera; the reference's at its own size), where a
+        reference does not name its own (``info["camera"]``: a close-up view's).
     extra_seconds : dict (light, mesh node) -> seconds, optional
         Time to add to a BSSRDF image's own (its irradiance pass), as the report does.
     region_labels : dict (height, width) -> (H, W) int labels, optional
@@ -211,9 +232,7 @@ def ground_truth_metrics(images: dict, references: dict, *, mesh, camera,
     for light, ref in sorted(references.items()):
         info = ref.info
         h, w = ref.linear.shape[:2]
-        if (h, w) not in labels_cache:
-            labels_cache[(h, w)] = region_labels_for(mesh, camera, width=w, height=h)
-        labels = labels_cache[(h, w)]
+        labels = reference_labels(ref, mesh, camera, labels_cache)
         M = np.asarray(ref.linear, np.float64)
         ref_var, ref_hd = ref_var_map(ref, labels)
         # highlights are picked on the models' mean image: picking them on the noisy
@@ -705,12 +724,12 @@ def ground_truth_section(images: dict, references: dict, out_dir, files: list, *
         info["thesis"] = [{k: c[k] for k in ("model", "claim", "verdict", "per_light")}
                           for c in gt["thesis"]]
         if variants:
-            h, w = next(iter(references.values())).linear.shape[:2]
-            # the albedo convention is shared by construction (docs/ground-truth.md), so its
-            # part is 0; the flat-plate test keeps it so
+            # the variants are of the main camera's conditions, whose references share one
+            # grid; the albedo convention is shared by construction (docs/ground-truth.md),
+            # so its part is 0; the flat-plate test keeps it so
+            ref = references[next(l for l in references if l in variants)]
             info["causes"] = causes_table(gt, variants, convention=0.0, images=images,
-                                          labels=region_labels_for(mesh, camera, width=w,
-                                                                   height=h))
+                                          labels=reference_labels(ref, mesh, camera, {}))
     info["title"] = title_lines(gt, skip_reason)
 
     def opening(pdf):

@@ -359,7 +359,10 @@ def _timing_page(plt, images, metrics, *, device, timings_extra):
     lights = sorted({l for _, l, _ in idx})
     models = _ordered_models(m for m, _, _ in idx)
     geoms = _ordered_geoms(g for _, _, g in idx)
-    fig = _new_page(plt, "Render time per 800x800 image: this run vs the thesis")
+    sizes = sorted({f"{im.linear.shape[1]}x{im.linear.shape[0]}" for im in images.values()},
+                   key=lambda t: -int(t.split("x")[0]))
+    fig = _new_page(plt, f"Render time per {' / '.join(sizes)} image: this run vs the thesis "
+                         "(800x800)")
     rows, cells = [], []
     for m in models:
         for g in geoms:

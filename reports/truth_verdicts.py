@@ -18,6 +18,8 @@ from dermis.pipeline.registry import MODEL_NAMES
 from dermis.reports.truth_noise import (FAILS, HOLDS, RESOLVE_K, UNRESOLVED,
                                         combine_verdicts)
 
+from dermis.pipeline.config import VIEW_MARK
+
 __all__ = ["THESIS", "thesis_checks", "decide"]
 
 THESIS = {
@@ -51,9 +53,11 @@ def decide(conditions: list[tuple[float, float]]) -> str:
 
 def thesis_checks(metrics: dict) -> list[dict]:
     """The thesis's four qualitative conclusions, each with the numbers that test it here,
-    their standard errors, a verdict per light (``per_light``) and overall (``verdict``)."""
+    their standard errors, a verdict per light (``per_light``) and overall (``verdict``).
+    The thesis's claims are about its full-face framing: a close-up's conditions
+    (``<condition>@<view>``) do not enter them."""
     models, ranking = metrics.get("models", {}), metrics.get("ranking", {})
-    lights = sorted(ranking)
+    lights = sorted(l for l in ranking if VIEW_MARK not in l)
     checks = []
 
     def rec(m, l):

@@ -28,7 +28,7 @@ from dataclasses import asdict
 import numpy as np
 
 from dermis.pipeline.artifacts import RenderedImage
-from dermis.pipeline.config import CameraConfig, LightConfig
+from dermis.pipeline.config import CameraConfig, LightConfig, condition_of
 from dermis.pipeline.graph import Node, StageResult
 from dermis.pipeline.imageio import write_exr
 from dermis.pipeline import registry
@@ -66,9 +66,9 @@ def node(scene, label: str, lights: tuple, geometry: str, model: str = "bssrdf")
     mesh_node, bump = render.GEOMETRY[geometry]
     deps = {**render.geometry_inputs(geometry, label),
             "points": registry.stage("samples").node_id(mesh_node),
-            "irradiance": registry.stage("irradiance").node_id(mesh_node, label),
+            "irradiance": registry.stage("irradiance").node_id(mesh_node, condition_of(label)),
             "profile": profiles.node_id(scene, profiles.profile_of(scene, registry.model(model)))}
-    params = {"label": label, "geometry": geometry, "camera": asdict(scene.camera),
+    params = {"label": label, "geometry": geometry, "camera": asdict(scene.camera_of(label)),
               "bump": bump, "bssrdf": asdict(scene.bssrdf), **light_params(lights),
               "seed": scene.mesh.seed, "eta": scene.optics.layers[0].eta / scene.optics.eta_above}
     if model != "bssrdf":
@@ -180,5 +180,5 @@ def plan(scene, plan) -> None:
         mesh_node = render.GEOMETRY[geometry][0]
         plan.add(visibility.node(scene, mesh_node, label, lights))
         plan.add(samples.node(scene, mesh_node))
-        plan.add(irradiance.node(scene, mesh_node, label, lights))
+        plan.add(irradiance.node(scene, mesh_node, condition_of(label), lights))
         plan.add(node(scene, label, lights, geometry, model), provides="image")

@@ -35,7 +35,7 @@ from dermis.groundtruth.variants import (CAUSE_EFFECTS, VariantOptions, boundary
 from dermis.lighting.emitters import light_params
 from dermis.optics.layers import LayerStack
 from dermis.pipeline.artifacts import RenderedImage
-from dermis.pipeline.config import CameraConfig, LightConfig
+from dermis.pipeline.config import MAIN_VIEW, CameraConfig, LightConfig
 from dermis.pipeline.errors import ConfigError
 from dermis.pipeline.graph import Node, StageResult
 from dermis.pipeline.scene_rules import reference_size
@@ -59,7 +59,7 @@ def node_id(label: str) -> str:
 def boundary_labels(scene) -> tuple:
     """The lighting conditions of the boundary variant: ``[causes] boundary_lights``, or
     (empty) those whose lights are all discs."""
-    groups = dict(scene.light_groups())
+    groups = dict(scene.light_groups(MAIN_VIEW))
     if scene.causes.boundary_lights:
         return tuple(scene.causes.boundary_lights)
     return tuple(l for l, lights in groups.items() if all(lt.type == "disc" for lt in lights))
@@ -162,7 +162,7 @@ def plan(scene, plan) -> None:
     why)."""
     if not (scene.reference.enabled and scene.causes.enabled):
         return
-    groups = dict(scene.light_groups())
+    groups = dict(scene.light_groups(MAIN_VIEW))   # the main camera's (close-ups: none)
     wanted = scene.reference.lights or tuple(groups)
     chosen = boundary_labels(scene)
     for label in scene.causes.boundary_lights:

@@ -8,6 +8,7 @@ from __future__ import annotations
 from dermis.pipeline.graph import Node, StageResult
 from dermis.pipeline.registry import model as lookup_model
 from dermis.optics.layer_profiles import build_profiles
+from dermis.optics.single_layer import single_layer_equivalent
 from dermis.optics.layers import (LayerStack, DEFAULT_PROFILE_MODEL, DEFAULT_MC_PHOTONS,
                                    DEFAULT_MC_SEED)
 
@@ -34,12 +35,22 @@ def node_id(scene, profile: str) -> str:
     return NAME if profile == own else f"{NAME}-{profile}"
 
 
+# the multipole profiles of the one layer with the stack's total reflectance
+# (optics/single_layer.py): what the BSSRDF renders without the stack's layering
+SINGLE_LAYER = "single_layer"
+
+
 def node(scene, model: str | None = None) -> Node:
     """The layer profiles of the scene's stack with ``model`` (None: ``[optics] profile``);
-    the model, and for the Monte Carlo ``[optics] photons`` and ``seed``, are in the key."""
+    the model, and for the Monte Carlo ``[optics] photons`` and ``seed``, are in the key.
+    ``single_layer``: of the single layer fitted to the scene's own profiles' Rd."""
     optics = scene.optics
     model = model or getattr(optics, "profile", DEFAULT_PROFILE_MODEL)
     params = {"stack": LayerStack.to_dict(optics), "model": model}
+    if model == SINGLE_LAYER:
+        own = node(scene)
+        return Node(node_id(scene, model), NAME, __name__, params, {"stack": own.id},
+                    label="layer profiles (single layer, same Rd)")
     if model == "monte_carlo":
         params["photons"] = int(getattr(optics, "photons", DEFAULT_MC_PHOTONS))
         params["seed"] = int(getattr(optics, "seed", DEFAULT_MC_SEED))
@@ -50,7 +61,12 @@ def node(scene, model: str | None = None) -> Node:
 def run(params: dict, inputs: dict, ctx) -> StageResult:
     model = params.get("model", "multipole")
     stack = LayerStack.from_dict(params["stack"])
-    if model == "monte_carlo":
+    if model == SINGLE_LAYER:
+        single, fit = single_layer_equivalent(stack, inputs["stack"].Rd)
+        prof = build_profiles(single)
+        prof.info["single_layer"] = fit
+        kernel_seconds = 0.0
+    elif model == "monte_carlo":
         prof = build_profiles(stack, model=model, photons=params["photons"],
                               seed=params["seed"], env=ctx.cl, progress=ctx.progress)
         kernel_seconds = prof.info.get("kernel_seconds", 0.0)
@@ -69,4 +85,6 @@ def plan(scene, plan) -> None:
     for name in scene.render.models:
         m = lookup_model(name)
         if m.profiles:
+            if profile_of(scene, m) == SINGLE_LAYER:
+                plan.add(node(scene), target=True)
             plan.add(node(scene, profile_of(scene, m)), target=True)

@@ -69,8 +69,9 @@ def node_id(label: str) -> str:
 
 def node(scene, label: str, lights: tuple) -> Node:
     """The reference of one lighting condition (``[reference]`` checked at load)."""
-    w, h = reference_size(scene.camera, scene.reference)
-    params = {"label": label, "camera": asdict(scene.camera), **light_params(lights),
+    camera = scene.camera_of(label)
+    w, h = reference_size(camera, scene.reference)
+    params = {"label": label, "camera": asdict(camera), **light_params(lights),
               "optics": scene.optics.to_dict(),
               "reference": {**asdict(scene.reference), "width": w, "height": h}}
     return Node(node_id(label), NAME, __name__, params, {"mesh": MESH_NODE},
@@ -152,7 +153,7 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
                      "Rd_entered": [float(v) for v in slab.Rd_entered],
                      "samples": slab.samples, "seconds": slab.seconds},
             "export": export, "env_clamp": r["env_clamp"],
-            "hit_pixels": int(hit.sum()), "pass_log": buffers.log}
+            "hit_pixels": int(hit.sum()), "pass_log": buffers.log, "camera": params["camera"]}
     files = [f"{name}.exr", f"{name}-halfA.exr", f"{name}-halfB.exr", f"{name}-spp.exr",
              f"{name}-regions.png"]
     return StageResult(RenderedImage(mean.astype(np.float32), hit, timings, info), files=files,

@@ -57,7 +57,7 @@ def node(scene, model: str, label: str, lights: tuple, geometry: str) -> Node:
     m = _model(model)
     base = scene.render.asperity_base if m.bases else None
     params = {"model": model, "label": label, "geometry": geometry,
-              "camera": asdict(scene.camera), "bump": GEOMETRY[geometry][1],
+              "camera": asdict(scene.camera_of(label)), "bump": GEOMETRY[geometry][1],
               "asperity_base": base,
               "optics": scene.optics.to_dict() if m.reads_optics(base) else None}
     indirect = registry.stage("indirect").inputs(scene, GEOMETRY[geometry][0], label)

@@ -9,24 +9,29 @@ from their thumbnails and writes the PDF, so a changed light recomputes one ligh
 comparisons, not all of them.  With references the PDF leads with the distance to them
 (title page and the pages after it) and ``metrics.json`` gains ``ground_truth`` (per
 lighting condition) and ``thesis`` (docs/ground-truth.md "In metrics.json"); without,
-``ground_truth`` is empty and ``ground_truth_skipped`` says why, as the title page does."""
+``ground_truth`` is empty and ``ground_truth_skipped`` says why, as the title page does.
+Beside the PDF, ``report.html``: every image of the run to compare pixel by pixel, with the
+same numbers (:mod:`dermis.reports.interactive_page`, docs/report-page.md)."""
 from __future__ import annotations
 
 import json
 from dataclasses import asdict
 from pathlib import Path
 
-from dermis.pipeline.config import CameraConfig
+from dermis.pipeline.config import CameraConfig, condition_of
 from dermis.pipeline.graph import Node, StageResult
 from dermis.pipeline.registry import stage
 from dermis.reports import diff, pdf_report
 from dermis.reports.comparison_images import load_thumbnails
 from dermis.reports.ground_truth import ground_truth_section
+from dermis.reports.interactive_page import write_page
 from dermis.reports.light_differences import merge_light_differences
 from dermis.reports.profile_pages import profile_pages
+from dermis.reports.requirement_pages import requirement_pages
+from dermis.reports.requirements import auto_verdicts, requirements_of, view_cameras
 
 NAME = "report"
-VERSION = 4
+VERSION = 5
 KERNELS = ()
 GROUND_TRUTH_MESH = "mesh_high"   # the references are of the high mesh; regions are on it
 
@@ -52,6 +57,12 @@ def node(scene, render_ids: list[str], irradiance: dict[str, tuple[str, str]],
             + ((images_id,) if images_id else ()) + tuple(params["references"]))
     if reference_ids:
         params["camera"] = asdict(scene.camera)
+    if any("high" in scene.geometries_of(label) for label, _ in scene.light_groups()):
+        # what the scene requires: regions of every view's pixels, on the high mesh
+        params["requires"] = {**asdict(scene.report), "cameras": {
+            label: asdict(scene.camera_of(label)) for label, _ in scene.light_groups()},
+            "chosen": dict(scene.chosen)}
+    if reference_ids or "requires" in params:
         deps += (GROUND_TRUTH_MESH,)
     deps += tuple(params["profiles"]) + tuple(params["causes"])
     return Node(NAME, NAME, __name__, params, deps, label="grids + PDF")
@@ -85,6 +96,11 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     extra = {}
     for nid, (label, mesh_node) in params["irradiance"].items():
         extra[(label, mesh_node)] = float(inputs[nid].info.get("seconds", 0.0))
+    for im in images.values():   # a close-up's BSSRDF reads its condition's pass
+        for mesh_node in {m for _, m in params["irradiance"].values()}:
+            if (condition_of(im.info["light"]), mesh_node) in extra:
+                extra[(im.info["light"], mesh_node)] = extra[(condition_of(im.info["light"]),
+                                                              mesh_node)]
     thumbs = None
     if params.get("images"):   # the images stage's tone-mapped thumbnails for the image pages
         thumbs, _ = load_thumbnails(inputs[params["images"]])
@@ -102,14 +118,25 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
             metrics["causes"] = gt_info["causes"]
     else:
         metrics["ground_truth_skipped"] = gt_info["title"]["note"]
+    req = params.get("requires")
+    if req:
+        metrics["views"] = {view: {"requires": rec} for view, rec in requirements_of(
+            images, inputs[GROUND_TRUTH_MESH], req, metrics.get("ground_truth"), extra).items()}
+        for view, rec in auto_verdicts({v: r["requires"] for v, r in metrics["views"].items()},
+                                       req["chosen"], req["accuracy"]).items():
+            metrics["views"].setdefault(view, {})["auto"] = rec
     mpath = ctx.out_dir / "metrics.json"
     mpath.write_text(json.dumps(metrics, indent=1, sort_keys=True, default=float))
     if mpath.name not in {Path(f).name for f in files}:
         files.append(mpath)
     profiles = {nid: inputs[nid] for nid in params.get("profiles", ())}
-    added = {"profiles": 0}
+    added = {"profiles": 0, "requires": 0}
 
-    def extra_pages(pdf):   # the profile page, then the ground truth's details
+    def extra_pages(pdf):   # what the scene requires, the profile page, the truth's details
+        if metrics.get("views"):
+            added["requires"] = requirement_pages(pdf, metrics["views"],
+                                                  accuracy=req["accuracy"],
+                                                  threshold=req["effect_threshold"])
         added["profiles"] = profile_pages(pdf, profiles)
         details(pdf)
     pdf = pdf_report.write_report(images, metrics, ctx.out_dir / "report.pdf",
@@ -117,8 +144,12 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
                                   timings_extra=extra, credits=params["credits"], tiles=tiles,
                                   image_tiles=thumbs, extra_pages=extra_pages, opening_pages=opening,
                                   truth=gt_info["title"])
-    names = [Path(f).name for f in files] + [pdf.name]
-    pages = (pdf_report.report_page_count(images, metrics) + added["profiles"]
+    page = write_page(ctx.out_dir, images, refs, metrics, scene_name=params["scene_name"],
+                      device=ctx.cl.description, timings_extra=extra,
+                      mesh=inputs[GROUND_TRUTH_MESH] if req or refs else None,
+                      cameras=view_cameras(req["cameras"]) if req else None)
+    names = [Path(f).name for f in files] + [pdf.name, page.name]
+    pages = (pdf_report.report_page_count(images, metrics) + added["profiles"] + added["requires"]
              + gt_info["pages"])
     summary = {k: gt_info[k] for k in ("references", "pages", "ranking", "thesis") if k in gt_info}
     return StageResult(files=names, info={"pages": pages, "ground_truth": summary})

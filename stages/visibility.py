@@ -31,7 +31,7 @@ def node_id(mesh_node: str, label: str) -> str:
 def node(scene, mesh_node: str, label: str, lights: tuple) -> Node:
     """One node per mesh x lighting condition (camera, spp and seed from the scene)."""
     params = {"mesh": mesh_node, "label": label, **light_params(lights),
-              "camera": asdict(scene.camera), "spp": scene.render.spp, "seed": scene.mesh.seed}
+              "camera": asdict(scene.camera_of(label)), "spp": scene.render.spp, "seed": scene.mesh.seed}
     env = any(lt.type == "environment" for lt in lights)
     retro = retro_lobe(scene) if env else None
     if retro is not None:          # only then: every other scene keeps its node keys

@@ -73,6 +73,7 @@ SLOW = (
     "test_pipeline.py",            # the quick scene built, rebuilt and compared across jobs
     "test_sweep.py",               # sweeps of the quick scene, serial and on Dask
     "test_reference.py::test08", "test_reference.py::test09",   # Mitsuba renders
+    "test_report_page.py::test02", "test_report_page.py::test03",   # a tiny run + Chromium
     "test_reference_passes.py::test04", "test_reference_passes.py::test05",   # Mitsuba, Dask
     "test_convention.py",          # Mitsuba renders of a flat plate (~50 s)
     "test_hardening_config.py::test12",  # peak memory of a render measured in a subprocess

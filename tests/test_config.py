@@ -92,7 +92,7 @@ def test06_duplicate_light_names(tmp_path):
 def test_readme_scene_format_table_is_the_schema():
     """README's scene-format reference is generated from the schema's field docs: no drift."""
     from pathlib import Path
-    from dermis.pipeline.config import schema_markdown
+    from dermis.pipeline.schema_doc import schema_markdown
     text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
     begin, end = "<!-- scene-format:begin -->\n", "\n<!-- scene-format:end -->"
     assert text[text.index(begin) + len(begin):text.index(end)] == schema_markdown()

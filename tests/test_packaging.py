@@ -28,3 +28,15 @@ def test03_default_scene_ships_with_the_package():
     assert "dermis.scenes" in cfg["packages"] and "*.toml" in cfg["package-data"]["dermis.scenes"]
     from dermis.pipeline.config import default_scene_path
     assert default_scene_path().is_file()
+
+
+def test04_report_page_assets_ship_with_the_package():
+    """The interactive page's HTML, CSS and JavaScript (reports/page/) are package data."""
+    cfg = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
+    patterns = cfg["package-data"]["dermis.reports"]
+    files = [f"page/{p.name}" for p in (REPO / "reports" / "page").iterdir() if p.is_file()]
+    assert len(files) >= 3
+    missing = [f for f in files if not any(fnmatch.fnmatch(f, pat) for pat in patterns)]
+    assert not missing, f"not shipped in a wheel: {missing}"
+    from importlib import resources
+    assert (resources.files("dermis.reports") / "page" / "page.js").is_file()

@@ -266,7 +266,7 @@ def _keys(scene):
 
 
 def test12_bssrdf_mc_shares_everything_but_the_profile():
-    from dermis.pipeline.config import scene_warnings
+    from dermis.pipeline.scene_rules import scene_warnings
     scene = _quick(["lafortune", "bssrdf", "bssrdf_mc"])
     nodes, targets, keys = _keys(scene)
     labels = [label for label, _ in scene.light_groups()]

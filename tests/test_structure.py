@@ -178,6 +178,7 @@ PROBE = {
     "reports/sheets.py": {"images", "report", "differences",   # grids drawn with Pillow
                           "mesh_previews"},                  # and its PNG writer
     "reports/tonemap.py": {"images", "report"},        # tone mapping is not part of rendering
+    "reports/page/page.js": {"report"},                # the report page's data files (DATA_FILES)
     "subsurface/exitance.py": {"bssrdf"},
     "subsurface/points.py": {"samples", "bssrdf"},     # the gather reads the kernel width
     "geometry/validation.py": {"mesh_source"},
