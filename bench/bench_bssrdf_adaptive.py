@@ -1,6 +1,7 @@
 """Benchmark of the adaptive BSSRDF (models/bssrdf_adaptive.py, subsurface/adaptive.py)
-against the full BSSRDF: per lighting condition of a scene (default: scenes/default.toml at
-its size, high mesh), the adaptive image's relative RMSE against the full BSSRDF's and of
+against the full BSSRDF: per lighting condition and view of a scene (default:
+scenes/default.toml at its size, high mesh; a view's conditions are labelled
+"<lighting>@<view>"), the adaptive image's relative RMSE against the full BSSRDF's and of
 both against the Mitsuba reference, the seconds of each, and the fraction of pixels and
 camera samples gathered (and which predictor flagged them); at the shipped target and at
 looser ones (--targets).
