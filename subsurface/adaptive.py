@@ -317,10 +317,14 @@ def irradiance_change(parts: list, total: np.ndarray, mask: np.ndarray,
                 continue
             k = _profile_kernel(part, footprint, c)
             x = img[..., c] * m
-            den = fftconvolve(m, k, mode="same")
+            # the surface goes on past the image's border (a close-up): mirrored there, so a
+            # border pixel's neighbourhood is symmetric (no first-order bias)
+            n = min(k.shape[0] // 2, min(mask.shape) - 1)
+            xp, mp = (np.pad(a, n, mode="reflect") for a in (x, m))
+            den = fftconvolve(mp, k, mode="same")[n:-n or None, n:-n or None]
             support = np.minimum(support, den)
-            conv = np.where(den > 1e-6, fftconvolve(x, k, mode="same") / np.maximum(den, 1e-6),
-                            x)
+            num = fftconvolve(xp, k, mode="same")[n:-n or None, n:-n or None]
+            conv = np.where(den > 1e-6, num / np.maximum(den, 1e-6), x)
             d = np.abs(conv - x)
             change[..., c] += d if factor is None else d * factor[..., c]
     out = np.zeros(mask.shape)
@@ -329,7 +333,7 @@ def irradiance_change(parts: list, total: np.ndarray, mask: np.ndarray,
         if mean > 0:
             out = np.maximum(out, np.where(mask, change[..., c] / np.maximum(
                 total[..., c], DARK_FLOOR * mean), 0.0))
-    # where the profile reaches past the outline the one-sided mean is biased by the
+    # where the profile reaches past the head's outline the one-sided mean is biased by the
     # gradient (a first-order error the gather, whose points go on round the head, does not
     # make): those pixels take the prediction of the nearest pixel with the profile's whole
     # support on the image
