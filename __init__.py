@@ -46,6 +46,7 @@ MODELS = (
     ("bssrdf", "dermis.models.bssrdf"),
     ("bssrdf_mc", "dermis.models.bssrdf_mc"),
     ("bssrdf_single", "dermis.models.bssrdf_single"),
+    ("bssrdf_adaptive", "dermis.models.bssrdf_adaptive"),
 )
 
 # The thesis's four models, in its order: the default [render] models and the ones the

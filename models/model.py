@@ -54,6 +54,10 @@ class Model:
     glossy : its image shows the Lafortune skin fit's lobes (a BSSRDF through its surface
         term, ``[bssrdf] surface_reflection``), so the shared rays sample them
         (``rendering/cast.py`` :func:`glossy_lobes`)
+    exitance : for a BSSRDF, what computes its exitance at the shading points in place of
+        the full gather (``subsurface.exitance.exitance``): called with the same arguments
+        and ``camera`` and ``pixels``, the shading points' flat pixel indices; returns (M,
+        stats), stats may hold "blend_image" (H, W), written beside the image
     """
 
     name: str
@@ -73,6 +77,7 @@ class Model:
     profiles: bool = False
     check: Callable[[Any, dict, str], list] | None = None
     glossy: bool = False
+    exitance: Callable[..., Any] | None = None
 
     def checked(self, params, what: str):
         """``params`` (its defaults when None), else ConfigError: ``what`` must be

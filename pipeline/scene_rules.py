@@ -174,7 +174,7 @@ def scene_warnings(scene) -> list[str]:
     readers: dict = {}      # layer-profile model -> the rendered models that read it
     for name in r.models:
         m = model(name)
-        if m.profiles:
+        if m.profiles and m.exitance is None:    # an own exitance: another image
             readers.setdefault(m.profile or own, []).append(name)
     for profile, names in readers.items():
         if len(names) > 1:

@@ -7,8 +7,9 @@ Fresnel-weighted exit to radiance (:func:`dermis.subsurface.radiance.exitance_to
 and the surface reflection
 term (Lafortune's specular lobes with rho_d = 0, so the images compare with the BRDF
 models').  One node per BSSRDF model (``bssrdf``: the scene's profile model; ``bssrdf_mc``: the
-Monte Carlo-tabulated profile), lighting condition and geometry; pass 1 is the
-``irradiance`` stage.
+Monte Carlo-tabulated profile; a model with its own ``Model.exitance``, ``bssrdf_adaptive``:
+the local model with the gather where its predictor asks, its blend mask written beside the
+image), lighting condition and geometry; pass 1 is the ``irradiance`` stage.
 
 The image carries no noise estimate of its own (``RenderedImage.noise`` None): besides the
 surface term's light samples, which split into halves as the BRDF images' do
@@ -74,8 +75,10 @@ def node(scene, label: str, lights: tuple, geometry: str, model: str = "bssrdf")
         params["model"] = model
     if scene.render.indirect:   # its irradiance holds a bounce of indirect light (exitance.py)
         params["indirect"] = True
+    m = registry.model(model)   # a model with its own exitance: its code enters the key
     return Node(node_id(model, label, geometry), NAME, __name__, params, deps,
-                label=f"{model} / {label} / {geometry}", locations=("lights[].map",))
+                label=f"{model} / {label} / {geometry}", locations=("lights[].map",),
+                code=(registry.model_module(model),) if m.exitance else (), shares=m.shares)
 
 
 def _surface_term(mesh, lights, camera, maps, bump, seed, samples, ctx) -> tuple[np.ndarray, dict]:
@@ -108,8 +111,9 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     # the mesh's Embree scene only where the near field traces it (point/directional lights'
     # shadow edges): building it for the 1M-triangle scan took 3.5 s of a 10.5 s image
     # re-rendered alone (bench/results/bssrdf.json), unused by area and environment light
+    model = registry.model(params.get("model", "bssrdf"))
     vis_embree = (embree_scene(mesh, ctx.shared, ctx.input_keys["mesh"])
-                  if any(l.type in SHARP_LIGHTS for l in lights) else None)
+                  if model.exitance or any(l.type in SHARP_LIGHTS for l in lights) else None)
     shading = ShadingPoints(surf["position"][front], surf["shading_normal"][front],
                             surf["geo_normal"][front],
                             visible=sharp_visibility(vis, front, surf["position"][front], lights))
@@ -117,11 +121,15 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
                               leaf_size=b["leaf_size"], brute_force=b["brute_force"],
                               transmittance=transmit, indirect=params.get("indirect", False),
                               env=ctx.cl, progress=ctx.progress)
-    M, stats = exitance(inputs["points"], inputs["irradiance"].irradiance, profile, shading,
-                        lights=lights, visibility=vis_embree, options=options,
-                        shared=ctx.shared, keys=(ctx.input_keys["points"],
-                                                 ctx.input_keys["irradiance"],
-                                                 ctx.input_keys["profile"]))
+    frame = ({"camera": camera, "pixels": px.hit_idx[front]}   # where the points lie in the
+             if model.exitance else {})                       # image (Model.exitance)
+    M, stats = (model.exitance or exitance)(
+        inputs["points"], inputs["irradiance"].irradiance, profile, shading, lights=lights,
+        visibility=vis_embree, options=options, shared=ctx.shared, **frame,
+        keys=(ctx.input_keys["points"], ctx.input_keys["irradiance"], ctx.input_keys["profile"]))
+    blend = stats.pop("blend_image", None)
+    stats.pop("blend", None)
+    stats.pop("predicted_images", None)
     t_gather = time.perf_counter() - t0
     cos_o = np.einsum("ij,ij->i", surf["shading_normal"][front], surf["wo"][front])
     albedo = None if b["albedo_mode"] == "none" else surf["albedo"][front]
@@ -130,7 +138,9 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
                              rd=profile.Rd, transmittance=transmit)
     image = px.pixels(L, front)   # box filter over the pixel's camera samples
     timings = {"visibility": t_vis, "gather": t_gather,
-               **{k: float(stats[k]) for k in ("edges_seconds", "near_seconds") if k in stats},
+               **{k: float(stats[k]) for k in ("edges_seconds", "near_seconds", "local_seconds",
+                                               "predictor_seconds", "adaptive_gather_seconds")
+                  if k in stats},
                "kernel_seconds": float(stats.get("kernel_seconds", 0.0)) + px.kernel_seconds}
     if b["surface_reflection"] == "lafortune_lobes":
         spec, spec_t = _surface_term(mesh, lights, camera, maps, params["bump"], params["seed"],
@@ -148,10 +158,14 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     model = params.get("model", "bssrdf")
     name = f"{model}-{params['label']}-{params['geometry']}"
     write_exr(ctx.out_dir / f"{name}.exr", linear)
+    files = [f"{name}.exr"]
+    if blend is not None:   # the adaptive model's blend weight per pixel (0 local, 1 gathered)
+        write_exr(ctx.out_dir / f"{name}-blend.exr", np.repeat(blend[..., None], 3, axis=2))
+        files.append(f"{name}-blend.exr")
     info = {"model": model, "light": params["label"], "geometry": params["geometry"],
             "profile_model": profile.info.get("model", "multipole"),
             "gather": {k: v for k, v in stats.items() if isinstance(v, (int, float, str))}}
-    return StageResult(RenderedImage(linear, mask, timings, info), files=[f"{name}.exr"],
+    return StageResult(RenderedImage(linear, mask, timings, info), files=files,
                        info={"timings": timings, "kernel_seconds": timings["kernel_seconds"]})
 
 

@@ -1,0 +1,501 @@
+"""The adaptive BSSRDF: a local model everywhere, the hierarchical gather only where a
+predictor says it changes the pixel (docs/science.md §4 "Adaptive gather").
+
+Local model.  Where the irradiance is uniform over the profile's reach on a flat, thick
+surface, the gather's exitance is the profile's total reflectance times the irradiance at
+the point, M = Rd E(x) (the "energy" normalisation makes the gather's integral of the
+profile Rd exactly, ``subsurface/profile_table.py``).  The local model is that limit, split
+as the full BSSRDF splits the profile (``subsurface/exitance.py``, ``near_field.py``):
+
+* the far part, Rd_far Ebar(x), with Ebar the points' irradiance reconstructed at x with the
+  gather's own Gaussian, sum G_sigma(|x - p|) A_p E_p (``subsurface/interpolation.py``):
+  what the gather of a profile no wider than sigma returns, ripple of the points' partition
+  of unity included (1.8 % standard deviation on the default scan; normalising it away left
+  the local model 0.2-0.4 % further from the gather in the median pixel);
+* the near part, for point and directional lights, Rd_near C(x) V(x): the light's entering
+  irradiance at the shading point and its shadow ray, what the exact near field returns
+  where no shadow edge lies within the window; for other light Rd_near Ebar_soft(x).
+  Without the resolved near field (soft lights only) the whole profile is Rd Ebar(x).
+
+On a flat, uniformly lit plate the gather returns Rd E up to its own approximation error
+(clusters: ~0.2-0.4 % rRMSE at epsilon 0.5, bench/results/gather.json; the points'
+partition of unity: their areas sum to the surface to 0.1 %, ``subsurface/points.py``), so
+the two agree to that error (tests/test_bssrdf_adaptive.py).
+
+Predictor.  Per pixel, the relative change the gather would make to it, in units of the
+target; the largest of four documented estimates:
+
+* irradiance: the image of the local exitance convolved with the profile (per channel,
+  radial, at the image's median pixel footprint; normalised over the pixels that hit, so
+  the head's outline extrapolates) minus the image itself, over the pixel (screen-space
+  diffusion, Jimenez et al. 2009, used here only to predict): shadow edges and light falloff
+  within the profile's reach;
+* thickness: the profile's energy beyond the mesh's thickness along -normal at the points
+  (a ray cast; less the 2 sigma the points' Gaussian reaches), the share of the exitance
+  the other side could hand over if it were lit as this side: thin parts transmit;
+* curvature: kappa^2 <r^2>_profile / 8, kappa from the spread of the points' normals about
+  the pixel (1 - |mean normal| = kappa^2 <d^2> / 2 on a sphere): the order of the second-
+  order term of the profile's integral over a curved surface;
+* occlusion: the profile's energy beyond the distance to a depth discontinuity of the image
+  (a surface the camera does not see may lie within reach).
+
+The blend weight is w = smoothstep((p - BLEND_LOW) / (1 - BLEND_LOW)) of the predicted change
+p / target; the gather runs where w > 0 and the image is (1 - w) local + w gather, so no
+pixel switches model abruptly: where w < 1 the two differ by less than the target by the
+predictor's estimate.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from dermis.pipeline.shared import Shared
+from dermis.subsurface.exitance import ExitanceOptions, ShadingPoints, exitance
+from dermis.subsurface.interpolation import CUT_SIGMAS, interpolate_points
+from dermis.subsurface.near_field import SHARP_LIGHTS, split_profile
+
+__all__ = ["KERNELS", "TARGET", "BLEND_LOW", "AdaptiveOptions", "PixelFrame", "THICKNESS",
+           "pixel_frame", "adaptive_exitance", "local_exitance", "energy_beyond",
+           "blend_weight"]
+
+KERNELS = ("point_interpolation.cl",)
+
+# The target: a pixel is gathered where the gather is predicted to change it by more than
+# 1 % (the relative RMSE the adaptive model is to stay within of the full BSSRDF).
+TARGET = 0.01
+# The blend starts at half the target (w = 0 below) and is complete at the target.
+BLEND_LOW = 0.5
+# Depth steps between neighbouring pixels larger than this many times a footprint x (1 +
+# the surface's slope) are occlusions (a continuous surface steps footprint x slope).
+DEPTH_JUMP_FOOTPRINTS = 4.0
+# A pixel has the profile's whole support on the image when the pixels that hit hold all but
+# this fraction of the profile's weight about it.
+FULL_SUPPORT = 0.02
+# Pixels whose local exitance is below this fraction of the image's mean are measured
+# against it (relative change of a near-black pixel is not the image's error).
+DARK_FLOOR = 0.05
+# The image-space predictors work on bins of PREDICTOR_BIN x PREDICTOR_BIN pixels (4x less
+# work; each pixel takes its bin's prediction).
+PREDICTOR_BIN = 2
+# The points' thickness along -normal, kept per run for every lighting condition of a mesh.
+THICKNESS = Shared("point_thickness")
+
+
+@dataclass(frozen=True)
+class AdaptiveOptions:
+    """target : relative change of a pixel above which it is gathered (w = 1);
+    blend_low : fraction of the target where the blend starts (w = 0 below)."""
+
+    target: float = TARGET
+    blend_low: float = BLEND_LOW
+
+
+@dataclass
+class PixelFrame:
+    """Where the shading points lie in the image: ``pixel`` (Q,) flat pixel index,
+    ``width``, ``height``, ``depth`` (Q,) distance along the view, mm, and
+    ``footprint`` (Q,) a pixel's width at that depth, mm; ``slope`` (Q,) the depth step
+    per unit of image distance of the surface there, tan of its normal's angle to the
+    view (capped at 20)."""
+
+    pixel: np.ndarray
+    width: int
+    height: int
+    depth: np.ndarray
+    footprint: np.ndarray
+    slope: np.ndarray
+
+
+def pixel_frame(camera, pixel: np.ndarray, positions: np.ndarray,
+                normals: np.ndarray) -> PixelFrame:
+    """The PixelFrame of shading points at ``positions`` (unit geometric ``normals``) seen
+    through pixels ``pixel``."""
+    from dermis.rendering.camera import camera_vectors
+    pos, fwd, _, _ = camera_vectors(camera)
+    x = np.asarray(positions, np.float64)
+    depth = (x - pos) @ fwd
+    size = 2.0 * math.tan(math.radians(camera.fov_deg) / 2.0) / min(camera.width, camera.height)
+    view = pos - x
+    view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-30)
+    c = np.clip(np.abs(np.einsum("ij,ij->i", view, np.asarray(normals, np.float64))), 0.05, 1)
+    return PixelFrame(np.asarray(pixel, np.int64), int(camera.width), int(camera.height),
+                      depth, depth * size, np.sqrt(1.0 - c * c) / c)
+
+
+# --------------------------------------------------------------------------- the profile
+def _energy_within(profile):
+    """(r, m (M, 3)): the profile's energy within r as the gather integrates it (linear in
+    r, zero beyond each cut-off, scaled to Rd)."""
+    r0, R0 = np.asarray(profile.r_mm, np.float64), np.asarray(profile.R, np.float64)
+    cut, rd = np.asarray(profile.cutoff_mm, np.float64), np.asarray(profile.Rd, np.float64)
+    h = float(np.min(np.diff(r0))) / 4.0
+    r = np.arange(0.0, float(cut.max()) + 2 * h, h)
+    R = np.stack([np.interp(r, r0, R0[:, c], right=0.0) for c in range(3)], axis=1)
+    R[r[:, None] > cut[None, :]] = 0.0
+    ring = 2.0 * np.pi * r[:, None] * R
+    m = np.vstack([np.zeros((1, 3)), np.cumsum(0.5 * (ring[1:] + ring[:-1]) * h, axis=0)])
+    m *= np.where(m[-1] > 0, rd / np.where(m[-1] > 0, m[-1], 1.0), 0.0)
+    return r, m
+
+
+def energy_beyond(profile, d) -> np.ndarray:
+    """The largest over channels of the profile's energy beyond distance ``d`` (mm), as a
+    fraction of its Rd: (len(d),) in [0, 1]."""
+    r, m = _energy_within(profile)
+    rd = np.asarray(profile.Rd, np.float64)
+    d = np.asarray(d, np.float64)
+    out = np.zeros(d.shape)
+    for c in range(3):
+        if rd[c] > 0:
+            out = np.maximum(out, 1.0 - np.interp(d, r, m[:, c]) / rd[c])
+    return out
+
+
+def _mean_square_radius(profile) -> float:
+    """<r^2> of the profile (energy-weighted), the widest channel, mm^2."""
+    r, m = _energy_within(profile)
+    rd = np.maximum(m[-1], 1e-300)
+    dm = np.diff(m, axis=0)
+    rm = 0.5 * (r[1:] + r[:-1])
+    return float(np.max((dm * rm[:, None] ** 2).sum(axis=0) / rd))
+
+
+def _profile_kernel(profile, footprint: float, channel: int) -> np.ndarray:
+    """The profile on the pixel grid (pixels ``footprint`` mm wide), each pixel holding the
+    energy of its ring of radii, normalised to sum 1."""
+    r, m = _energy_within(profile)
+    reach = float(np.asarray(profile.cutoff_mm).max())
+    n = max(1, int(math.ceil(reach / footprint)))
+    y, x = np.mgrid[-n:n + 1, -n:n + 1]
+    d = np.hypot(x, y) * footprint
+    # a pixel at distance d holds the ring's energy density times its area
+    within = np.interp(np.array([d.ravel() - 0.5 * footprint, d.ravel() + 0.5 * footprint]),
+                       r, m[:, channel])
+    ring_area = np.pi * ((d.ravel() + 0.5 * footprint) ** 2
+                         - np.maximum(d.ravel() - 0.5 * footprint, 0.0) ** 2)
+    k = (within[1] - within[0]) / ring_area * footprint ** 2
+    k[d.ravel() == 0] = np.interp(footprint / math.sqrt(math.pi), r, m[:, channel])
+    k = np.maximum(k, 0.0).reshape(d.shape)
+    return k / max(float(k.sum()), 1e-300)
+
+
+def smoothstep(x: np.ndarray) -> np.ndarray:
+    t = np.clip(x, 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
+def blend_weight(predicted: np.ndarray, options: AdaptiveOptions) -> np.ndarray:
+    """w from the predicted relative change: 0 below blend_low x target, 1 at the target."""
+    p = np.asarray(predicted, np.float64) / options.target
+    return smoothstep((p - options.blend_low) / (1.0 - options.blend_low))
+
+
+# --------------------------------------------------------------------------- local model
+def _resolved(options: ExitanceOptions, sigma: float, lights) -> bool:
+    """Whether :func:`exitance` resolves the near field at the shading points (its test)."""
+    return bool(options.near_field and options.normalisation == "energy" and sigma > 0
+                and any(l.type in SHARP_LIGHTS for l in lights)
+                and options.tuning.kernel_sigma_mm is None)
+
+
+def _ebar_share(profile, sigma: float, options: ExitanceOptions, lights) -> np.ndarray:
+    """(3,) the part of Rd the local model takes from the points' irradiance: Rd_far where
+    the near field is resolved at the shading points, else all of Rd."""
+    rd = np.asarray(profile.Rd, np.float64)
+    if not _resolved(options, sigma, lights):
+        return rd
+    split = split_profile(profile, sigma, cutoff_mm=options.tuning.cutoff_mm)
+    return rd - np.asarray(split.rd_near, np.float64)
+
+
+def _sharp_irradiance(shading: ShadingPoints, light, k: int, visibility, transmittance):
+    """C(x) (Q, 3) and V(x) (Q,) of one point or directional light at the shading points:
+    as ``shadow_edges.sharp_near_field`` takes them (shading normal, entry transmittance)."""
+    from dermis.lighting.emitters import sample_lights
+    x = np.asarray(shading.positions, np.float32)
+    ns = np.asarray(shading.shading_normals, np.float64)
+    ns = ns / np.maximum(np.linalg.norm(ns, axis=1, keepdims=True), 1e-30)
+    ng = np.asarray(shading.geo_normals, np.float32)
+    ls = sample_lights(light, x, ng)
+    wi, wt, dist = ls.directions[:, 0], ls.weights[:, 0].astype(np.float64), ls.distance[:, 0]
+    cos = np.einsum("ij,ij->i", wi, ns)
+    live = (cos > 0) & (wt.sum(axis=1) > 0)
+    out, seen = np.zeros((len(x), 3)), np.zeros(len(x))
+    if not live.any():
+        return out, seen
+    c = wt[live] * cos[live, None]
+    if transmittance is not None:
+        c = c * np.asarray(transmittance(cos[live]))
+    if shading.visible is not None:
+        vis = np.asarray(shading.visible[:, k], bool)[live]
+    else:
+        vis = ~visibility.occluded(x[live], ng[live], wi[live], dist[live])
+    out[live] = c
+    seen[live] = vis
+    return out, seen
+
+
+def local_exitance(points, irradiance, profile, shading: ShadingPoints, ebar: np.ndarray, *,
+                   lights, visibility, options: ExitanceOptions, interp=None,
+                   parts: list | None = None) -> np.ndarray:
+    """The local model's exitance (Q, 3) at the shading points (module docstring).
+
+    ``ebar`` (Q, 3): the points' irradiance interpolated at the shading points
+    (:func:`interpolate_points`); ``interp(values (N, k)) -> (Q, k)`` interpolates other
+    per-point values the same way (needed only when soft light or indirect light shares the
+    condition with a point or directional light).  ``parts``: if given, a list that gets
+    the terms the gather would blur, for the predictor: (values (Q, 3), the profile part
+    that blurs them, a factor (Q, 3) applied after or None)."""
+    lights = list(lights)
+    sigma = float(points.info.get("kernel_sigma_mm") or 0.0)
+    M = _ebar_share(profile, sigma, options, lights)[None, :] * np.asarray(ebar, np.float64)
+    parts = [] if parts is None else parts
+    if not _resolved(options, sigma, lights):
+        parts.append((M, profile, None))
+        return M
+    split = split_profile(profile, sigma, cutoff_mm=options.tuning.cutoff_mm)
+    parts.append((M.copy(), split.far, None))
+    rd_near = np.asarray(split.rd_near, np.float64)
+    sharp = [l for l in lights if l.type in SHARP_LIGHTS]
+    soft = [l for l in lights if l.type not in SHARP_LIGHTS]
+    for k, light in enumerate(sharp):
+        c, v = _sharp_irradiance(shading, light, k, visibility, options.transmittance)
+        M += rd_near[None, :] * c * v[:, None]
+        # the exact near field blurs only the shadow: C(x) [Rd_near V - edge terms]
+        parts.append((np.repeat(v[:, None], 3, axis=1), split.near, rd_near[None, :] * c))
+    if soft or options.indirect:
+        from dermis.lighting.irradiance import irradiance as point_irradiance
+        e_sharp = point_irradiance(points.positions, points.normals, sharp,
+                                   visibility.occluded, transmittance=options.transmittance)
+        e_soft = np.maximum(np.asarray(irradiance, np.float64) - e_sharp, 0.0)
+        near_soft = rd_near[None, :] * np.asarray(interp(e_soft), np.float64)[:, :3]
+        M += near_soft
+        parts.append((near_soft, split.near, None))
+    return M
+
+
+def _spacing(points) -> float:
+    return float(points.info.get("spacing_mm") or math.sqrt(
+        float(np.sum(points.areas)) / max(len(points.areas), 1)))
+# --------------------------------------------------------------------------- predictor
+def point_thickness(points, visibility) -> np.ndarray:
+    """(N,) the mesh's thickness along -normal at each point, mm (inf where the ray leaves
+    the mesh): the first hit of a ray cast inwards from just below the surface."""
+    p = np.asarray(points.positions, np.float64)
+    n = np.asarray(points.normals, np.float64)
+    off = float(visibility.offset_mm)
+    hits = visibility.intersect(p - off * n, -n)
+    return np.where(hits.hit, hits.t.astype(np.float64) + off, np.inf)
+
+
+def _image(values: np.ndarray, pixel: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel mean of per-sample values (Q, k) -> (size, k), and the hit count."""
+    count = np.bincount(pixel, minlength=size).astype(np.float64)
+    out = np.stack([np.bincount(pixel, weights=values[:, c], minlength=size)
+                    for c in range(values.shape[1])], axis=1)
+    return out / np.maximum(count, 1.0)[:, None], count
+
+
+def irradiance_change(parts: list, total: np.ndarray, mask: np.ndarray,
+                      footprint: float) -> np.ndarray:
+    """(H, W) predicted relative change of each pixel from the irradiance around it: for each
+    term (image (H, W, 3), the profile part that blurs it, factor (H, W, 3) or None) its image
+    convolved with that profile at ``footprint`` mm per pixel (normalised over ``mask``, the
+    pixels that hit) minus itself, times the factor; summed, over ``total`` (H, W, 3)
+    (floored at DARK_FLOOR of the image's mean), the largest channel."""
+    from scipy.ndimage import distance_transform_edt
+    from scipy.signal import fftconvolve
+    m = mask.astype(np.float64)
+    change = np.zeros(mask.shape + (3,))
+    support = np.ones(mask.shape)
+    for img, part, factor in parts:
+        for c in range(3):
+            if not (np.asarray(part.Rd)[c] > 0 and np.any(img[..., c][mask] != 0)):
+                continue
+            k = _profile_kernel(part, footprint, c)
+            x = img[..., c] * m
+            # the surface goes on past the image's border (a close-up): mirrored there, so a
+            # border pixel's neighbourhood is symmetric (no first-order bias)
+            n = min(k.shape[0] // 2, min(mask.shape) - 1)
+            xp, mp = (np.pad(a, n, mode="reflect") for a in (x, m))
+            den = fftconvolve(mp, k, mode="same")[n:-n or None, n:-n or None]
+            support = np.minimum(support, den)
+            num = fftconvolve(xp, k, mode="same")[n:-n or None, n:-n or None]
+            conv = np.where(den > 1e-6, num / np.maximum(den, 1e-6), x)
+            d = np.abs(conv - x)
+            change[..., c] += d if factor is None else d * factor[..., c]
+    out = np.zeros(mask.shape)
+    for c in range(3):
+        mean = float(total[..., c][mask].mean()) if mask.any() else 0.0
+        if mean > 0:
+            out = np.maximum(out, np.where(mask, change[..., c] / np.maximum(
+                total[..., c], DARK_FLOOR * mean), 0.0))
+    # where the profile reaches past the head's outline the one-sided mean is biased by the
+    # gradient (a first-order error the gather, whose points go on round the head, does not
+    # make): those pixels take the prediction of the nearest pixel with the profile's whole
+    # support on the image
+    full = mask & (support > 1.0 - FULL_SUPPORT)
+    if full.any() and not full[mask].all():
+        _, (iy, ix) = distance_transform_edt(~full, return_indices=True)
+        out = np.where(mask & ~full, out[iy, ix], out)
+    return out
+
+
+def occlusion_change(depth_img: np.ndarray, foot_img: np.ndarray, mask: np.ndarray, profile,
+                     footprint: float) -> np.ndarray:
+    """(H, W) at each pixel near a depth discontinuity (neighbouring pixels that both hit,
+    depths differing by more than DEPTH_JUMP_FOOTPRINTS footprints beyond what the surface's
+    slope steps, ``foot_img`` (H, W) footprint x (1 + slope)): the profile's energy,
+    as a fraction of Rd, beyond the larger of the distance to it on the image and the step
+    across it (the two surfaces are at least that far apart, and what the image shows
+    beside a pixel there is not the surface beside it)."""
+    from scipy.ndimage import distance_transform_edt
+    jump = np.zeros(mask.shape, bool)
+    size = np.zeros(mask.shape)
+    for axis in (0, 1):
+        a = [slice(None)] * 2
+        b = [slice(None)] * 2
+        a[axis], b[axis] = slice(1, None), slice(None, -1)
+        both = mask[tuple(a)] & mask[tuple(b)]
+        step = np.abs(depth_img[tuple(a)] - depth_img[tuple(b)])
+        big = both & (step > DEPTH_JUMP_FOOTPRINTS * np.maximum(foot_img[tuple(a)],
+                                                                 foot_img[tuple(b)]))
+        jump[tuple(a)] |= big
+        jump[tuple(b)] |= big
+        size[tuple(a)] = np.maximum(size[tuple(a)], np.where(big, step, 0.0))
+        size[tuple(b)] = np.maximum(size[tuple(b)], np.where(big, step, 0.0))
+    if not jump.any():
+        return np.zeros(mask.shape)
+    dist, (iy, ix) = distance_transform_edt(~jump, return_indices=True)
+    apart = np.maximum(dist * footprint, size[iy, ix])
+    return np.where(mask, energy_beyond(profile, apart.ravel()).reshape(mask.shape), 0.0)
+
+
+def predict(frame: PixelFrame, local: np.ndarray, parts: list, it, pixels: np.ndarray,
+            profile) -> dict:
+    """Per pixel of ``pixels`` (the distinct pixels of the shading points, the rows of
+    ``it``): the four predicted relative changes (module docstring) as (P,) arrays by name,
+    and "missing": no point in reach of the pixel.  ``local`` (Q, 3) the local exitance,
+    ``parts`` its terms (:func:`local_exitance`)."""
+    # on an image binned PREDICTOR_BIN x PREDICTOR_BIN: the profile spans >= 3 pixels of the
+    # default scan's (sigma 1.24 mm, 0.37 mm a pixel)
+    b = PREDICTOR_BIN
+    hb, wb = -(-frame.height // b), -(-frame.width // b)
+    row, col = frame.pixel // frame.width, frame.pixel % frame.width
+    binned = (row // b) * wb + col // b
+    size, shape = hb * wb, (hb, wb)
+    local_img, count = _image(local, binned, size)
+    mask = (count > 0).reshape(shape)
+    footprint = float(np.median(frame.footprint)) * b
+
+    def img(v):
+        return _image(np.asarray(v, np.float64), binned, size)[0].reshape(shape + (3,))
+    terms = [(img(v), part, None if f is None else img(f)) for v, part, f in parts]
+    p_e = irradiance_change(terms, local_img.reshape(shape + (3,)), mask, footprint)
+    geo, _ = _image(np.stack([frame.depth, frame.footprint * b * (1.0 + frame.slope)], 1),
+                    binned, size)
+    p_occ = occlusion_change(geo[:, 0].reshape(shape), geo[:, 1].reshape(shape), mask, profile,
+                             footprint)
+    # back to the pixels: each takes its bin's
+    prow, pcol = pixels // frame.width, pixels % frame.width
+    at = (prow // b) * wb + pcol // b
+    nbar = np.linalg.norm(it.mean_normal, axis=1).astype(np.float64)
+    kappa2 = 2.0 * np.maximum(1.0 - nbar, 0.0) / np.maximum(it.mean_d2.astype(np.float64), 1e-12)
+    return {"irradiance": p_e.ravel()[at], "thickness": it.values[:, 3].astype(np.float64),
+            "curvature": kappa2 * _mean_square_radius(profile) / 8.0,
+            "occlusion": p_occ.ravel()[at], "missing": ~it.found}
+
+
+# --------------------------------------------------------------------------- the whole
+def adaptive_exitance(points, irradiance, profile, shading: ShadingPoints, *, lights,
+                      visibility, options: ExitanceOptions, camera, pixels: np.ndarray,
+                      adaptive: AdaptiveOptions = AdaptiveOptions(), shared=None,
+                      keys=None) -> tuple[np.ndarray, dict]:
+    """Exitance (Q, 3) of the adaptive BSSRDF at the shading points seen by ``camera``
+    (a CameraConfig) through ``pixels`` (Q,) flat pixel indices (module docstring), and stats: the gather's (on the gathered points), the blend weight
+    per shading point ("blend") and per pixel ("blend_image", (H, W)), the fraction of
+    shading points and of pixels gathered, and the seconds of each part.
+
+    ``visibility``: the mesh's Visibility (thickness rays; shadow rays where ``shading``
+    carries none).  The gather is :func:`exitance` itself over the gathered shading points."""
+    t0 = time.perf_counter()
+    lights = list(lights)
+    E = np.asarray(irradiance, np.float32)
+    sigma = float(points.info.get("kernel_sigma_mm") or 0.0) or _spacing(points)
+    q = np.asarray(shading.positions)
+    frame = pixel_frame(camera, pixels, q, shading.geo_normals)
+    # one interpolation per pixel (its first sample): Ebar varies over sigma, ~3 pixels
+    order = np.argsort(frame.pixel, kind="stable")
+    pixels, first = np.unique(frame.pixel[order], return_index=True)
+    rep = order[first]
+    rep_of = np.searchsorted(pixels, frame.pixel)
+    cache = shared
+    thick_key = ("thickness",) + (tuple(keys[:1]) if keys else (id(points),))
+    thickness = (cache.get(THICKNESS, thick_key, lambda: point_thickness(points, visibility))
+                 if cache is not None else point_thickness(points, visibility))
+    thin = energy_beyond(profile, np.maximum(thickness - CUT_SIGMAS * sigma, 0.0))
+    it = interpolate_points(points.positions, points.normals, points.areas,
+                            np.concatenate([E, thin[:, None].astype(np.float32)], axis=1),
+                            q[rep], np.asarray(shading.geo_normals)[rep], sigma,
+                            env=options.env)
+
+    def interp(values):
+        v = interpolate_points(points.positions, points.normals, points.areas, values, q[rep],
+                               np.asarray(shading.geo_normals)[rep], sigma, env=options.env)
+        return (v.values * v.weight[:, None])[rep_of]
+    # the gather's reconstruction (values x weight) for the image, the normalised one (no
+    # ripple of the points' partition of unity) for the predictor
+    ebar = it.values[:, :3] * it.weight[:, None]
+    parts: list = []
+    smooth = local_exitance(points, E, profile, shading, it.values[rep_of, :3], lights=lights,
+                            visibility=visibility, options=options, interp=interp, parts=parts)
+    M = smooth + _ebar_share(profile, sigma, options, lights)[None, :] * (
+        ebar - it.values[:, :3])[rep_of]     # local_exitance is linear in ebar
+    t_local = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    pred = predict(frame, smooth, parts, it, pixels, profile)
+    p = np.maximum.reduce([pred[k] for k in ("irradiance", "thickness", "curvature",
+                                             "occlusion")])
+    p[pred["missing"]] = np.inf
+    w_pix = blend_weight(p, adaptive)
+    w = w_pix[rep_of]
+    t_pred = time.perf_counter() - t1
+    t2 = time.perf_counter()
+    idx = np.flatnonzero(w > 0)
+    stats: dict = {}
+    if len(idx):
+        # over all the points: an octree of only those within reach of the gathered pixels
+        # clusters them otherwise, and in a close-up (the lips at 8 px/mm, disc light) the
+        # two gathers at epsilon 0.5 differed by 3.3 % rRMSE (bench/bench_bssrdf_adaptive.py)
+        vis_sub = None if shading.visible is None else shading.visible[idx]
+        mg, stats = exitance(points, E, profile, ShadingPoints(
+            q[idx], np.asarray(shading.shading_normals)[idx],
+            np.asarray(shading.geo_normals)[idx], visible=vis_sub), lights=lights,
+            visibility=visibility, options=options)
+        wi = w[idx, None]
+        M[idx] = (1.0 - wi) * M[idx] + wi * mg
+    t_gather = time.perf_counter() - t2
+    size = frame.width * frame.height
+    image = np.zeros(size, np.float32)
+    image[pixels] = w_pix
+    flagged = {f"flagged_{k}": float(np.mean(blend_weight(pred[k], adaptive) > 0))
+               for k in ("irradiance", "thickness", "curvature", "occlusion")}
+    maps = {}
+    for k in ("irradiance", "thickness", "curvature", "occlusion"):
+        maps[k] = np.zeros(size, np.float32)
+        maps[k][pixels] = pred[k] / adaptive.target
+    stats.update({"blend": w.astype(np.float32),
+                  "predicted_images": {k: v.reshape(frame.height, frame.width)
+                                       for k, v in maps.items()},
+                  "blend_image": image.reshape(frame.height, frame.width),
+                  "gathered_fraction": float(len(idx)) / max(len(w), 1),
+                  "gathered_pixel_fraction": float(np.mean(w_pix > 0)) if len(w_pix) else 0.0,
+                  "local_seconds": t_local, "predictor_seconds": t_pred,
+                  "adaptive_gather_seconds": t_gather, **flagged,
+                  "missing_pixels": int(pred["missing"].sum()),
+                  "kernel_seconds": float(stats.get("kernel_seconds", 0.0)) + it.seconds,
+                  "seconds": time.perf_counter() - t0})
+    return np.nan_to_num(M, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32), stats
