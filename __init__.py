@@ -29,6 +29,7 @@ STAGES = (
     ("indirect", "dermis.stages.indirect"),
     ("render", "dermis.stages.render"),
     ("bssrdf", "dermis.stages.bssrdf"),
+    ("cycles", "dermis.stages.cycles"),
     ("reference", "dermis.stages.reference"),
     ("causes", "dermis.stages.causes"),
     ("images", "dermis.stages.images"),
@@ -44,6 +45,9 @@ MODELS = (
     ("hk93", "dermis.models.hk93"),
     ("bssrdf", "dermis.models.bssrdf"),
     ("bssrdf_mc", "dermis.models.bssrdf_mc"),
+    ("cycles_burley", "dermis.models.cycles_burley"),
+    ("cycles_random_walk", "dermis.models.cycles_random_walk"),
+    ("cycles_random_walk_skin", "dermis.models.cycles_random_walk_skin"),
 )
 
 # The thesis's four models, in its order: the default [render] models and the ones the

@@ -254,6 +254,28 @@ class CausesConfig:
 
 
 @dataclass(frozen=True)
+class CyclesConfig:
+    # Blender Cycles' skin models (models/cycles_*.py, dermis/cycles/, docs/cycles.md): run
+    # where the optional extra is installed (pip install dermis[cycles]), else skipped with
+    # one message.  Noise is measured like the reference's, on blocks of `block` camera
+    # pixels (0: one reference pixel, 8 x 8 on the default camera); 2 % on those blocks
+    # took 11-42 samples per pixel on the default scan (bench/results/cycles.json)
+    mappings: tuple = spec(("matched", "native"), choices=("matched", "native"),
+                           doc="inputs from the skin: matched (fitted to the skin's flat-slab "
+                               "Rd and mean exit radius), native (radius = mean free path, "
+                               "base colour = albedo); images of native end in _native")
+    geometries: tuple = spec(("high",), choices=("high", "low"),
+                             doc="meshes rendered (those also in render.geometries)")
+    target_noise: float = spec(0.02, lo=0.0, lo_open=True, hi=1.0,
+                               doc="relative RMSE noise on reference-pixel blocks to reach")
+    block: int = spec(0, lo=0, hi=1024, doc="noise block in camera pixels (0: the reference's)")
+    pilot_spp: int = spec(4, lo=1, hi=4096, doc="samples per pixel of each half's first pass")
+    max_spp: int = spec(256, lo=1, hi=1 << 16, doc="samples per pixel of each half, at most")
+    seed: int = spec(1, lo=0, hi=1 << 20, doc="half-images use seeds 2 (seed + k) and 2 (seed + k) + 1")
+    threads: int = spec(2, lo=1, hi=1024, doc="Cycles render threads (fixed: same image for any)")
+
+
+@dataclass(frozen=True)
 class OutputConfig:
     cache_dir: str = spec("", doc="empty: $DERMIS_CACHE or ./.dermis-cache")
     output_dir: str = spec("out", doc="outputs go to output_dir/<scene name>/")
@@ -274,6 +296,7 @@ class Scene:
     bssrdf: BssrdfConfig = spec(factory=BssrdfConfig)
     reference: ReferenceConfig = spec(factory=ReferenceConfig)
     causes: CausesConfig = spec(factory=CausesConfig)
+    cycles: CyclesConfig = spec(factory=CyclesConfig)
     output: OutputConfig = spec(factory=OutputConfig)
     path: str = ""
 
@@ -472,7 +495,7 @@ def _fmt_rule(meta) -> str:
 SCHEMA_TABLES = (("scene", SceneInfo), ("mesh", MeshConfig), ("bake", BakeConfig),
                  ("camera", CameraConfig), ("[lights]", LightConfig), ("render", RenderConfig),
                  ("bssrdf", BssrdfConfig), ("reference", ReferenceConfig),
-                 ("causes", CausesConfig), ("output", OutputConfig))
+                 ("causes", CausesConfig), ("cycles", CyclesConfig), ("output", OutputConfig))
 
 
 def schema_markdown() -> str:
