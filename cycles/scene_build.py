@@ -194,11 +194,11 @@ def _image(name: str, rgb, *, interpolation: str):
     a = np.asarray(rgb, np.float32)
     h, w = a.shape[:2]
     img = bpy.data.images.new(name, width=w, height=h, alpha=False, float_buffer=True)
+    img.colorspace_settings.name = "Non-Color"   # before the pixels: it reloads the buffer
     rgba = np.ones((h, w, 4), np.float32)
     rgba[..., :3] = a[::-1]
     img.pixels.foreach_set(rgba.ravel())
-    img.colorspace_settings.name = "Non-Color"
-    img.pack()
+    img.update()
     return img, interpolation
 
 

@@ -38,6 +38,9 @@ KERNELS = ()
 OUTPUT_FOLDER = "render"
 PROFILE = "monte_carlo"   # the skin's Rd and mean exit radius: the path-traced layer profile
 MESH = {"high": "mesh_high", "low": "mesh_low"}
+# the module the render process runs (started by name, not imported here): its code, and
+# the scene building and sampling it imports, enter the nodes' keys
+RENDER_PROCESS = "dermis.cycles.render_job"
 
 
 def image_name(model: str, mapping_name: str) -> str:
@@ -61,7 +64,7 @@ def slab_node(scene, method: str) -> Node:
     params = {"kind": "slab", "method": method, **s, "threads": scene.cycles.threads,
               "seed": scene.cycles.seed}
     return Node(f"{NAME}-slab-{method.lower()}", NAME, __name__, params, (),
-                label=f"Cycles slab curves ({method})")
+                label=f"Cycles slab curves ({method})", code=(RENDER_PROCESS,))
 
 
 def node(scene, model: str, mapping_name: str, label: str, lights: tuple, geometry: str) -> Node:
@@ -80,7 +83,7 @@ def node(scene, model: str, mapping_name: str, label: str, lights: tuple, geomet
         deps["slab"] = slab_node(scene, method).id
     return Node(node_id(model, mapping_name, label, geometry), NAME, __name__, params, deps,
                 label=f"{image_name(model, mapping_name)} / {label} / {geometry} (Cycles)",
-                locations=("lights[].map",), code=(registry.model_module(model),))
+                locations=("lights[].map",), code=(registry.model_module(model), RENDER_PROCESS))
 
 
 def _inputs(params, profile, slab) -> dict:
