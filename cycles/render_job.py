@@ -38,9 +38,9 @@ ROWS = 4   # Blender's smallest image side: the slab renders are 4 x 4 pixels
 
 def _material(obj, m: dict, texture=None) -> None:
     sb.skin_material(obj, method=m["method"], base_colour=m.get("base_colour"),
-                     base_texture=texture, radius=m["radius"], ior=m["ior"],
-                     roughness=m["roughness"], anisotropy=m.get("anisotropy", 0.0),
-                     subsurface_ior=m.get("subsurface_ior"))
+                     base_texture=texture, radius=m.get("radius", (1.0, 1.0, 1.0)),
+                     ior=m.get("ior", 1.4), roughness=m.get("roughness", 0.3),
+                     anisotropy=m.get("anisotropy", 0.0), subsurface_ior=m.get("subsurface_ior"))
 
 
 def render_head(job: dict, arrays, folder: Path) -> dict:

@@ -52,13 +52,16 @@ def _material(method, colour, radius, ior, roughness, anisotropy) -> dict:
             "roughness": roughness, "anisotropy": anisotropy}
 
 
-def slab_response(method: str, colours, *, radius=(SCALE, SCALE, SCALE), ior: float,
+def slab_response(method: str, colours, *, radius=(1.0, 1.0, 1.0), ior: float,
                   roughness: float, anisotropy: float, threads: int, seed: int = 1,
                   sky_spp: int = SKY_SPP, hole_spp: int = HOLE_SPP) -> dict:
-    """Rd_e and mean exit radius (in units of ``max(radius)``) of Cycles' slab for each RGB
+    """Rd_e and mean exit radius (in the units of ``radius``) of Cycles' slab for each RGB
     base colour of ``colours`` (N, 3) at ``radius`` (3,), with their standard errors (two
-    seeds)."""
+    seeds).  Rendered at the radii scaled to a largest of ``SCALE`` units (module
+    docstring)."""
     colours = np.asarray(colours, np.float64)
+    unit = float(max(radius)) / SCALE
+    radius = [float(r) / unit for r in radius]
     sets = [np.zeros(3)] + list(colours)
     renders = []
     for s in (seed, seed + 1):
@@ -87,7 +90,7 @@ def slab_response(method: str, colours, *, radius=(SCALE, SCALE, SCALE), ior: fl
             F = d / np.where(d[-1] != 0, d[-1], 1.0)
             one_minus = np.concatenate([np.ones((1, 3)), 1.0 - F])
             r = np.concatenate([[0.0], radii])
-            mean_r.append(np.trapezoid(one_minus, r, axis=0) / max(radius))
+            mean_r.append(np.trapezoid(one_minus, r, axis=0) * unit)
         per_seed.append((spec, rd_e, np.array(mean_r)))
     spec = (per_seed[0][0] + per_seed[1][0]) / 2
     rd_e = (per_seed[0][1] + per_seed[1][1]) / 2
