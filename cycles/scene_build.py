@@ -13,7 +13,8 @@ The conventions (docs/cycles.md "Units and conventions", each measured there):
 * disc of on-axis intensity I (radiance I / (pi r^2)): a DISK area light of size 2 r and
   power P = pi I, emitting one-sided towards the mesh (dermis's disc emits from both faces;
   the far face lights nothing the camera sees, as in the Mitsuba export);
-* directional light of irradiance E: a SUN of strength E, angle 0;
+* directional light of irradiance E: a SUN of strength E, angle 0 (an environment map's sun:
+  its angular diameter, :mod:`dermis.cycles.environment`);
 * environment: the world's colour read from dermis's lat-long radiance map by dermis's own
   direction -> pixel rule (nearest pixel, ``lighting/environment.py``), importance-sampled;
 * every setting that would spoil a comparison is set: no denoising, no adaptive sampling, no
@@ -180,7 +181,7 @@ def add_lights(scene, lights, *, target) -> None:
             ob.matrix_world = _frame_matrix(c, -n)    # an area light emits along local -z
         elif kind == "directional":
             light, ob = _light(scene, "SUN", lt["name"], lt["intensity"], 1.0)
-            light.angle = 0.0
+            light.angle = math.radians(float(lt.get("angle_deg", 0.0)))
             d = np.asarray(lt["direction"], np.float64)
             ob.matrix_world = _frame_matrix(np.zeros(3), d)   # light travels along -d
         else:

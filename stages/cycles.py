@@ -18,10 +18,10 @@ from dataclasses import asdict
 import numpy as np
 
 from dermis.cycles import availability, mapping
+from dermis.cycles.environment import split_sun
 from dermis.cycles.job import run_job
 from dermis.cycles.slab import slab_curves
 from dermis.geometry.normals import vertex_normals
-from dermis.groundtruth.scene_export import environment_radiance
 from dermis.lighting.emitters import light_params
 from dermis.pipeline import registry
 from dermis.pipeline.artifacts import RenderedImage
@@ -110,13 +110,15 @@ def _run_image(params: dict, inputs: dict, ctx) -> StageResult:
             albedo = mapping.invert_reflectance(albedo, slab.grid, slab.rd_e)
         arrays["base_texture"] = albedo.astype(np.float32)
     env = [l for l in lights if l.type == "environment"]
+    extra = []
     if env:
-        arrays["environment"] = environment_radiance(env[0])[0]
+        arrays["environment"], sun = split_sun(env[0])
+        extra = [sun] if sun is not None else []
     job = {"kind": "head", "width": camera.width, "height": camera.height,
            "threads": params["threads"], "seed": params["seed"],
            "camera": {"position": pos.tolist(), "forward": fwd.tolist(), "up": up.tolist(),
                       "fov_deg": camera.fov_deg},
-           "lights": [asdict(l) for l in lights], "material": material,
+           "lights": [asdict(l) for l in lights] + extra, "material": material,
            "sampling": params["sampling"]}
     result, out = run_job(job, arrays)
     a, b = out["half_a"], out["half_b"]

@@ -130,3 +130,60 @@ def test05_flat_slab_fit_reproduces_rd_and_mean_radius(method):
     got_r, se_r = check["mean_radius"][0], check["mean_radius_stderr"][0]
     assert np.all(np.abs(got_rd - rd) <= 0.01 * rd + 3 * se_rd), (got_rd, rd)
     assert np.all(np.abs(got_r - r_skin) <= 0.05 * r_skin + 3 * se_r), (got_r, r_skin)
+
+
+@needs_bpy
+@pytest.mark.parametrize("kind", ["point", "directional", "environment"])
+def test06_cycles_sees_the_scene_as_dermis_does(kind, cl_env):
+    """Camera, light positions and directions and the environment's lat-long convention: a
+    Lambert sphere (convex: no interreflection, so Cycles' full transport is dermis's direct
+    light) rendered by both, compared pixel by pixel away from the silhouette, and as left /
+    right and top / bottom halves (a mirrored or turned scene fails those)."""
+    from dermis.cycles.job import run_job
+    from dermis.geometry.normals import vertex_normals
+    from dermis.cycles.environment import split_sun
+    from dermis.models import lambert
+    from dermis.pipeline.config import CameraConfig, LightConfig
+    from dermis.rendering.camera import camera_vectors
+    from dermis.rendering.options import RenderOptions
+    from dermis.rendering.shade import render
+    from dataclasses import asdict
+    from render_fixtures import icosphere
+    mesh = icosphere(100.0, 5)
+    cam = CameraConfig(position=(0.0, 0.0, 600.0), look_at=(0.0, 0.0, 0.0), fov_deg=24.0,
+                       width=32, height=32)
+    light = {"point": LightConfig(name="p", type="point", position=(300.0, 200.0, 250.0),
+                                  intensity=(2e4, 1e4, 5e3)),
+             "directional": LightConfig(name="d", type="directional", direction=(-0.7, 0.4, 0.6),
+                                        intensity=(1.0, 0.5, 0.25)),
+             "environment": LightConfig(name="e", type="environment", map="procedural_sunset",
+                                        samples=64)}[kind]
+    ours = render(mesh, light, lambert.MODEL, lambert.LambertParams((0.5, 0.5, 0.5)), cam,
+                  RenderOptions(spp=16), cl_env=cl_env)
+    pos, fwd, _, up = camera_vectors(cam)
+    arrays = {"vertices": mesh.vertices, "faces": mesh.faces, "normals": vertex_normals(mesh)}
+    extra = []
+    if kind == "environment":
+        arrays["environment"], sun = split_sun(light)
+        extra = [sun]
+    job = {"kind": "head", "width": 32, "height": 32, "threads": 2, "seed": 1,
+           "camera": {"position": pos.tolist(), "forward": fwd.tolist(), "up": up.tolist(),
+                      "fov_deg": cam.fov_deg},
+           "lights": [asdict(light)] + extra,
+           "material": {"method": "LAMBERT", "base_colour": [0.5] * 3},
+           "sampling": {"target_noise": 1.0, "block": 1, "pilot_spp": 256, "max_spp": 256}}
+    _, out = run_job(job, arrays)
+    theirs = (out["half_a"] + out["half_b"]) / 2
+    a, b = ours.linear.astype(np.float64), theirs.astype(np.float64)
+    inner = ours.mask.copy()
+    for axis in (0, 1):          # away from the silhouette (anti-aliasing differs there)
+        inner &= np.roll(ours.mask, 2, axis) & np.roll(ours.mask, -2, axis)
+    for part in (np.s_[:, :16], np.s_[:, 16:], np.s_[:16, :], np.s_[16:, :]):
+        m = inner[part]
+        sa, sb = a[part][m].sum(axis=0), b[part][m].sum(axis=0)
+        # environment: both sample the sky (dermis 64 light samples x 16 camera samples)
+        assert np.allclose(sa, sb, rtol=0.03 if kind == "environment" else 0.01,
+                           atol=1e-3 * sa.max()), (kind, part, sa, sb)
+    if kind != "environment":    # delta lights: per pixel (smooth-shading normals alike)
+        lit = inner & (a.sum(axis=2) > 0.05 * a.sum(axis=2).max())
+        assert np.allclose(a[lit], b[lit], rtol=0.02, atol=0.02 * a.max()), kind
