@@ -25,6 +25,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.integrate import trapezoid
 
 __all__ = ["MAPPINGS", "diffuse_mean_free_path", "mean_exit_radius", "surface_inputs",
            "native_inputs", "matched_inputs", "invert_reflectance"]
@@ -46,7 +47,7 @@ def mean_exit_radius(profile) -> np.ndarray:
     r = np.asarray(profile.r_mm, np.float64)
     R = np.asarray(profile.R, np.float64)
     w = 2.0 * math.pi * r[:, None] * R
-    return np.trapezoid(r[:, None] * w, r, axis=0) / np.trapezoid(w, r, axis=0)
+    return trapezoid(r[:, None] * w, r, axis=0) / trapezoid(w, r, axis=0)
 
 
 def surface_inputs(stack, roughness: float) -> dict:

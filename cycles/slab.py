@@ -24,6 +24,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+from scipy.integrate import trapezoid
 
 from dermis.cycles.job import run_job
 from dermis.pipeline.artifacts import SlabCurves
@@ -90,7 +91,7 @@ def slab_response(method: str, colours, *, radius=(1.0, 1.0, 1.0), ior: float,
             F = d / np.where(d[-1] != 0, d[-1], 1.0)
             one_minus = np.concatenate([np.ones((1, 3)), 1.0 - F])
             r = np.concatenate([[0.0], radii])
-            mean_r.append(np.trapezoid(one_minus, r, axis=0) * unit)
+            mean_r.append(trapezoid(one_minus, r, axis=0) * unit)
         per_seed.append((spec, rd_e, np.array(mean_r)))
     spec = (per_seed[0][0] + per_seed[1][0]) / 2
     rd_e = (per_seed[0][1] + per_seed[1][1]) / 2
