@@ -6,7 +6,8 @@ only by BSDF samples: at a few hundred samples per pixel, practically never.  Me
 Lambert plate facing the procedural sunset's sun (0.534 deg wide), Cycles gave 0.2416 /
 0.2645 / 0.2774 of the exact 0.2884 (red radiance) at importance maps 2048 / 4096 / 8192
 wide, the last at 18 s a render (docs/cycles.md).  So the map's sun, the pixels within
-``SUN_RADIUS_DEG`` of its brightest pixel that are at least ``SUN_FRACTION`` of it, leaves
+``SUN_RADIUS_DEG`` of its brightest pixel that are at least ``SUN_FRACTION`` of it (when
+that pixel is ``SUN_CONTRAST`` times the median or more), leaves
 the map and becomes a Cycles sun lamp of the same irradiance (sum over its pixels of
 radiance x solid angle), direction (their power-weighted mean) and angular diameter (that
 of a disc of their solid angle).  A small disc's irradiance on any surface it lights
@@ -23,10 +24,11 @@ import numpy as np
 from dermis.lighting.environment import environment_map
 from dermis.rendering.color import LUMINANCE
 
-__all__ = ["split_sun", "SUN_FRACTION", "SUN_RADIUS_DEG"]
+__all__ = ["split_sun", "SUN_FRACTION", "SUN_RADIUS_DEG", "SUN_CONTRAST"]
 
 SUN_FRACTION = 0.05     # of the brightest pixel's luminance (the sun's disc and limb)
 SUN_RADIUS_DEG = 2.0    # around the brightest pixel (the solar disc is 0.27 deg in radius)
+SUN_CONTRAST = 100.0    # its peak over the map's median luminance, at least
 
 
 def split_sun(light) -> tuple[np.ndarray, dict | None]:
@@ -46,10 +48,10 @@ def split_sun(light) -> tuple[np.ndarray, dict | None]:
     omega = sin_t * (2.0 * math.pi / w) * (math.pi / h)          # solid angle per pixel
     near = dirs @ dirs[peak] >= math.cos(math.radians(SUN_RADIUS_DEG))
     sun = near & (lum >= SUN_FRACTION * lum[peak])
-    power = (lum * omega)[sun].sum()
-    # a sun is a small bright patch: most of the map's power near the peak within a tiny
-    # solid angle; a smooth sky's brightest pixel is not one
-    if not sun.any() or omega[sun].sum() > 1e-3 or power < 0.05 * (lum * omega).sum():
+    # a sun is a small patch far brighter than the sky (the Venice map's: 4 pixels, peak
+    # 2090 against a median sky of ~1, 2.2 % of the map's power); a smooth sky is not one
+    if (not sun.any() or omega[sun].sum() > 1e-3
+            or lum[peak] < SUN_CONTRAST * float(np.median(lum))):
         return rad.astype(np.float32), None
     irradiance = (rad * omega[..., None])[sun].sum(axis=0)
     d = ((lum * omega)[..., None] * dirs)[sun].sum(axis=0)
