@@ -40,7 +40,8 @@ def _material(obj, m: dict, texture=None) -> None:
     sb.skin_material(obj, method=m["method"], base_colour=m.get("base_colour"),
                      base_texture=texture, radius=m.get("radius", (1.0, 1.0, 1.0)),
                      ior=m.get("ior", 1.4), roughness=m.get("roughness", 0.3),
-                     anisotropy=m.get("anisotropy", 0.0), subsurface_ior=m.get("subsurface_ior"))
+                     anisotropy=m.get("anisotropy", 0.0), subsurface_ior=m.get("subsurface_ior"),
+                     volume=m.get("volume"))
 
 
 def render_head(job: dict, arrays, folder: Path) -> dict:

@@ -30,7 +30,8 @@ import numpy as np
 __all__ = ["reset", "settings", "add_mesh", "add_camera", "add_lights", "add_world",
            "skin_material", "render_pixels"]
 
-BOUNCES = 256   # Cycles' path length cap per kind (default 12 cuts light; the reference: none)
+BOUNCES = 1024  # Cycles' path length cap per kind, its largest (default 12 cuts light; the
+                # reference has none: a path in skin scatters hundreds of times)
 
 
 def reset():
@@ -57,6 +58,7 @@ def settings(scene, *, width: int, height: int, threads: int) -> None:
     cy.max_bounces = BOUNCES
     for kind in ("diffuse", "glossy", "transmission", "transparent_max"):
         setattr(cy, f"{kind}_bounces", BOUNCES)
+    cy.volume_step_rate = 1.0
     cy.volume_bounces = BOUNCES
     cy.caustics_reflective = True
     cy.caustics_refractive = True
@@ -263,9 +265,10 @@ def add_world(scene, radiance=None, *, rotation_deg: float = 0.0) -> None:
 
 def skin_material(obj, *, method: str, base_colour=None, base_texture=None, radius=(1, 1, 1),
                   ior: float = 1.4, roughness: float = 0.3, anisotropy: float = 0.0,
-                  subsurface_ior: float | None = None):
+                  subsurface_ior: float | None = None, volume: dict | None = None):
     """Principled BSDF with subsurface weight 1 (``method``: BURLEY, RANDOM_WALK or
-    RANDOM_WALK_SKIN; LAMBERT: a diffuse surface of the base colour instead), ``radius`` in mm, single-scattering GGX of alpha ``roughness``
+    RANDOM_WALK_SKIN; LAMBERT: a diffuse surface of the base colour instead; VOLUME: the
+    homogeneous medium ``volume`` inside a smooth dielectric of index ``ior``), ``radius`` in mm, single-scattering GGX of alpha ``roughness``
     (Cycles' roughness input is sqrt(alpha)); base colour constant or the (H, W, 3) linear
     ``base_texture`` (row 0 at the top) through the mesh's UVs, bilinear."""
     import bpy
@@ -274,6 +277,11 @@ def skin_material(obj, *, method: str, base_colour=None, base_texture=None, radi
     nt = mat.node_tree
     nt.nodes.clear()
     out = nt.nodes.new("ShaderNodeOutputMaterial")
+    if method == "VOLUME":    # the cross-check's material: a medium in a smooth dielectric
+        _volume(nt, out, volume, ior)
+        obj.data.materials.clear()
+        obj.data.materials.append(mat)
+        return mat
     if method == "LAMBERT":   # the unit checks' material: albedo / pi
         p = nt.nodes.new("ShaderNodeBsdfDiffuse")
         nt.links.new(p.outputs[0], out.inputs["Surface"])
@@ -298,6 +306,31 @@ def skin_material(obj, *, method: str, base_colour=None, base_texture=None, radi
     obj.data.materials.clear()
     obj.data.materials.append(mat)
     return mat
+
+
+def _volume(nt, out, volume: dict, ior: float) -> None:
+    """A smooth glass boundary of index ``ior`` around a homogeneous medium (1/mm):
+    Cycles' Volume Scatter has sigma_s = colour x density, Volume Absorption sigma_a =
+    (1 - colour) x density (Blender manual, "Volume Scatter", "Volume Absorption")."""
+    glass = nt.nodes.new("ShaderNodeBsdfGlass")
+    glass.distribution = "GGX"
+    glass.inputs["Roughness"].default_value = 0.0
+    glass.inputs["IOR"].default_value = float(ior)
+    glass.inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
+    nt.links.new(glass.outputs[0], out.inputs["Surface"])
+    ss = np.asarray(volume["sigma_s"], np.float64)
+    sa = np.asarray(volume["sigma_a"], np.float64)
+    scatter = nt.nodes.new("ShaderNodeVolumeScatter")
+    scatter.inputs["Color"].default_value = (*(ss / ss.max()).tolist(), 1.0)
+    scatter.inputs["Density"].default_value = float(ss.max())
+    scatter.inputs["Anisotropy"].default_value = float(volume.get("g", 0.0))
+    absorb = nt.nodes.new("ShaderNodeVolumeAbsorption")
+    absorb.inputs["Color"].default_value = (*(1.0 - sa / sa.max()).tolist(), 1.0)
+    absorb.inputs["Density"].default_value = float(sa.max())
+    add = nt.nodes.new("ShaderNodeAddShader")
+    nt.links.new(scatter.outputs[0], add.inputs[0])
+    nt.links.new(absorb.outputs[0], add.inputs[1])
+    nt.links.new(add.outputs[0], out.inputs["Volume"])
 
 
 def _base_colour(nt, socket, base_colour, base_texture) -> None:
