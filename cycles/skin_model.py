@@ -52,7 +52,8 @@ def check_scene(stack, sections: dict, where: str) -> list[str]:
 
 
 def cycles_model(name: str, label: str, method: str) -> Model:
-    """The ``Model`` of a Cycles subsurface method."""
-    return Model(name=name, label=label, stage="cycles", doc="docs/cycles.md",
+    """The ``Model`` of a Cycles subsurface method; its images are the matched mapping's
+    (the native mapping's are ``<name>_native``, labelled "(native)": models/catalog.py)."""
+    return Model(name=name, label=f"{label} (matched)", stage="cycles", doc="docs/cycles.md",
                  params=CyclesMethod, optics=True,
                  scene_params=lambda scene, shared: CyclesMethod(method), check=check_scene)
