@@ -12,7 +12,7 @@ back, and fits the matched inputs of every optics preset on the slab curves:
   curves (Rd_e(b), m(b)) and their cost; per preset and method the matched and native
   inputs.
 
-    python3 bench/bench_cycles.py [--cache DIR] [--size 400] [--no-run]
+    python3 bench/bench_cycles.py [--cache DIR] [--size 400] [--lights L ...] [--no-run]
 """
 from __future__ import annotations
 
@@ -32,6 +32,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--cache", default=str(REPO / ".dermis-cache-bench-cycles"))
     ap.add_argument("--size", type=int, default=400)
+    ap.add_argument("--lights", nargs="*", default=None,
+                    help="lighting conditions (default: the scene's four)")
     ap.add_argument("--no-run", action="store_true")
     args = ap.parse_args(argv)
     from dermis.cycles import mapping
@@ -42,7 +44,8 @@ def main(argv=None) -> int:
     from dermis.pipeline.plan import build_graph
     models = ["cycles_burley", "cycles_random_walk", "cycles_random_walk_skin"]
     scene = load_scene(default_scene_path(), overrides={
-        "render": {"models": models, "geometries": ["high"]},
+        "render": {"models": models, "geometries": ["high"],
+                   **({"lights": args.lights} if args.lights else {})},
         "camera": {"width": args.size, "height": args.size},
         "reference": {"enabled": False}, "output": {"previews": False}})
     cache = Path(args.cache)
@@ -89,7 +92,7 @@ def main(argv=None) -> int:
                 rec[f"matched_{method}"] = {"error": str(exc)}
         fits[preset] = rec
     out = {"scene": "default (packaged scan), high mesh, Cycles models only",
-           "size": args.size, "run_wall_seconds": wall, "cores": 2,
+           "size": args.size, "lights": args.lights or "all", "run_wall_seconds": wall, "cores": 2,
            "images": sorted(images, key=lambda r: (r["image"], r["light"])),
            "slab_curves": slabs, "fits_multipole_targets": fits,
            "note": "fits here target the multipole profile (no Monte Carlo table); the run "

@@ -7,9 +7,11 @@ Blender's console output is kept in the folder and quoted when the process fails
 """
 from __future__ import annotations
 
+import ctypes
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -31,6 +33,19 @@ def _pythonpath() -> str:
     return root + (os.pathsep + rest if rest else "")
 
 
+def _parent_death_signal():
+    """A function for the child to call between fork and exec (no imports, no locks): on
+    Linux, have the kernel send it SIGTERM when the pipeline's process dies, so that a killed
+    run leaves no Blender rendering on; None elsewhere."""
+    if sys.platform != "linux":
+        return None
+    try:
+        prctl = ctypes.CDLL("libc.so.6", use_errno=True).prctl
+    except OSError:
+        return None
+    return lambda: prctl(1, int(signal.SIGTERM))   # PR_SET_PDEATHSIG
+
+
 def run_job(job: dict, arrays: dict | None = None) -> tuple[dict, dict]:
     """Render ``job`` (``kind`` "head" or "slab") in a Blender process; returns the result's
     JSON facts (``wall_seconds`` added: the whole process, Blender's start included) and its
@@ -45,7 +60,8 @@ def run_job(job: dict, arrays: dict | None = None) -> tuple[dict, dict]:
         t0 = time.perf_counter()
         with open(folder / "blender.log", "wb") as log:
             proc = subprocess.run([sys.executable, "-m", "dermis.cycles.render_job", str(folder)],
-                                  stdout=log, stderr=subprocess.STDOUT, env=env)
+                                  stdout=log, stderr=subprocess.STDOUT, env=env,
+                                  preexec_fn=_parent_death_signal())
         wall = time.perf_counter() - t0
         if proc.returncode != 0 or not (folder / "result.json").is_file():
             tail = (folder / "blender.log").read_text(errors="replace")[-3000:]
