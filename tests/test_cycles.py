@@ -242,3 +242,15 @@ def test07_cycles_volume_agrees_with_the_mitsuba_reference(mi):
     assert np.all(m_mean > 0) and np.all(m_se < 0.05 * m_mean), (m_mean, m_se)
     assert np.all(np.abs(c_mean - m_mean) <= 3 * np.hypot(c_se, m_se)), (c_mean, m_mean,
                                                                        c_se, m_se)
+
+
+def test08_images_are_named_ranked_and_sweepable_like_any_model():
+    """The report names both mappings and ranks them with the thesis's models
+    (models/catalog.py); a sweep can vary the noise they render to (reports/sweep.py)."""
+    from dermis.models import catalog
+    from dermis.reports.sweep import IMAGE_STAGES, KNOBS
+    assert catalog.label("cycles_burley") == "Cycles Burley (matched)"
+    assert catalog.label("cycles_random_walk_native") == "Cycles random walk (native)"
+    assert all(catalog.ranked(m) for m in ("hk93", "cycles_burley", "cycles_random_walk_skin_native"))
+    assert not catalog.ranked("bssrdf_mc") and not catalog.ranked("lafortune_native")
+    assert "cycles" in IMAGE_STAGES and KNOBS["cycles.target_noise"].finer == "lower"
