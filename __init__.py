@@ -6,6 +6,7 @@ the libraries ``dermis.geometry`` (meshes, bake), ``dermis.optics`` (layered ski
 depth), ``dermis.subsurface`` (the point-based BSSRDF), ``dermis.lighting`` (emitters,
 environment, visibility) and ``dermis.rendering`` (camera to pixels), ``dermis.models``
 (one unit per local illumination model), ``dermis.groundtruth`` (the Mitsuba reference),
+``dermis.cycles`` (Blender Cycles' skin models, an optional extra),
 ``dermis.stages`` (thin adapters, one per stage), ``dermis.reports`` (images, differences,
 report), ``dermis.cl`` (OpenCL kernels) and ``dermis.scenes`` (scene presets).  This module is
 the composition root: the engine imports no stage, model or command module and loads them by
