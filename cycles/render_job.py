@@ -158,6 +158,8 @@ def render_slabs(job: dict, folder: Path) -> dict:
     for i, r in enumerate(job["renders"]):
         scene = sb.reset()
         sb.settings(scene, width=ROWS, height=ROWS, threads=job["threads"])
+        # the hole's radius changes between renders: no render data kept from one to the next
+        scene.render.use_persistent_data = False
         side = float(r["side"])
         obj = _slab(scene, side)
         _material(obj, r["material"])
