@@ -58,9 +58,12 @@ def run_job(job: dict, arrays: dict | None = None) -> tuple[dict, dict]:
         env = {**os.environ, "PYTHONPATH": _pythonpath(),
                "OMP_NUM_THREADS": str(job.get("threads", 1))}
         t0 = time.perf_counter()
+        # run in the job's folder: ``python -m`` puts the working directory first on the
+        # path, and from dermis's own folder its ``cycles`` package would hide Blender's
+        # ``cycles`` add-on (Blender then has no Cycles engine)
         with open(folder / "blender.log", "wb") as log:
             proc = subprocess.run([sys.executable, "-m", "dermis.cycles.render_job", str(folder)],
-                                  stdout=log, stderr=subprocess.STDOUT, env=env,
+                                  stdout=log, stderr=subprocess.STDOUT, env=env, cwd=folder,
                                   preexec_fn=_parent_death_signal())
         wall = time.perf_counter() - t0
         if proc.returncode != 0 or not (folder / "result.json").is_file():
