@@ -6,6 +6,7 @@ the libraries ``dermis.geometry`` (meshes, bake), ``dermis.optics`` (layered ski
 depth), ``dermis.subsurface`` (the point-based BSSRDF), ``dermis.lighting`` (emitters,
 environment, visibility) and ``dermis.rendering`` (camera to pixels), ``dermis.models``
 (one unit per local illumination model), ``dermis.groundtruth`` (the Mitsuba reference),
+``dermis.cycles`` (Blender Cycles' skin models, an optional extra),
 ``dermis.stages`` (thin adapters, one per stage), ``dermis.reports`` (images, differences,
 report), ``dermis.cl`` (OpenCL kernels) and ``dermis.scenes`` (scene presets).  This module is
 the composition root: the engine imports no stage, model or command module and loads them by
@@ -29,6 +30,7 @@ STAGES = (
     ("indirect", "dermis.stages.indirect"),
     ("render", "dermis.stages.render"),
     ("bssrdf", "dermis.stages.bssrdf"),
+    ("cycles", "dermis.stages.cycles"),
     ("reference", "dermis.stages.reference"),
     ("causes", "dermis.stages.causes"),
     ("images", "dermis.stages.images"),
@@ -47,6 +49,9 @@ MODELS = (
     ("bssrdf_mc", "dermis.models.bssrdf_mc"),
     ("bssrdf_single", "dermis.models.bssrdf_single"),
     ("bssrdf_adaptive", "dermis.models.bssrdf_adaptive"),
+    ("cycles_burley", "dermis.models.cycles_burley"),
+    ("cycles_random_walk", "dermis.models.cycles_random_walk"),
+    ("cycles_random_walk_skin", "dermis.models.cycles_random_walk_skin"),
 )
 
 # The thesis's four models, in its order: the default [render] models and the ones the

@@ -22,7 +22,7 @@ import numpy as np
 
 from dermis.pipeline.errors import ConfigError, DermisError
 
-__all__ = ["Mesh", "BakedMaps", "LayerProfile", "RenderedImage", "SurfacePoints",
+__all__ = ["Mesh", "BakedMaps", "LayerProfile", "RenderedImage", "SurfacePoints", "SlabCurves",
            "PointIrradiance", "PixelSamples", "SAMPLE_LIT", "SAMPLE_CONTROL", "save",
            "load", "ARTIFACT_TYPES"]
 
@@ -222,8 +222,26 @@ class PixelSamples:
 SAMPLE_LIT = 1
 SAMPLE_CONTROL = 2
 
+@dataclass
+class SlabCurves:
+    """Cycles' flat semi-infinite slab as a function of its Base Color, at Subsurface Radius 1
+    (one subsurface method, IOR, roughness, anisotropy; dermis/cycles/slab.py).
+
+    grid : (K,) base colours; rd_e : (K, 3) reflectance per entered flux at normal
+    incidence; mean_radius : (K, 3) mean exit radius (radius units); specular : (3,) the
+    boundary's own reflectance; info : dict (samples, seconds, standard errors)
+    """
+
+    grid: np.ndarray
+    rd_e: np.ndarray
+    mean_radius: np.ndarray
+    specular: np.ndarray
+    info: dict = field(default_factory=dict)
+
+
 ARTIFACT_TYPES = {cls.__name__: cls for cls in (Mesh, BakedMaps, LayerProfile, RenderedImage,
-                                                SurfacePoints, PointIrradiance, PixelSamples)}
+                                                SurfacePoints, PointIrradiance, PixelSamples,
+                                                SlabCurves)}
 
 
 def nonfinite_fields(artifact: Any) -> list[str]:

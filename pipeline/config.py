@@ -25,7 +25,7 @@ from .registry import model
 from .model_choice import AUTO, choice_problems, choose, condition_kind
 # the schema's names are config's too (callers import both from here)
 from .schema import (GEOMETRIES, LENGTH_UNITS, LIGHT_TYPES, MAIN_VIEW, SCHEMA_TABLES,
-                     VIEW_MARK, BakeConfig, BssrdfConfig, CameraConfig, CausesConfig,
+                     VIEW_MARK, BakeConfig, BssrdfConfig, CameraConfig, CausesConfig, CyclesConfig,
                      LightConfig, MeshConfig, OutputConfig, ReferenceConfig, RenderConfig,
                      ReportConfig, Scene, SceneInfo, ViewConfig, choices_of, condition_of,
                      resolve_path, spec)
@@ -34,7 +34,8 @@ from .scene_rules import (check_camera, check_environment_file, check_reference,
 
 __all__ = ["load_scene", "scene_from_dict", "default_scene_path", "condition_problems",
            "LENGTH_UNITS", "GEOMETRIES", "LIGHT_TYPES", "MAIN_VIEW", "SCHEMA_TABLES", "VIEW_MARK",
-           "BakeConfig", "BssrdfConfig", "CameraConfig", "CausesConfig", "LightConfig",
+           "BakeConfig", "BssrdfConfig", "CameraConfig", "CausesConfig", "CyclesConfig",
+           "LightConfig",
            "MeshConfig", "OutputConfig", "ReferenceConfig", "RenderConfig", "ReportConfig",
            "Scene", "SceneInfo", "ViewConfig", "choices_of", "condition_of", "resolve_path",
            "spec"]

@@ -13,7 +13,7 @@ from .model_choice import AUTO
 
 __all__ = ["LENGTH_UNITS", "GEOMETRIES", "LIGHT_TYPES", "VIEW_MARK", "MAIN_VIEW", "condition_of",
            "spec", "SceneInfo", "MeshConfig", "BakeConfig", "CameraConfig", "ViewConfig",
-           "LightConfig", "RenderConfig", "BssrdfConfig", "ReferenceConfig", "CausesConfig",
+           "LightConfig", "RenderConfig", "BssrdfConfig", "ReferenceConfig", "CausesConfig", "CyclesConfig",
            "ReportConfig", "OutputConfig", "Scene", "choices_of", "SCHEMA_TABLES", "resolve_path"]
 
 
@@ -271,6 +271,32 @@ class CausesConfig:
 
 
 @dataclass(frozen=True)
+class CyclesConfig:
+    # Blender Cycles' skin models (models/cycles_*.py, dermis/cycles/, docs/cycles.md): run
+    # where the optional extra is installed (pip install dermis[cycles]), else skipped with
+    # one message.  Noise is measured like the reference's, on blocks of `block` camera
+    # pixels (0: one reference pixel, 8 x 8 on the default camera); 2 % on those blocks took
+    # 30-36 samples per pixel for Burley under point, disc and directional light, 284 under
+    # the sunset, 68 for the random walk (default scan at 400 x 400, bench/results/cycles.json):
+    # 5 %, 6 x fewer samples, keeps them near the reference's own noise at the ranking's
+    # 4 x 4-pixel blocks (2.5 %), where the report subtracts each image's noise
+    mappings: tuple = spec(("matched", "native"), choices=("matched", "native"),
+                           doc="inputs from the skin: matched (fitted to the skin's flat-slab "
+                               "Rd and mean exit radius), native (radius = mean free path, "
+                               "base colour = albedo); images of native end in _native")
+    geometries: tuple = spec(("high",), choices=("high", "low"),
+                             doc="meshes rendered (those also in render.geometries)")
+    target_noise: float = spec(0.05, lo=0.0, lo_open=True, hi=1.0,
+                               doc="relative RMSE noise on reference-pixel blocks to reach")
+    block: int = spec(0, lo=0, hi=1024, doc="noise block in camera pixels (0: the reference's)")
+    pilot_spp: int = spec(4, lo=1, hi=4096, doc="samples per pixel of each half's first pass")
+    max_spp: int = spec(256, lo=1, hi=1 << 16, doc="samples per pixel of each half, at most")
+    seed: int = spec(1, lo=0, hi=1 << 20,
+                     doc="half-images use seeds 2 (seed + k) and 2 (seed + k) + 1")
+    threads: int = spec(2, lo=1, hi=1024, doc="Cycles render threads (fixed: same image for any)")
+
+
+@dataclass(frozen=True)
 class ReportConfig:
     # What a scene requires (reports/requirements.py, docs/science.md): an effect is visible
     # above effect_threshold of a region's mean (1 %: the ground truth's own target,
@@ -305,6 +331,7 @@ class Scene:
     bssrdf: BssrdfConfig = spec(factory=BssrdfConfig)
     reference: ReferenceConfig = spec(factory=ReferenceConfig)
     causes: CausesConfig = spec(factory=CausesConfig)
+    cycles: CyclesConfig = spec(factory=CyclesConfig)
     report: ReportConfig = spec(factory=ReportConfig)
     output: OutputConfig = spec(factory=OutputConfig)
     path: str = ""
@@ -381,7 +408,7 @@ SCHEMA_TABLES = (("scene", SceneInfo), ("mesh", MeshConfig), ("bake", BakeConfig
                  ("camera", CameraConfig), ("[lights]", LightConfig), ("[views]", ViewConfig),
                  ("render", RenderConfig),
                  ("bssrdf", BssrdfConfig), ("reference", ReferenceConfig),
-                 ("causes", CausesConfig), ("report", ReportConfig), ("output", OutputConfig))
+                 ("causes", CausesConfig), ("cycles", CyclesConfig), ("report", ReportConfig), ("output", OutputConfig))
 
 
 def resolve_path(path: str, scene_path: str) -> Path:

@@ -365,10 +365,10 @@ def _rank(models: dict, blocks: dict, light: str, M, rmask, ref_var, ref_hd, inf
     """The light's ranking of the thesis's models on RANK_FACTOR blocks and every pair's
     comparison (:func:`dermis.reports.truth_noise.pair_test`)."""
     fk = str(RANK_FACTOR)
-    # the thesis's four are ranked; bssrdf_mc (the same BSSRDF, another profile) has
-    # its rows in the tables but would tie with bssrdf and shift the others' ranks
+    # the thesis's four are ranked, and Cycles' models (catalog.ranked); bssrdf_mc (the same
+    # BSSRDF, another profile) has its rows in the tables but would tie with bssrdf
     recs = [r for r in models.values() if r["light"] == light and fk in r["scales"]
-            and r["model"] in THESIS_MODELS and r["model"] in blocks]
+            and catalog.ranked(r["model"]) and r["model"] in blocks]
 
     def score(r):
         s = r["scales"][fk]

@@ -94,6 +94,7 @@ KNOBS = {k.path: k for k in (
          doc="profile model of the BSSRDF (reference: the Monte Carlo table)"),
     Knob("optics.photons", "higher", integer=True, order=0.5, also=(("optics.profile", "monte_carlo"),),
          doc="photons per channel of the Monte Carlo profile (sets profile = monte_carlo)"),
+    Knob("cycles.target_noise", "lower", doc="noise the Cycles models render to (docs/cycles.md)"),
 )}
 
 MODES = ("one_at_a_time", "grid")
@@ -280,7 +281,7 @@ def sweep_points(table: dict, where: str, spec: SweepSpec) -> list[Point]:
 
 
 # ------------------------------------------------------------------------------ scoring
-IMAGE_STAGES = ("render", "bssrdf")   # the nodes whose images a sweep point is scored on
+IMAGE_STAGES = ("render", "bssrdf", "cycles")   # the nodes whose images a point is scored on
 
 
 def _keys(scene) -> dict[str, str]:

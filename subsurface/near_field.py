@@ -23,6 +23,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.integrate import trapezoid
 
 __all__ = ["NEAR_INNER", "NEAR_OUTER", "SHARP_LIGHTS", "ProfileSplit", "near_window",
            "split_profile", "EdgeTable", "near_tables"]
@@ -96,7 +97,7 @@ def split_profile(profile, sigma_mm: float, *, cutoff_mm: float | None = None,
     R = np.stack([np.interp(r, r0, R0[:, c], right=0.0) for c in range(3)], axis=1)
     R[r[:, None] > cut[None, :]] = 0.0
     ring = 2.0 * np.pi * r[:, None] * R
-    total = np.trapezoid(ring, r, axis=0)
+    total = trapezoid(ring, r, axis=0)   # scipy's: numpy 1.26 (bpy's pin) has no np.trapezoid
     R *= np.where(total > 0, rd / np.where(total > 0, total, 1.0), 0.0)
     w = near_window(r, r_in, r_out)[:, None]
     Rn, Rf = R * w, R * (1.0 - w)

@@ -86,6 +86,8 @@ SLOW = (
     "test_stability.py::test12c",  # energy through non-scattering layers, adding-doubling
     "test_hardening_inputs.py::test08",   # every model's images over a grid of sharp shadows
     "test_profiles.py::test13", "test_profiles.py::test15",   # whole profile builds per stack
+    "test_cycles.py::test04", "test_cycles.py::test05",   # Blender renders of the quick scene,
+    "test_cycles.py::test07",                             # Cycles' slab; Cycles vs Mitsuba
 )
 
 

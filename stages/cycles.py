@@ -1,0 +1,178 @@
+"""Stage ``cycles``: Blender Cycles' skin models (models/cycles_*.py) rendered by Cycles.
+
+One image node per Cycles model x mapping (``[cycles] mappings``) x lighting condition x
+geometry (``[cycles] geometries`` that ``[render] geometries`` also lists): the scene's mesh,
+camera, lights and albedo texture rendered by Blender in a process of its own
+(:mod:`dermis.cycles.job`) as two half images of independent seeds, to the noise
+``[cycles] target_noise`` on reference-pixel blocks (:mod:`dermis.cycles.sampling`).  The
+``matched`` images read one slab node per subsurface method (Cycles' flat-slab curves,
+:mod:`dermis.cycles.slab`) and the Monte Carlo layer profile (the skin's Rd and mean exit
+radius); the mapping itself is :mod:`dermis.cycles.mapping`.  Where bpy is missing the
+stage plans nothing and says why once (:mod:`dermis.cycles.availability`).
+"""
+from __future__ import annotations
+
+import sys
+from dataclasses import asdict
+
+import numpy as np
+
+from dermis.cycles import availability, mapping
+from dermis.cycles.environment import split_sun
+from dermis.cycles.job import run_job
+from dermis.cycles.slab import slab_curves
+from dermis.geometry.normals import vertex_normals
+from dermis.lighting.emitters import light_params
+from dermis.pipeline import registry
+from dermis.pipeline.artifacts import RenderedImage
+from dermis.pipeline.config import CameraConfig, LightConfig
+from dermis.pipeline.graph import Node, StageResult
+from dermis.pipeline.imageio import write_exr
+from dermis.pipeline.scene_rules import reference_size
+from dermis.rendering.camera import camera_vectors
+from dermis.rendering.color import srgb_to_linear
+
+NAME = "cycles"
+VERSION = 1
+KERNELS = ()
+OUTPUT_FOLDER = "render"
+PROFILE = "monte_carlo"   # the skin's Rd and mean exit radius: the path-traced layer profile
+MESH = {"high": "mesh_high", "low": "mesh_low"}
+# the module the render process runs (started by name, not imported here): its code, and
+# the scene building and sampling it imports, enter the nodes' keys
+RENDER_PROCESS = "dermis.cycles.render_job"
+
+
+def image_name(model: str, mapping_name: str) -> str:
+    """``cycles_burley`` (matched) or ``cycles_burley_native``."""
+    return model if mapping_name == "matched" else f"{model}_{mapping_name}"
+
+
+def node_id(model: str, mapping_name: str, label: str, geometry: str) -> str:
+    return f"render-{image_name(model, mapping_name)}-{label}-{geometry}"
+
+
+def _block(scene) -> int:
+    if scene.cycles.block:
+        return int(scene.cycles.block)
+    w, _ = reference_size(scene.camera, scene.reference)
+    return max(int(scene.camera.width) // max(w, 1), 1)
+
+
+def slab_node(scene, method: str) -> Node:
+    s = mapping.surface_inputs(scene.optics, scene.reference.roughness)
+    params = {"kind": "slab", "method": method, **s, "threads": scene.cycles.threads,
+              "seed": scene.cycles.seed}
+    return Node(f"{NAME}-slab-{method.lower()}", NAME, __name__, params, (),
+                label=f"Cycles slab curves ({method})", code=(RENDER_PROCESS,))
+
+
+def node(scene, model: str, mapping_name: str, label: str, lights: tuple, geometry: str) -> Node:
+    method = registry.model(model).scene_params(None, None).method
+    c = scene.cycles
+    params = {"kind": "image", "model": model, "method": method, "mapping": mapping_name,
+              "label": label, "geometry": geometry, "camera": asdict(scene.camera),
+              **light_params(lights), "optics": scene.optics.to_dict(),
+              "roughness": scene.reference.roughness,
+              "sampling": {"target_noise": c.target_noise, "block": _block(scene),
+                           "pilot_spp": c.pilot_spp, "max_spp": c.max_spp},
+              "seed": c.seed, "threads": c.threads}
+    profiles = registry.stage("profiles")
+    deps = {"mesh": MESH[geometry], "profile": profiles.node_id(scene, PROFILE)}
+    if mapping_name == "matched":
+        deps["slab"] = slab_node(scene, method).id
+    return Node(node_id(model, mapping_name, label, geometry), NAME, __name__, params, deps,
+                label=f"{image_name(model, mapping_name)} / {label} / {geometry} (Cycles)",
+                locations=("lights[].map",), code=(registry.model_module(model), RENDER_PROCESS))
+
+
+def _inputs(params, profile, slab) -> dict:
+    from dermis.optics.layers import LayerStack
+    stack = LayerStack.from_dict(params["optics"])
+    if params["mapping"] == "native":
+        return mapping.native_inputs(stack, profile.Rd, params["roughness"])
+    return mapping.matched_inputs(stack, profile.Rd, mapping.mean_exit_radius(profile), slab,
+                                  params["roughness"])
+
+
+def _run_image(params: dict, inputs: dict, ctx) -> StageResult:
+    mesh, profile = inputs["mesh"], inputs["profile"]
+    material = {"method": params["method"], **_inputs(params, profile, inputs.get("slab"))}
+    camera = CameraConfig(**params["camera"])
+    lights = [LightConfig(**d) for d in params["lights"]]
+    pos, fwd, _, up = camera_vectors(camera)
+    arrays = {"vertices": mesh.vertices, "faces": mesh.faces, "normals": vertex_normals(mesh),
+              "uv": mesh.uv, "uv_faces": mesh.uv_faces}
+    if mesh.texture_srgb is not None and mesh.uv is not None:
+        albedo = srgb_to_linear(np.asarray(mesh.texture_srgb, np.float32) / 255.0)
+        if params["mapping"] == "matched":
+            slab = inputs["slab"]
+            albedo = mapping.invert_reflectance(albedo, slab.grid, slab.rd_e)
+        arrays["base_texture"] = albedo.astype(np.float32)
+    env = [l for l in lights if l.type == "environment"]
+    extra = []
+    if env:
+        arrays["environment"], sun = split_sun(env[0])
+        extra = [sun] if sun is not None else []
+    job = {"kind": "head", "width": camera.width, "height": camera.height,
+           "threads": params["threads"], "seed": params["seed"],
+           "camera": {"position": pos.tolist(), "forward": fwd.tolist(), "up": up.tolist(),
+                      "fov_deg": camera.fov_deg},
+           "lights": [asdict(l) for l in lights] + extra, "material": material,
+           "sampling": params["sampling"]}
+    result, out = run_job(job, arrays)
+    a, b = out["half_a"], out["half_b"]
+    linear = ((a + b) / 2).astype(np.float32)
+    name = f"{image_name(params['model'], params['mapping'])}-{params['label']}-{params['geometry']}"
+    write_exr(ctx.out_dir / f"{name}.exr", linear)
+    timings = {"total": result["wall_seconds"], "render": result["render_seconds"],
+               "scene_build": result["build_seconds"], "kernel_seconds": 0.0}
+    info = {"model": image_name(params["model"], params["mapping"]), "light": params["label"],
+            "geometry": params["geometry"], "renderer": f"Blender {result['blender']} Cycles",
+            "method": params["method"], "mapping": params["mapping"], "inputs": material,
+            "spp": result["spp"], "noise": result["noise"],
+            "noise_block": params["sampling"]["block"],
+            "target_noise": params["sampling"]["target_noise"], "passes": result["passes"]}
+    return StageResult(RenderedImage(linear, out["coverage"].astype(bool), timings, info,
+                                     noise=((a - b) / 2).astype(np.float32)),
+                       files=[f"{name}.exr"], info={"timings": timings, "spp": result["spp"],
+                                                    "noise": result["noise"],
+                                                    "kernel_seconds": 0.0})
+
+
+def run(params: dict, inputs: dict, ctx) -> StageResult:
+    if params["kind"] == "image":
+        return _run_image(params, inputs, ctx)
+    curves = slab_curves(params["method"], ior=params["ior"], roughness=params["roughness"],
+                         anisotropy=params["anisotropy"], threads=params["threads"],
+                         seed=params["seed"])
+    return StageResult(curves, info={"seconds": curves.info["seconds"], "kernel_seconds": 0.0,
+                                     "specular": curves.specular.tolist()})
+
+
+_SKIP_NOTICES: set = set()   # each reason once per process
+
+
+def plan(scene, plan) -> None:
+    """Every Cycles model x mapping x lighting condition x geometry, with the profiles and
+    slab nodes they read; where bpy is missing, none, with the reason said once."""
+    images = [(m, l, ls, g) for m, l, ls, g in plan.images_of(NAME)
+              if g in scene.cycles.geometries]
+    if not images:
+        return
+    reason = availability.missing_reason()
+    if reason:
+        models = sorted({m for m, *_ in images})
+        text = f"Cycles models skipped ({', '.join(models)}): {reason}"
+        if text not in _SKIP_NOTICES:
+            _SKIP_NOTICES.add(text)
+            print(f"dermis: {text}", file=sys.stderr)
+        plan.skipped[NAME] = text
+        return
+    plan.add(registry.stage("profiles").node(scene, PROFILE))
+    for model, label, lights, geometry in images:
+        for mapping_name in scene.cycles.mappings:
+            if mapping_name == "matched":
+                method = registry.model(model).scene_params(None, None).method
+                plan.add(slab_node(scene, method))
+            plan.add(node(scene, model, mapping_name, label, lights, geometry), provides="image")
