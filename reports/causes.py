@@ -253,7 +253,7 @@ def causes_pages(pdf, table: dict, *, figsize=(11.69, 8.27), max_rows: int = 36)
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from dermis.reports.pdf_report import MIN_FONT_PT
+    from dermis.reports.pdf_report import MIN_FONT_PT, page_table
 
     rows = table.get("rows", [])
     lights = sorted({r["light"] for r in rows})
@@ -285,17 +285,8 @@ def causes_pages(pdf, table: dict, *, figsize=(11.69, 8.27), max_rows: int = 36)
             ax.axis("off")
             if cells:
                 n = len(header)
-                widths = [0.2] + [0.8 / (n - 1)] * (n - 1)
-                height = min(1.0, (len(cells) + 1) * 0.027)
-                tab = ax.table(cellText=cells, colLabels=header, colWidths=widths,
-                               cellLoc="center", bbox=[0, 1 - height, 1, height])
-                tab.auto_set_font_size(False)
-                tab.set_fontsize(MIN_FONT_PT)
-                for (rr, cc), c in tab.get_celld().items():
-                    if rr == 0:
-                        c.set_text_props(weight="bold")
-                    if cc == 0:
-                        c.set_text_props(ha="left")
+                page_table(ax, cells, header, widths=[0.2] + [0.8 / (n - 1)] * (n - 1),
+                           row_height=0.027, fontsize=MIN_FONT_PT)
             conv = table.get("convention", [0.0])[0]
             fig.text(0.02, 0.04, "distance = model / reference - 1 over the region's pixels. "
                      "Parts telescope (they and the remainder sum to the distance): profile = "

@@ -34,7 +34,7 @@ from dermis.pipeline.errors import DermisError
 from dermis.reports.diff import (GEOMETRY_COMPARED, GEOMETRY_REFERENCE, difference, difference_image,
                           image_labels)
 
-__all__ = ["write_report", "THESIS_TIMES", "report_page_count", "summary_text"]
+__all__ = ["write_report", "THESIS_TIMES", "report_page_count", "summary_text", "page_table"]
 
 A4_LANDSCAPE_IN = (11.69, 8.27)
 FONT_PT = 8          # body text; nothing in the report is set below MIN_FONT_PT
@@ -334,17 +334,20 @@ def _diff_pages(plt, images, metrics, tiles=None):
                            _grid_image(sel, models, lights, scales, title="", captions=caps))
 
 
-def _table(ax, cells: list[list[str]], header: list[str]) -> None:
-    """A table filling ``ax`` whose first column (row labels) is wider than the rest."""
+def page_table(ax, cells: list[list[str]], header: list[str], *, widths=None,
+               row_height: float = 0.075, fontsize: float = MIN_FONT_PT + 0.5) -> None:
+    """A table at the top of ``ax``: a bold header row, the first column (row labels)
+    left-aligned and, unless ``widths`` (fractions) are given, wider than the rest;
+    ``row_height`` is each row's share of the axes."""
     n = len(header)
-    first = 0.32
-    widths = [first] + [(1 - first) / (n - 1)] * (n - 1)
-    rows = len(cells) + 1
-    height = min(1.0, rows * 0.075)  # ~0.075 of the axes per row, top-aligned
+    if widths is None:
+        first = 0.32
+        widths = [first] + [(1 - first) / (n - 1)] * (n - 1)
+    height = min(1.0, (len(cells) + 1) * row_height)
     tab = ax.table(cellText=cells, colLabels=header, colWidths=widths, cellLoc="center",
                    bbox=[0, 1 - height, 1, height])
     tab.auto_set_font_size(False)
-    tab.set_fontsize(MIN_FONT_PT + 0.5)
+    tab.set_fontsize(fontsize)
     for (r, c), cell in tab.get_celld().items():
         if r == 0:
             cell.set_text_props(weight="bold")
@@ -383,7 +386,7 @@ def _timing_page(plt, images, metrics, *, device, timings_extra):
     ax.axis("off")
     ax.set_title(f"this run: seconds per image\n{device}", fontsize=9)
     if cells:
-        _table(ax, [[r] + c for r, c in zip(rows, cells)],
+        page_table(ax, [[r] + c for r, c in zip(rows, cells)],
                ["model / geometry"] + [l.replace("+", "+\n") for l in lights])
     ax2 = fig.add_axes([0.67, 0.30, 0.31, 0.58])
     ax2.axis("off")
@@ -392,7 +395,7 @@ def _timing_page(plt, images, metrics, *, device, timings_extra):
     for mesh, by_light in THESIS_TIMES.items():
         for k, m in enumerate(THESIS_MODELS):
             tcells.append([f"{m} / {mesh}"] + [by_light[l][k] for l in THESIS_LIGHTS])
-    _table(ax2, tcells, ["model / triangles"] + [THESIS_SHORT[l] for l in THESIS_LIGHTS])
+    page_table(ax2, tcells, ["model / triangles"] + [THESIS_SHORT[l] for l in THESIS_LIGHTS])
     note = (f"Hardware differs: the thesis rendered with {THESIS_HARDWARE}; this run used "
             f"{device}, through OpenCL. Absolute times are therefore not comparable; compare the "
             "ratios between models under one light. Thesis geometries: 1M triangles ~ 'high', "

@@ -51,7 +51,7 @@ def requirement_pages(pdf, views: dict, *, accuracy: float, threshold: float,
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from dermis.reports.pdf_report import MIN_FONT_PT
+    from dermis.reports.pdf_report import MIN_FONT_PT, page_table
 
     names = [e.name for e in EFFECTS]
     header = ["light / region"] + names + ["cheapest adequate (error, time)", "against"]
@@ -70,20 +70,9 @@ def requirement_pages(pdf, views: dict, *, accuracy: float, threshold: float,
             ax = fig.add_axes([0.02, 0.16, 0.96, 0.77])
             ax.axis("off")
             if chunk:
-                n = len(header)
-                widths = [0.16] + [0.1] * (n - 3) + [0.3, 0.14]
-                s = sum(widths)
-                height = min(1.0, (len(chunk) + 1) * 0.028)
-                tab = ax.table(cellText=chunk, colLabels=header,
-                               colWidths=[w / s for w in widths], cellLoc="center",
-                               bbox=[0, 1 - height, 1, height])
-                tab.auto_set_font_size(False)
-                tab.set_fontsize(MIN_FONT_PT)
-                for (rr, cc), c in tab.get_celld().items():
-                    if rr == 0:
-                        c.set_text_props(weight="bold")
-                    if cc == 0:
-                        c.set_text_props(ha="left")
+                widths = [0.16] + [0.1] * (len(header) - 3) + [0.3, 0.14]
+                page_table(ax, chunk, header, widths=[w / sum(widths) for w in widths],
+                           row_height=0.028, fontsize=MIN_FONT_PT)
             lines = [f"{light}: {text}" for light, text in requirement_lines(requires, view)]
             lines += [f"{light}: [\"auto\"] rendered {catalog.label(a['model'])}; the "
                       f"{100 * a['accuracy']:.0f} % target {a['target']}"

@@ -395,12 +395,14 @@ else:
                                  RenderOptions(visibility=vis, spp=spp, base=base), cl_env=cl_env)
                     assert res.info["nonfinite_pixels"] == 0, (name, base)
                     images[f"{name}/{base}" if base else name] = res
-            else:
+            elif model.stage == "bssrdf":
                 with _recorded_exitance() as seen:
                     images[name] = _bssrdf_image(mesh, lights, camera, stack, profiles[name],
                                                  spp, cl_env, tmp)
                 M = np.concatenate(seen)
                 assert np.isfinite(M).all() and M.min() >= 0.0, (name, float(np.nanmin(M)))
+            # other stages (Blender's Cycles models) render in a process of their own: their
+            # images are checked finite and >= 0 by tests/test_cycles.py
         assert any(k.startswith("bssrdf") for k in images) and "lafortune" in images
         for name, img in images.items():
             linear = np.asarray(img.linear)

@@ -153,3 +153,18 @@ def test07_a_region_black_in_both_images_has_no_effect_and_light_only_with_it_is
     assert rows["cheek"]["effects"]["profile shape"]["verdict"] == "absent"
     assert rows["ear"]["effects"]["profile shape"]["signed"] == 1.0
     assert rows["ear"]["effects"]["profile shape"]["verdict"] == "visible"
+
+
+def test08_a_page_per_view_and_one_more_per_34_rows(tmp_path):
+    from matplotlib.backends.backend_pdf import PdfPages
+    from dermis.reports.requirement_pages import requirement_lines, requirement_pages
+    req = run([image("bssrdf", 0.5), image("bssrdf_mc", ear_brighter(0.5, 0.05)),
+               image("bssrdf", 0.5, light="point@ear"),
+               image("bssrdf_mc", ear_brighter(0.5, 0.05), light="point@ear")])
+    views = {v: {"requires": r} for v, r in req.items()}
+    with PdfPages(tmp_path / "r.pdf") as pdf:
+        assert requirement_pages(pdf, views, accuracy=0.02, threshold=0.01) == 2
+        assert requirement_pages(pdf, views, accuracy=0.02, threshold=0.01, max_rows=2) == 4
+    assert requirement_lines(req, "ear") == [
+        ("point", "visible: profile shape; cheapest adequate everywhere: "
+                  "BSSRDF (Monte Carlo profile)")]
