@@ -28,7 +28,7 @@ from .schema import (GEOMETRIES, LENGTH_UNITS, LIGHT_TYPES, MAIN_VIEW, SCHEMA_TA
                      VIEW_MARK, BakeConfig, BssrdfConfig, CameraConfig, CausesConfig, CyclesConfig,
                      LightConfig, MeshConfig, OutputConfig, ReferenceConfig, RenderConfig,
                      ReportConfig, Scene, SceneInfo, ViewConfig, choices_of, condition_of,
-                     resolve_path, spec)
+                     resolve_path, spec, view_name_of)
 from .scene_rules import (check_camera, check_environment_file, check_reference,
                           direction_problem, fmt, plain_name_problem)
 
@@ -37,7 +37,8 @@ __all__ = ["load_scene", "scene_from_dict", "default_scene_path", "condition_pro
            "BakeConfig", "BssrdfConfig", "CameraConfig", "CausesConfig", "CyclesConfig",
            "LightConfig",
            "MeshConfig", "OutputConfig", "ReferenceConfig", "RenderConfig", "ReportConfig",
-           "Scene", "SceneInfo", "ViewConfig", "choices_of", "condition_of", "resolve_path",
+           "Scene", "SceneInfo", "ViewConfig", "choices_of", "condition_of", "view_name_of",
+           "resolve_path",
            "spec"]
 
 # --------------------------------------------------------------------------- validation

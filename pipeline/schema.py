@@ -11,7 +11,7 @@ from typing import Any
 from . import registry
 from .model_choice import AUTO
 
-__all__ = ["LENGTH_UNITS", "GEOMETRIES", "LIGHT_TYPES", "VIEW_MARK", "MAIN_VIEW", "condition_of",
+__all__ = ["LENGTH_UNITS", "GEOMETRIES", "LIGHT_TYPES", "VIEW_MARK", "MAIN_VIEW", "condition_of", "view_name_of",
            "spec", "SceneInfo", "MeshConfig", "BakeConfig", "CameraConfig", "ViewConfig",
            "LightConfig", "RenderConfig", "BssrdfConfig", "ReferenceConfig", "CausesConfig", "CyclesConfig",
            "ReportConfig", "OutputConfig", "Scene", "choices_of", "SCHEMA_TABLES", "resolve_path"]
@@ -30,6 +30,12 @@ def condition_of(label: str) -> str:
     """The lighting condition of a lighting label, without its view ("point@nose" -> "point"):
     what a camera-independent pass (the irradiance of the BSSRDF's points) is keyed by."""
     return label.split(VIEW_MARK)[0]
+
+
+def view_name_of(label: str) -> str:
+    """The view of a lighting label ("point@nose" -> "nose"; a plain label: the main camera's,
+    ``MAIN_VIEW``)."""
+    return label.partition(VIEW_MARK)[2] or MAIN_VIEW
 
 
 def spec(default=MISSING, *, lo=None, hi=None, lo_open=False, hi_open=False, choices=None,
@@ -360,8 +366,8 @@ class Scene:
 
     def view_of(self, label: str) -> ViewConfig | None:
         """The view a lighting label belongs to (None: the main camera)."""
-        _, _, name = label.partition(VIEW_MARK)
-        return next((v for v in self.views if v.name == name), None) if name else None
+        name = view_name_of(label)
+        return next((v for v in self.views if v.name == name), None)
 
     def camera_of(self, label: str) -> CameraConfig:
         """The camera that sees lighting condition ``label``."""

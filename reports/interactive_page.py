@@ -30,8 +30,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from dermis.pipeline.config import condition_of
-from dermis.reports.requirements import view_of_label
+from dermis.pipeline.config import condition_of, view_name_of
 from dermis.geometry.regions import REGION_COLOURS, REGIONS, block_mean
 from dermis.models import catalog
 from dermis.pipeline.schema import MAIN_VIEW
@@ -53,7 +52,7 @@ GEOMETRY_ORDER = ("high", "low_bump", "low_bump_blur", "low")
 
 
 def _split_label(light: str) -> tuple[str, str]:
-    return condition_of(str(light)), view_of_label(str(light))
+    return condition_of(str(light)), view_name_of(str(light))
 
 
 def _seconds(image) -> float | None:

@@ -32,11 +32,11 @@ import numpy as np
 
 from dermis.models import catalog
 from dermis.geometry.regions import REGION_LABELS, REGIONS
-from dermis.pipeline.config import MAIN_VIEW, VIEW_MARK, condition_of
+from dermis.pipeline.config import condition_of, view_name_of
 from dermis.reports.truth_noise import RESOLVE_K, region_difference
 
 __all__ = ["Effect", "EFFECTS", "scene_requirements", "requirements_of", "auto_verdicts",
-           "view_of_label", "COMPLETE_MODELS"]
+           "COMPLETE_MODELS"]
 
 
 @dataclass(frozen=True)
@@ -64,12 +64,6 @@ EFFECTS = (
 )
 # the most complete models, best first: the answer where no reference is rendered
 COMPLETE_MODELS = ("bssrdf_mc", "bssrdf")
-
-
-def view_of_label(label: str) -> str:
-    """The view of a lighting label (``point@nose`` -> ``nose``; plain: the main camera)."""
-    _, _, view = label.partition(VIEW_MARK)
-    return view or MAIN_VIEW
 
 
 def _verdict(size: float, sigma: float, limit: float, above: str, below: str) -> str:
@@ -150,7 +144,7 @@ def scene_requirements(images: dict, labels_of, *, accuracy: float, threshold: f
                 effects[e.name] = p
             rows[region] = {"effects": effects,
                             **_cheapest(by, label, region, sel, accuracy, truth, extra)}
-        out.setdefault(view_of_label(label), {})[condition_of(label)] = {
+        out.setdefault(view_name_of(label), {})[condition_of(label)] = {
             "regions": rows, "cheapest_everywhere": _everywhere(rows)}
     return out
 
@@ -228,12 +222,12 @@ def auto_verdicts(requires: dict, chosen: dict, accuracy: float) -> dict:
     without a reference ("unresolved" / "unverified")."""
     out: dict = {}
     for label, model in chosen.items():
-        rows = requires.get(view_of_label(label), {}).get(condition_of(label), {}).get(
+        rows = requires.get(view_name_of(label), {}).get(condition_of(label), {}).get(
             "regions", {})
         verdicts = {r: row["models"][model]["verdict"] for r, row in rows.items()
                     if row.get("against") == "reference" and model in row["models"]}
         held = ("unverified" if not verdicts else "missed" if "fails" in verdicts.values()
                 else "held" if set(verdicts.values()) == {"meets"} else "unresolved")
-        out.setdefault(view_of_label(label), {})[condition_of(label)] = {
+        out.setdefault(view_name_of(label), {})[condition_of(label)] = {
             "model": model, "accuracy": accuracy, "target": held, "regions": verdicts}
     return out
