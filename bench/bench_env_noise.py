@@ -86,7 +86,7 @@ def _scene(full: bool = False):
     return load_scene(None, overrides={
         **({} if full else {"camera": {"width": SIZE, "height": SIZE}}),
         "render": {"models": ["lafortune", "hk93", "asperity", "bssrdf"], "lights": [LABEL],
-                   "geometries": ["high"]}})
+                   "geometries": ["high"]}, "views": []})
 
 
 def _inputs(scene, cache):

@@ -86,7 +86,7 @@ unbiasedness and their variance reduction) and tests/test_render.py.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Protocol, Sequence
 
 import numpy as np
@@ -94,6 +94,7 @@ import numpy as np
 from dermis.lighting.environment import EnvironmentMap, environment_map
 from dermis.lighting.mixture import sample_environment
 from dermis.lighting.strata import PixelStrata, stratified_2d
+from dermis.lighting.sun import split_sun
 from dermis.lighting.warps import concentric_disc, cosine_hemisphere, normalize, tangent_frame
 from dermis.pipeline.errors import ConfigError, DermisError
 from dermis.pipeline.store import file_digest
@@ -112,6 +113,13 @@ PRODUCT_COSINE_FRACTION = 0.25
 # sampling (1/2: 9.2 % vs 7.2 % on the sun-facing normal), and beats 1/8 and 1/4 on every
 # normal facing away from the sun (anti-sun: 18 % vs 34 % and 24 %).
 MIS_COSINE_FRACTION = 0.375
+# An environment map's sun is sampled on its own (lighting/sun.py) by SUN_SAMPLE_SHARE of a
+# point's samples (:func:`sun_samples`), the sky by the rest; SPLIT_SUN False samples the
+# whole map (the estimator before the split, kept for bench/bench_env_noise.py).
+SPLIT_SUN = True
+SUN_SAMPLE_SHARE = 0.25
+# The strata salt of the sun's samples (apart from every light's other draws).
+SUN_SALT = 1 << 20
 
 
 @dataclass
@@ -271,13 +279,62 @@ def _disc(light, p: np.ndarray, rng, samples: int, strata=None, salt: int = 0) -
     return wi, w, dist
 
 
+def sun_samples(samples: int) -> int:
+    """Of a point's S >= 2 samples of an environment light with a sun, those on the sun
+    (SUN_SAMPLE_SHARE of them, at least one, at most S - 1)."""
+    return min(max(int(samples * SUN_SAMPLE_SHARE + 1e-9), 1), samples - 1)
+
+
+def _sun(sun, n: int, rng, samples: int, normals, strata, salt: int, horizon: bool) -> tuple:
+    """``samples`` per point on the ``sun`` (lighting/sun.py): the pixel by a number stratified
+    over the pixel's samples (or the point's), the point in it by a second one and a
+    uniform number; weights / samples, 0 below the normals' horizon when ``horizon``."""
+    u = np.empty((n, samples, 3))
+    u[..., :2] = (strata.uniform_2d(rng, samples, SUN_SALT + salt) if strata is not None
+                  else stratified_2d(rng, n, samples))
+    u[..., 2] = rng.random((n, samples))
+    wi, w = sun.sample(u)
+    w *= np.float32(1.0 / samples)
+    if horizon and normals is not None:
+        w[np.einsum("nsk,nk->ns", wi, np.asarray(normals, np.float32)) <= 0] = 0.0
+    return wi, w, np.full((n, samples), np.inf, dtype=np.float32)
+
+
 def _environment(light, p: np.ndarray, rng, samples: int, env, normals, strategy: str,
                  strata=None, salt: int = 0,
                  lobe: "Lobe | None" = None, mixture: bool = False,
                  control: bool = False, horizon: bool = True,
                  product_normals: np.ndarray | None = None) -> tuple:
+    """An environment light's samples: with normals, S >= 2, the renderer's mixture or the
+    "product" strategy and a map with a sun (lighting/sun.py), :func:`sun_samples` of them on
+    the sun and the rest on the sky without it (:func:`_environment_map`); else the whole
+    map's."""
     if env is None:
         env = environment_map(light)
+    split = (split_sun(env) if SPLIT_SUN and normals is not None and samples >= 2
+             and (mixture or strategy == "product") else None)
+    if split is None:
+        return _environment_map(light, p, rng, samples, env, normals, strategy, strata, salt,
+                                lobe, mixture, control, horizon, product_normals)
+    n_sun = sun_samples(samples)
+    sun = _sun(split.sun, len(p), rng, n_sun, normals, strata, salt, horizon)
+    sky = _environment_map(light, p, rng, samples - n_sun, split.sky, normals, strategy,
+                           strata, salt, lobe, mixture, control, horizon, product_normals)
+    wi, w, dist = (np.concatenate([a, b], axis=1) for a, b in zip(sun, sky[:3]))
+    if len(sky) == 3:
+        return wi, w, dist
+    es = sky[3]
+    flags = None
+    if es.control is not None:
+        flags = np.concatenate([np.zeros((len(p), n_sun), bool), es.control], axis=1)
+    return wi, w, dist, replace(es, directions=wi, weights=w, control=flags)
+
+
+def _environment_map(light, p: np.ndarray, rng, samples: int, env, normals, strategy: str,
+                     strata=None, salt: int = 0,
+                     lobe: "Lobe | None" = None, mixture: bool = False,
+                     control: bool = False, horizon: bool = True,
+                     product_normals: np.ndarray | None = None) -> tuple:
     n = len(p)
     if mixture and normals is not None:     # the renderer's estimator (lighting/mixture.py)
         es = sample_environment(env, normals, rng, samples, strata=strata, salt=salt, lobe=lobe,
