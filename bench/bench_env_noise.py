@@ -36,9 +36,14 @@ Measures over the skin (pixels whose every camera sample hit the head), all chan
 
 Light sampling variants (``--variants``, VARIANTS): ``previous`` (the estimator before the
 mixture: fixed product and cosine shares; bit-identical to the "before" entry), ``default``
-(the pipeline's: lighting/mixture.py with the Lafortune lobes where the scene renders them),
-``joint_net`` (one net for the pixel's samples instead of one per half, lighting/strata.py)
-and ``control_variate`` (the research option of lighting/control.py).  ``--shares`` sweeps the
+(the pipeline's: lighting/mixture.py with the Lafortune lobes where the scene renders them,
+the control variate of lighting/control.py through rendering/shade.py's non-negative
+estimator, a strong sun split off the map, lighting/sun.py), ``mixture`` and
+``mixture_whole_map`` (the default before: no control variate; with and without the sun
+split), ``whole_map`` (the default, no sun split) and ``joint_net`` (one net for the pixel's
+samples instead of one per half, lighting/strata.py).  ``--procedural`` measures under the
+procedural sunset instead (its strong sun: lighting/environment.py), the converged render
+kept apart.  ``--shares`` sweeps the
 lobe and cosine shares; ``--brightness`` the map's sampling weight (luminance, RGB mean, RGB
 norm); ``--sample-counts`` measures the default at other light sample counts; ``--cost`` times the visibility and the shading of every variant at
 the scene's own 800 x 800 (interleaved, medians); ``--memory`` measures the peak resident
@@ -61,6 +66,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import resource
 import subprocess
@@ -135,24 +141,30 @@ VARIANTS = {
     # the previous estimator: fixed shares of product and cosine samples (3 + 1 per hit),
     # the block coordinate stratified in 1-D (bit-identical to "before" until the pixel's
     # samples became nets)
-    "previous": {"mixture": False},
+    "previous": {"mixture": False, "split_sun": False, "control_variate": False},
     # the pipeline's default (stages/visibility.py)
     "default": {},
+    # the mixture without the control variate: the default before rendering/shade.py's
+    # non-negative control estimator, with and without the sun split (lighting/sun.py)
+    "mixture": {"control_variate": False},
+    "mixture_whole_map": {"control_variate": False, "split_sun": False},
+    # the default without the sun split
+    "whole_map": {"split_sun": False},
     # one net for the pixel's light samples, not one per half (rendering/halves.py)
     "joint_net": {"independent_halves": False},
-    # the default with the control variate (a research option: estimates can be negative)
-    "control_variate": {"control_variate": True},
 }
 
 
 def _sampling(scene, shadow_samples=None, **over):
     """The light sampling of the pipeline's visibility node for this scene
-    (stages/visibility.py), with ``over`` replacing fields."""
+    (stages/visibility.py), with ``over`` replacing fields (``split_sun``: lighting/emitters.py
+    SPLIT_SUN, set by :func:`_cast`)."""
     from dataclasses import fields
+    over.pop("split_sun", None)
     from dermis.rendering.options import LightSampling
     from dermis.rendering import cast as cast_mod
     names = {f.name for f in fields(LightSampling)}
-    kw = {}
+    kw = {"control_variate": True}      # the stage's (stages/visibility.py)
     retro = cast_mod.retro_lobe(scene)
     if retro:
         kw.update(retro_fraction=retro["fraction"], retro_k=retro["k"])
@@ -164,12 +176,18 @@ def _sampling(scene, shadow_samples=None, **over):
 
 def _cast(scene, mesh, lights, vis, env, seed, shadow_samples=None, variant="default",
           camera=None):
+    from dermis.lighting import emitters
     from dermis.rendering.cast import cast
     from dermis.rendering.options import RenderOptions
     sampling = _sampling(scene, shadow_samples, **VARIANTS[variant])
-    return cast(mesh, lights, camera or scene.camera,
-                RenderOptions(spp=scene.render.spp, seed=seed, sampling=sampling, visibility=vis),
-                cl_env=env)
+    keep = emitters.SPLIT_SUN
+    emitters.SPLIT_SUN = VARIANTS[variant].get("split_sun", True)
+    try:
+        return cast(mesh, lights, camera or scene.camera,
+                    RenderOptions(spp=scene.render.spp, seed=seed, sampling=sampling,
+                                  visibility=vis), cl_env=env)
+    finally:
+        emitters.SPLIT_SUN = keep
 
 
 def _images(shaders, mesh, samples, env, subsurface, timed=False, noise=None):
@@ -299,6 +317,7 @@ def _measure(scene, mesh, lights, vis, env, shaders, subsurface, ref, seeds, var
     vis_s = np.median([t[0] for t in vis_times])
     vis_cpu = np.median([t[1] for t in vis_times])
     out = {"variant": variant, "sampling": repr(_sampling(scene, **VARIANTS[variant])),
+           "split_sun": VARIANTS[variant].get("split_sun", True),
            "skin_pixels": int(skin.sum()), "seeds": seeds,
            "visibility_seconds": float(vis_s), "visibility_cpu_seconds": float(vis_cpu),
            "models": {}}
@@ -330,7 +349,7 @@ def shares(scene, mesh, lights, vis, env, shaders, subsurface, ref, seeds) -> li
     keep = (mixture.COSINE_SHARE, cast_mod.LOBE_SHARE_SCALE, cast_mod.LOBE_SHARE_SCALE_CONTROL)
     rows = []
     try:
-        for variant in ("default", "control_variate"):
+        for variant in ("mixture", "default"):
             for scale in SHARE_GRID["lobe_scale"]:
                 for cos in SHARE_GRID["cosine_share"]:
                     if cos != 1 / 32 and scale not in (0.5, 2.0):
@@ -392,6 +411,42 @@ def sample_counts(scene, mesh, lights, vis, env, shaders, subsurface, ref, seeds
                               "own_rel_noise": round(v.get("own_rel_noise", float("nan")), 4)}
                           for m, v in r["models"].items()}}
         print("  samples", n, out[str(n)], flush=True)
+    return out
+
+
+def spread(scene, mesh, lights, vis, env, shaders, seeds, variants) -> dict:
+    """Without a converged render: per variant and BRDF model, the relative noise between
+    ``seeds`` renders (the seeds' variance over the skin, relative to their mean image's
+    RMS), the images' own noise estimate and the share of negative channels; the median CPU
+    seconds of the visibility and shadings of one seed (``--procedural``)."""
+    out = {}
+    for v in variants:
+        imgs = {m: [] for m in ("lafortune", "hk93", "asperity")}
+        own = {m: [] for m in imgs}
+        cpu = []
+        coverage = None
+        for k in range(seeds):
+            c = time.process_time()
+            samples = _cast(scene, mesh, lights, vis, env, scene.mesh.seed + k, variant=v)
+            for m in imgs:
+                im, r = shaders[m](mesh, samples, env)
+                imgs[m].append(im)
+                own[m].append(r.noise.astype(np.float64))
+                coverage = r.coverage
+            cpu.append(time.process_time() - c)
+        skin = np.asarray(coverage) >= 1.0
+        row = {"cpu_seconds": float(np.median(cpu))}
+        for m in imgs:
+            st = np.stack([x[skin] for x in imgs[m]])
+            ms = float((st.mean(axis=0) ** 2).mean())
+            row[m] = {"rel_noise_between_seeds": float(np.sqrt(st.var(axis=0, ddof=1).mean()
+                                                                / ms)),
+                      "own_rel_noise": float(np.sqrt(np.mean([x[skin] ** 2 for x in own[m]])
+                                                     / ms)),
+                      "negative_channels": float(np.mean(st < 0))}
+        out[v] = row
+        print(f"  spread {v:18s}", {m: round(x["rel_noise_between_seeds"], 4)
+                                   for m, x in row.items() if m != "cpu_seconds"}, flush=True)
     return out
 
 
@@ -486,6 +541,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--sample-counts", default="",
                     help="comma-separated light samples per pixel to measure the default at")
     ap.add_argument("--memory", action="store_true")
+    ap.add_argument("--procedural", action="store_true",
+                    help="the variants' noise between seeds under the procedural sunset")
     ap.add_argument("--cache", default=None)
     ap.add_argument("--device", default=None)
     ap.add_argument("--no-save", action="store_true")
@@ -500,6 +557,17 @@ def main(argv=None) -> dict:
     vis = Visibility(mesh.vertices, mesh.faces)
     shaders = _shaders(scene)
     subsurface = bssrdf - shaders["surface"](mesh, vis_default, env)[0]
+    if args.procedural:       # no converged render: the noise between seeds
+        from dataclasses import replace
+        out = {"setup": {"scene": "default", "mesh": "high", "light": "procedural_sunset",
+                         "size": [SIZE, SIZE], "spp": scene.render.spp,
+                         "light_samples_per_pixel": lights[0].samples, "seeds": args.seeds},
+               "code": _commit(), "load": list(os.getloadavg()),
+               "spread": spread(scene, mesh, [replace(lights[0], map="procedural_sunset")],
+                                vis, env, shaders, args.seeds, args.variants.split(","))}
+        if not args.no_save:
+            save_labelled(RESULTS / "env_noise.json", args.label, out)
+        return out
     ref, ref_meta = reference(scene, mesh, lights, vis, env, shaders, subsurface, args.pieces,
                               args.piece_samples,
                               Path(cache) / "bench_env_noise" / "reference.npz",
@@ -507,6 +575,7 @@ def main(argv=None) -> dict:
     out = {"setup": {"scene": "default", "mesh": "high", "light": LABEL, "size": [SIZE, SIZE],
                      "spp": scene.render.spp, "light_samples_per_pixel": lights[0].samples},
            "code": _commit(), "machine": platform.processor() or platform.machine(),
+           "load": list(os.getloadavg()),
            "device": env.description,
            "reference": {**ref_meta,
                          "samples_per_pixel": ref_meta["pieces"] * ref_meta["piece_samples"]},

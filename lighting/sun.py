@@ -83,7 +83,8 @@ class Sun:
     map's sampling pmf of each pixel (lighting/environment.py); irradiance : (3,) float64 the
     sun's irradiance on a surface facing it (sum of radiance x solid angle); direction : (3,)
     float64 unit, towards the sun (the luminance-power-weighted mean of its pixels);
-    angle_deg : the angular diameter of a disc of its solid angle
+    angle_deg : the angular diameter of a disc of its solid angle; share : its share of the
+    whole map's irradiance (luminance) on a surface facing it
     """
 
     rows: np.ndarray
@@ -95,6 +96,7 @@ class Sun:
     direction: np.ndarray
     angle_deg: float
     env: object
+    share: float = 1.0
 
     def sample(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Directions and weights L / pdf for uniform numbers ``u`` (..., 3) in [0, 1): u[..., 0]
@@ -148,9 +150,12 @@ def split_sun(env) -> SunSplit | None:
         sky.rotation = env.rotation
         rows, cols = np.nonzero(sun)
         pmf = env.pmf.reshape(env.height, env.width)[rows, cols].astype(np.float64)
+        whole = (lum * omega * np.maximum(dirs @ d, 0.0)).sum()
+        share = float(irradiance @ np.asarray(LUMINANCE, np.float64) / whole) if whole > 0 \
+            else 1.0
         if pmf.sum() > 0:
             split = SunSplit(sky, Sun(rows.astype(np.int64), cols.astype(np.int64),
                                       env.radiance[rows, cols], np.cumsum(pmf), pmf,
-                                      irradiance, d, angle, env))
+                                      irradiance, d, angle, env, share))
     env._sun_split = split
     return split

@@ -47,6 +47,7 @@ import numpy as np
 
 from dermis.lighting.visibility import Visibility
 from dermis.models.model import Model
+from dermis.pipeline.artifacts import SAMPLE_CONTROL, SAMPLE_LIT
 from dermis.pipeline.shared import RunCache
 from dermis.pipeline.cl import event_seconds, get_env, to_device
 from dermis.pipeline.errors import ConfigError
@@ -183,7 +184,8 @@ class _Shader:
 
 
 def shade(px: PixelSurface, shader, progress=None) -> tuple[np.ndarray, dict]:
-    """Sum f W cos over every unoccluded light sample into its pixel, / spp.
+    """Sum f W cos over every unoccluded light sample into its pixel, / spp; with the control
+    variate (lighting/control.py), the non-negative estimator of :func:`_ratio`.
 
     Returns (H*W, 3) float64 radiance and a dict of seconds and counts; its ``"noise"``:
     (H*W, 3) float64 the signed half difference of the samples' halves, / spp
@@ -193,41 +195,101 @@ def shade(px: PixelSurface, shader, progress=None) -> tuple[np.ndarray, dict]:
     n_pix = px.width * px.height
     owner = np.repeat(np.arange(len(samples.counts), dtype=np.int32), samples.counts)
     k_total = len(owner)
-    radiance = np.zeros((n_pix, 3), dtype=np.float64)
     flags = getattr(samples, "flags", None)
     halves = flags is not None and len(flags) == k_total
+    control = getattr(samples, "control_bin", None) is not None
+    # per pixel: the sum and the signed (half A minus half B) sum of the samples' terms;
+    # with the control variate also those of the control terms alpha W (n_s . w) 1[R_b]
+    radiance = np.zeros((n_pix, 3), dtype=np.float64)
     noise = np.zeros((n_pix, 3), dtype=np.float64) if halves else None
+    ctrl = np.zeros((n_pix, 3), dtype=np.float64) if control else None
+    ctrl_signed = np.zeros((n_pix, 3), dtype=np.float64) if control and halves else None
+    region = np.zeros((n_pix, 3), dtype=np.float64) if control else None
+    region_signed = np.zeros((n_pix, 3), dtype=np.float64) if control and halves else None
     stats = {"kernel_seconds": 0.0, "shaded_samples": int(k_total)}
+
+    def add(total, signed, pix, out, sign):
+        for ch in range(3):
+            total[:, ch] += np.bincount(pix, weights=out[:, ch], minlength=n_pix)
+        if signed is not None:
+            out = out * sign[:, None]
+            for ch in range(3):
+                signed[:, ch] += np.bincount(pix, weights=out[:, ch], minlength=n_pix)
+
     for start in range(0, k_total, CHUNK_SAMPLES):
         sl = slice(start, min(k_total, start + CHUNK_SAMPLES))
         gidx = owner[sl]
-        out, seconds = shader(gidx, samples.directions[sl], samples.weights[sl],
-                              flags[sl] if flags is not None else None)
+        fl = flags[sl] if flags is not None else None
+        out, seconds = shader(gidx, samples.directions[sl], samples.weights[sl], fl)
         stats["kernel_seconds"] += seconds
         pix = px.hit_idx[gidx]
-        for ch in range(3):
-            radiance[:, ch] += np.bincount(pix, weights=out[:, ch], minlength=n_pix)
-        if noise is not None:
-            out *= signs_of(flags[sl])[:, None]
-            for ch in range(3):
-                noise[:, ch] += np.bincount(pix, weights=out[:, ch], minlength=n_pix)
+        sign = signs_of(fl) if halves else None
+        if control:
+            # the control terms alone: the kernel's output of the region's samples with their
+            # lit bit cleared is - alpha W (n_s . w); the samples' own terms are out + that
+            idx = np.flatnonzero(fl & SAMPLE_CONTROL)
+            neg, seconds = shader(gidx.take(idx), samples.directions[sl].take(idx, axis=0),
+                                  samples.weights[sl].take(idx, axis=0),
+                                  fl.take(idx) & np.uint8(0xFF ^ SAMPLE_LIT))
+            stats["kernel_seconds"] += seconds
+            out[idx] -= neg                       # f W cos V of every sample
+            sub = None if sign is None else sign.take(idx)
+            add(ctrl, ctrl_signed, pix.take(idx), -neg, sub)
+            add(region, region_signed, pix.take(idx), out.take(idx, axis=0), sub)
+        add(radiance, noise, pix, out, sign)
         if progress is not None:
             progress(min(1.0, sl.stop / max(k_total, 1)))
-    if getattr(samples, "control_bin", None) is not None:    # the control variate's integral
+    if control:    # the control variate's integral per hit, alpha n_s . M_b
         out, seconds = shader.control(samples.control_bin, samples.control_table)
         stats["kernel_seconds"] += seconds
-        for ch in range(3):
-            radiance[:, ch] += np.bincount(px.hit_idx, weights=out[:, ch], minlength=n_pix)
-        if noise is not None:       # a hit's half: its first sample's (none: both halves)
+        hit_sign = None
+        if halves:       # a hit's half: its first sample's (none: both halves)
             first = np.cumsum(samples.counts) - samples.counts
             hit_sign = np.where(samples.counts > 0,
                                 signs_of(flags[np.minimum(first, max(k_total - 1, 0))])
                                 if k_total else 0.0, 0.0)
-            out *= hit_sign[:, None]
-            for ch in range(3):
-                noise[:, ch] += np.bincount(px.hit_idx, weights=out[:, ch], minlength=n_pix)
+        exact = np.zeros((n_pix, 3))
+        exact_signed = np.zeros((n_pix, 3)) if halves else None
+        add(exact, exact_signed, px.hit_idx, out, hit_sign)
+        # the region's samples through the estimator, the others (a split sun's) as they are
+        est, est_noise = _ratio(region, region_signed, ctrl, ctrl_signed, exact, exact_signed)
+        radiance += est - region
+        if noise is not None:
+            noise += est_noise - region_signed
     stats["noise"] = noise / px.spp if noise is not None else None
     return radiance / px.spp, stats
+
+
+def _ratio(total, signed, ctrl, ctrl_signed, exact, exact_signed):
+    """The control variate (lighting/control.py) per pixel and channel as a non-negative
+    estimator: Y the sum of the control region's samples (the others, a split sun's
+    (lighting/sun.py), are added as they are: scaling them by the sky's C / X would add the
+    sky's noise to the sun's light), X the control samples' sum, C the control's exact
+    integral,
+
+        Y + (C - X)                where X <= C   (the difference estimator, >= Y >= 0),
+        Y C / X = Y + (C - X) Y / X  where X > C   (the ratio estimator, Y scaled down),
+
+    so the estimate is Y + beta (C - X) with beta = min over the two (1 or Y / X): never
+    negative, and the scale C / X < 1 never amplifies a sample.  Where the surface is
+    unoccluded and diffuse Y = X sample by sample and both give C.  The difference estimator
+    alone (beta = 1, unbiased) went negative where the control samples outweigh what is lit
+    (occluded hits: X > C + Y); the ratio estimator alone blew up where X is small (HK93's
+    single scattering over a near-empty control sum: 0.34 relative noise).  Biased by
+    O(1 / samples) where X > C: E[Y / X] C is not E[Y] (Cochran 1977, "Sampling Techniques",
+    §6.8), measured in bench/results/env_noise.json.  The halves (rendering/halves.py) each
+    take their own estimate; the noise is half their difference.  Returns the radiance and
+    the noise (or None)."""
+    def est(y, x, c):
+        over = x > c
+        return np.where(over, y * c / np.where(over, x, 1.0), y + (c - x))
+
+    image = est(total, ctrl, exact)
+    if signed is None:
+        return image, None
+    half = [est((total + k * signed) / 2, (ctrl + k * ctrl_signed) / 2,
+                (exact + k * exact_signed) / 2) for k in (1, -1)]
+    return image, half[0] - half[1]
 
 
 def _image(radiance: np.ndarray, px: PixelSurface,
