@@ -284,10 +284,15 @@ def _disc(light, p: np.ndarray, rng, samples: int, strata=None, salt: int = 0) -
     return wi, w, dist
 
 
-def sun_samples(samples: int) -> int:
+def sun_samples(samples: int, even: bool = False) -> int:
     """Of a point's S >= 2 samples of an environment light with a sun, those on the sun
-    (SUN_SAMPLE_SHARE of them, at least one, at most S - 1)."""
-    return min(max(int(samples * SUN_SAMPLE_SHARE + 1e-9), 1), samples - 1)
+    (SUN_SAMPLE_SHARE of them, at least one, at most S - 1; ``even``: an even number, at
+    least 2, so each half of the point's samples holds as many; 0 where S < 3 then)."""
+    n = min(max(int(samples * SUN_SAMPLE_SHARE + 1e-9), 1), samples - 1)
+    if even:
+        n = max(2, n - n % 2)
+        return n if n <= samples - 1 else 0
+    return n
 
 
 def _sun(sun, n: int, rng, samples: int, normals, strata, salt: int, horizon: bool) -> tuple:
@@ -309,29 +314,36 @@ def _environment(light, p: np.ndarray, rng, samples: int, env, normals, strategy
                  strata=None, salt: int = 0,
                  lobe: "Lobe | None" = None, mixture: bool = False,
                  control: bool = False, horizon: bool = True,
-                 product_normals: np.ndarray | None = None) -> tuple:
+                 product_normals: np.ndarray | None = None, halves: bool = False) -> tuple:
     """An environment light's samples: with normals, S >= 2, the renderer's mixture or the
     "product" strategy and a map with a sun (lighting/sun.py) carrying at least
     SUN_SAMPLE_SHARE of the light, :func:`sun_samples` of them on the sun and the rest on the
-    sky without it (:func:`_environment_map`); else the whole map's."""
+    sky without it (:func:`_environment_map`); else the whole map's.  ``halves``: the first
+    and the second half of a point's samples are the two halves of the image's noise
+    estimate (rendering/halves.py, an odd ``share``), so each holds half the sun's and half
+    the sky's samples, in that order (an odd sample out, last, is the sky's)."""
     if env is None:
         env = environment_map(light)
     split = (split_sun(env) if SPLIT_SUN and normals is not None and samples >= 2
              and (mixture or strategy == "product") else None)
-    if split is None or split.sun.share < SUN_SAMPLE_SHARE:
+    n_sun = sun_samples(samples, even=halves) if split is not None else 0
+    if split is None or split.sun.share < SUN_SAMPLE_SHARE or n_sun == 0:
         return _environment_map(light, p, rng, samples, env, normals, strategy, strata, salt,
                                 lobe, mixture, control, horizon, product_normals)
-    n_sun = sun_samples(samples)
     sun = _sun(split.sun, len(p), rng, n_sun, normals, strata, salt, horizon)
     sky = _environment_map(light, p, rng, samples - n_sun, split.sky, normals, strategy,
                            strata, salt, lobe, mixture, control, horizon, product_normals)
-    wi, w, dist = (np.concatenate([a, b], axis=1) for a, b in zip(sun, sky[:3]))
+    a, b = (n_sun // 2, (samples - n_sun) // 2) if halves else (n_sun, 0)
+
+    def join(x, y):                  # the halves' sun and sky samples, in turn
+        return np.concatenate([x[:, :a], y[:, :b], x[:, a:], y[:, b:]], axis=1)
+    wi, w, dist = (join(x, y) for x, y in zip(sun, sky[:3]))
     if len(sky) == 3:
         return wi, w, dist
     es = sky[3]
     flags = None
     if es.control is not None:
-        flags = np.concatenate([np.zeros((len(p), n_sun), bool), es.control], axis=1)
+        flags = join(np.zeros((len(p), n_sun), bool), es.control)
     return wi, w, dist, replace(es, directions=wi, weights=w, control=flags)
 
 
@@ -505,7 +517,8 @@ def sample_lights(lights, points: np.ndarray, normals: np.ndarray | None = None,
                                 salt=3 * index + 1, lobe=lobe,
                                 mixture=mixture and n is not None,
                                 control=control and ctrl is None, horizon=horizon,
-                                product_normals=product_normals)
+                                product_normals=product_normals,
+                                halves=strata is not None and strata.share % 2 == 1)
         else:
             raise ConfigError(f"lights.{light.name}.type = {kind!r}: must be one of point, "
                               "disc, directional, environment")

@@ -243,11 +243,11 @@ def shade(px: PixelSurface, shader, progress=None) -> tuple[np.ndarray, dict]:
         out, seconds = shader.control(samples.control_bin, samples.control_table)
         stats["kernel_seconds"] += seconds
         hit_sign = None
-        if halves:       # a hit's half: its first sample's (none: both halves)
-            first = np.cumsum(samples.counts) - samples.counts
-            hit_sign = np.where(samples.counts > 0,
-                                signs_of(flags[np.minimum(first, max(k_total - 1, 0))])
-                                if k_total else 0.0, 0.0)
+        if halves:       # a hit's half: its samples' where they share one, else both
+            # halves (0: an odd camera sample split by its columns, or no samples)
+            mean = np.bincount(owner, weights=signs_of(flags), minlength=len(samples.counts))
+            mean /= np.maximum(samples.counts, 1)
+            hit_sign = np.where(np.abs(mean) == 1.0, mean, 0.0)
         exact = np.zeros((n_pix, 3))
         exact_signed = np.zeros((n_pix, 3)) if halves else None
         add(exact, exact_signed, px.hit_idx, out, hit_sign)
