@@ -86,11 +86,13 @@ MODELS = ("lafortune", "hk93", "asperity", "bssrdf")
 LABEL = "sunset"
 
 
-def _scene(full: bool = False):
-    """The setup's scene (``full``: at the default scene's own camera size)."""
+def _scene(full: bool = False, seed: int | None = None):
+    """The setup's scene (``full``: at the default scene's own camera size; ``seed``: the
+    scene's ``mesh.seed`` instead of its own)."""
     from dermis.pipeline.config import load_scene
     return load_scene(None, overrides={
         **({} if full else {"camera": {"width": SIZE, "height": SIZE}}),
+        **({} if seed is None else {"mesh": {"seed": seed}}),
         "render": {"models": ["lafortune", "hk93", "asperity", "bssrdf"], "lights": [LABEL],
                    "geometries": ["high"]}, "views": []})
 
@@ -148,8 +150,11 @@ VARIANTS = {
     # non-negative control estimator, with and without the sun split (lighting/sun.py)
     "mixture": {"control_variate": False},
     "mixture_whole_map": {"control_variate": False, "split_sun": False},
-    # the default without the sun split
+    # the default without the sun split, and with the split forced on a weak sun (the Venice
+    # sunset's, 0.046 of the light: below the split's threshold, lighting/emitters.py)
     "whole_map": {"split_sun": False},
+    "forced_split": {"split_sun": "always"},
+    "mixture_forced_split": {"control_variate": False, "split_sun": "always"},
     # one net for the pixel's light samples, not one per half (rendering/halves.py)
     "joint_net": {"independent_halves": False},
 }
@@ -180,14 +185,23 @@ def _cast(scene, mesh, lights, vis, env, seed, shadow_samples=None, variant="def
     from dermis.rendering.cast import cast
     from dermis.rendering.options import RenderOptions
     sampling = _sampling(scene, shadow_samples, **VARIANTS[variant])
+    from dermis.lighting.environment import environment_map
+    from dermis.lighting.sun import split_sun
     keep = emitters.SPLIT_SUN
-    emitters.SPLIT_SUN = VARIANTS[variant].get("split_sun", True)
+    mode = VARIANTS[variant].get("split_sun", True)
+    emitters.SPLIT_SUN = bool(mode)
+    sun = split_sun(environment_map(lights[0])) if mode == "always" else None
+    share = sun.sun.share if sun is not None else None
+    if sun is not None:
+        sun.sun.share = 1.0            # split whatever the sun's share of the light
     try:
         return cast(mesh, lights, camera or scene.camera,
                     RenderOptions(spp=scene.render.spp, seed=seed, sampling=sampling,
                                   visibility=vis), cl_env=env)
     finally:
         emitters.SPLIT_SUN = keep
+        if sun is not None:
+            sun.sun.share = share
 
 
 def _images(shaders, mesh, samples, env, subsurface, timed=False, noise=None):
@@ -414,6 +428,33 @@ def sample_counts(scene, mesh, lights, vis, env, shaders, subsurface, ref, seeds
     return out
 
 
+def bssrdf_noise(cache, seeds: int, env, shaders, ref=None) -> dict:
+    """The BSSRDF image's noise from its points' irradiance: the pipeline's subsurface part
+    (the ``render-bssrdf`` node minus its surface term) at ``seeds`` values of ``mesh.seed``
+    (new points, their irradiance and the gather; the surface term's light samples are
+    subtracted out), over the skin: the relative spread between the seeds, and the surface
+    term's own noise estimate on the same images for comparison (the two add in quadrature
+    to the image's noise).  ``ref``: the converged surface term's mean, for the relative
+    measures' denominator (the BSSRDF image's RMS)."""
+    parts, own, coverage = [], [], None
+    base = _scene().mesh.seed
+    for k in range(seeds):
+        sc = _scene(seed=base + k)
+        mesh, lights, vis_k, bssrdf = _inputs(sc, cache)
+        surface, r = shaders["surface"](mesh, vis_k, env)
+        parts.append(bssrdf - surface)
+        own.append(r.noise.astype(np.float64))
+        coverage = r.coverage
+    skin = np.asarray(coverage) >= 1.0
+    st = np.stack([x[skin] for x in parts])
+    image = st.mean(axis=0) + (ref[skin] if ref is not None else 0.0)
+    ms = float((image ** 2).mean())
+    return {"seeds": seeds,
+            "subsurface_rel_noise": float(np.sqrt(st.var(axis=0, ddof=1).mean() / ms)),
+            "surface_own_rel_noise": float(np.sqrt(np.mean([x[skin] ** 2 for x in own]) / ms)),
+            "subsurface_share_of_image": float(np.sqrt((st.mean(axis=0) ** 2).mean() / ms))}
+
+
 def spread(scene, mesh, lights, vis, env, shaders, seeds, variants) -> dict:
     """Without a converged render: per variant and BRDF model, the relative noise between
     ``seeds`` renders (the seeds' variance over the skin, relative to their mean image's
@@ -541,6 +582,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--sample-counts", default="",
                     help="comma-separated light samples per pixel to measure the default at")
     ap.add_argument("--memory", action="store_true")
+    ap.add_argument("--bssrdf-seeds", type=int, default=0,
+                    help="the BSSRDF's noise from its points' irradiance over this many seeds")
     ap.add_argument("--procedural", action="store_true",
                     help="the variants' noise between seeds under the procedural sunset")
     ap.add_argument("--cache", default=None)
@@ -593,6 +636,10 @@ def main(argv=None) -> dict:
         out["sample_counts"] = sample_counts(scene, mesh, lights, vis, env, shaders, subsurface,
                                              ref, max(args.seeds // 2, 2),
                                              [int(x) for x in args.sample_counts.split(",")])
+    if args.bssrdf_seeds:
+        out["bssrdf_irradiance_noise"] = bssrdf_noise(cache, args.bssrdf_seeds, env, shaders,
+                                                      ref["surface"][0])
+        print("  bssrdf irradiance noise:", out["bssrdf_irradiance_noise"], flush=True)
     if args.cost:
         out["cost"] = cost(scene, mesh, lights, vis, env)
     if args.memory:

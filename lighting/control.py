@@ -18,7 +18,12 @@ RGB x xyz) is computed once per map.  A BRDF f then estimates
 W the sample's multiple-importance weight L / sum_k n_k p_k (lighting/mixture.py) and alpha
 any number fixed per hit (the model's cosine-weighted mean of its diffuse part, cl/shade.cl):
 the added terms have mean zero whatever alpha is, so the estimate stays unbiased, and where
-the surface is unoccluded and diffuse the two sums cancel sample by sample.  The product
+the surface is unoccluded and diffuse the two sums cancel sample by sample.  That difference
+estimator goes negative where occluders hide more of the region than the samples' average;
+the renderer combines the sums per pixel instead as a non-negative estimator - the
+difference where the control sum is below its integral, the ratio (the lit sum scaled by the
+integral over the control sum) above it - biased by O(1 / samples) (rendering/shade.py
+``_ratio``).  The product
 strategy covers R_b by construction (R_b keeps only pixels it can draw), so the control sum
 is unbiased for n_s . M_b.  Why: under the Venice sunset one hit's irradiance from 4 samples
 had a relative spread of 10-30 % even with samples drawn in proportion to luminance x cosine:
