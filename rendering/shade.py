@@ -204,8 +204,10 @@ def shade(px: PixelSurface, shader, progress=None) -> tuple[np.ndarray, dict]:
     noise = np.zeros((n_pix, 3), dtype=np.float64) if halves else None
     ctrl = np.zeros((n_pix, 3), dtype=np.float64) if control else None
     ctrl_signed = np.zeros((n_pix, 3), dtype=np.float64) if control and halves else None
-    region = np.zeros((n_pix, 3), dtype=np.float64) if control else None
-    region_signed = np.zeros((n_pix, 3), dtype=np.float64) if control and halves else None
+    # the samples outside the control region (few: a split sun's), summed apart; the
+    # region's sums are the totals less theirs
+    other = np.zeros((n_pix, 3), dtype=np.float64) if control else None
+    other_signed = np.zeros((n_pix, 3), dtype=np.float64) if control and halves else None
     stats = {"kernel_seconds": 0.0, "shaded_samples": int(k_total)}
 
     def add(total, signed, pix, out, sign):
@@ -233,9 +235,12 @@ def shade(px: PixelSurface, shader, progress=None) -> tuple[np.ndarray, dict]:
                                   fl.take(idx) & np.uint8(0xFF ^ SAMPLE_LIT))
             stats["kernel_seconds"] += seconds
             out[idx] -= neg                       # f W cos V of every sample
-            sub = None if sign is None else sign.take(idx)
-            add(ctrl, ctrl_signed, pix.take(idx), -neg, sub)
-            add(region, region_signed, pix.take(idx), out.take(idx, axis=0), sub)
+            add(ctrl, ctrl_signed, pix.take(idx), -neg, None if sign is None
+                else sign.take(idx))
+            rest = np.flatnonzero((fl & SAMPLE_CONTROL) == 0)
+            if len(rest):
+                add(other, other_signed, pix.take(rest), out.take(rest, axis=0),
+                    None if sign is None else sign.take(rest))
         add(radiance, noise, pix, out, sign)
         if progress is not None:
             progress(min(1.0, sl.stop / max(k_total, 1)))
@@ -252,10 +257,12 @@ def shade(px: PixelSurface, shader, progress=None) -> tuple[np.ndarray, dict]:
         exact_signed = np.zeros((n_pix, 3)) if halves else None
         add(exact, exact_signed, px.hit_idx, out, hit_sign)
         # the region's samples through the estimator, the others (a split sun's) as they are
-        est, est_noise = _ratio(region, region_signed, ctrl, ctrl_signed, exact, exact_signed)
-        radiance += est - region
+        region = radiance - other
+        region_signed = None if noise is None else noise - other_signed
+        radiance, noise = _ratio(region, region_signed, ctrl, ctrl_signed, exact, exact_signed)
+        radiance += other
         if noise is not None:
-            noise += est_noise - region_signed
+            noise += other_signed
     stats["noise"] = noise / px.spp if noise is not None else None
     return radiance / px.spp, stats
 
