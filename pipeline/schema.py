@@ -223,11 +223,17 @@ class ReferenceConfig:
     target_rel_se: float = spec(0.01, lo=0.0, lo_open=True, hi=1.0,
                                 doc="stop when every face region's luminance mean has this "
                                     "relative standard error")
-    budget_s: float = spec(40.0, lo=0.0, hi=1e7, doc="seconds of rendering per lighting condition "
+    budget_s: float = spec(20.0, lo=0.0, hi=1e7, doc="seconds of rendering per lighting condition "
                                                      "(0 = no limit); a larger budget continues "
                                                      "from the cached passes")
     max_passes: int = spec(0, lo=0, hi=1 << 20, doc="stop after this many passes (0 = no limit); "
                                                     "like budget_s, continued from the cache")
+    required_rel_se: float = spec(0.02, lo=0.0, hi=1.0,
+                                  doc="every face region's luminance mean reaches this relative "
+                                      "standard error whatever budget_s says (0 = no guarantee)")
+    max_paths: int = spec(1 << 24, lo=0, hi=1 << 40,
+                          doc="paths (both halves) a reference never exceeds, the required "
+                              "error's hard cap (0 = no limit); continued from the cache")
     min_spp: int = spec(32, lo=1, hi=1 << 20, doc="samples per pixel of each half-buffer every "
                                                  "head pixel gets")
     max_spp: int = spec(4096, lo=1, hi=1 << 24, doc="samples per pixel of each half-buffer no "
