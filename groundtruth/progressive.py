@@ -271,8 +271,8 @@ def refine(trace_tiles: Callable[[list], list], buffers: HalfBuffers, hit: np.nd
     while True:
         rel = region_rel_se(buffers, labels) if buffers.count.any() else {}
         guaranteed = not settings.required_met(rel) or not buffers.count[hit].all()
-        aim = (max(settings.required_rel_se, settings.target_rel_se)
-               if guaranteed and settings.required_rel_se else settings.target_rel_se)
+        aim = settings.required_rel_se if guaranteed and settings.required_rel_se \
+            else settings.target_rel_se
         add, rel, stop = next_pass(buffers, hit, labels, settings, target=aim)
         if stop == "target" and aim != settings.target_rel_se:   # required met: refine
             guaranteed = False

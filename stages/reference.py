@@ -29,7 +29,7 @@ from __future__ import annotations
 import json
 import sys
 import time
-from dataclasses import asdict
+from dataclasses import asdict, fields
 
 import numpy as np
 
@@ -102,11 +102,8 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
                                env_clamp=r["env_clamp"], max_depth=r["max_depth"],
                                rr_depth=r["rr_depth"])
     job = TraceJob(f"{NAME}-{params['label']}-{time.time_ns()}", mesh, stack, camera, lights,
-                   w, h, options, variant, mesh_key=ctx.input_keys.get("mesh", ""))
-    settings = PassSettings(pass_spp=r["pass_spp"], min_spp=r["min_spp"], max_spp=r["max_spp"],
-                            target_rel_se=r["target_rel_se"], budget_s=r["budget_s"],
-                            max_passes=r["max_passes"], required_rel_se=r["required_rel_se"],
-                            max_paths=r["max_paths"])
+                   w, h, options, variant, getattr(ctx, "input_keys", {}).get("mesh", ""))
+    settings = PassSettings(**{f.name: r[f.name] for f in fields(PassSettings)})
     try:
         t0 = time.perf_counter()
         _, head = job_scene(job)
@@ -198,8 +195,6 @@ def plan(scene, plan) -> None:
         return
     # the close-ups right after the main camera's condition of the same lights: they trace
     # the same loaded scene (groundtruth/pixel_tracing.py, KEEP_SCENES)
-    first = {}
-    for label in wanted:
-        first.setdefault(condition_of(label), len(first))
-    for label in sorted(wanted, key=lambda l: first[condition_of(l)]):
+    conditions = list(dict.fromkeys(condition_of(label) for label in wanted))
+    for label in sorted(wanted, key=lambda l: conditions.index(condition_of(l))):
         plan.add(node(scene, label, groups[label]), target=True)
