@@ -166,6 +166,29 @@ def test03b_the_required_part_does_not_depend_on_the_clock(monkeypatch):
     assert max(region_rel_se(c, LABELS).values()) > settings.required_rel_se
 
 
+def test03c_one_scene_per_lighting_condition_whatever_the_camera():
+    """A close-up traces the scene of its lighting condition through its own sensor: the
+    loaded scene's key is the same for two cameras and two jobs, and differs for other lights,
+    another mesh or another export; a job without a mesh key keeps a scene of its own."""
+    from dataclasses import replace
+    from dermis.groundtruth.pixel_tracing import TraceJob
+    from dermis.groundtruth.scene_export import HeadSceneOptions
+    from dermis.optics.layers import PRESETS
+    from dermis.pipeline.config import CameraConfig, LightConfig
+    point = LightConfig(name="point", type="point", position=(1.0, 2.0, 3.0))
+    other = LightConfig(name="point", type="point", position=(1.0, 2.0, 4.0))
+    cam = CameraConfig()
+    near = replace(cam, fov_deg=cam.fov_deg / 4)
+    job = TraceJob("a", None, PRESETS["two_layer"], cam, [point], 20, 20,
+                   HeadSceneOptions(roughness=0.3, tint_rd=np.array([0.5, 0.4, 0.3])),
+                   "llvm_ad_rgb", "mesh-key")
+    assert replace(job, token="b", camera=near).scene_key == job.scene_key
+    for changed in (replace(job, lights=[other]), replace(job, mesh_key="another"),
+                    replace(job, options=replace(job.options, roughness=0.2))):
+        assert changed.scene_key != job.scene_key
+    assert replace(job, mesh_key="").scene_key == "a"
+
+
 # ------------------------------------------------------------------------ with Mitsuba
 def _mitsuba():
     from dermis.groundtruth import mitsuba
