@@ -42,7 +42,8 @@ def _time_file(path: Path) -> dict:
         m = re.search(pat, text)
         return m.group(1) if m else None
     wall = num(r"Elapsed \(wall clock\) time \(h:mm:ss or m:ss\): ([\d:.]+)")
-    secs = sum(float(p) * 60 ** i for i, p in enumerate(reversed(wall.split(":")))) if wall else None
+    secs = (sum(float(p) * 60 ** i for i, p in enumerate(reversed(wall.split(":"))))
+            if wall else None)
     return {"wall_s": secs, "user_cpu_s": float(num(r"User time \(seconds\): ([\d.]+)") or 0),
             "system_cpu_s": float(num(r"System time \(seconds\): ([\d.]+)") or 0),
             "peak_rss_kb": int(num(r"Maximum resident set size \(kbytes\): (\d+)") or 0)}

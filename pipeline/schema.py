@@ -210,10 +210,10 @@ class ReferenceConfig:
     # in progressive passes of two half-buffers over the head's pixels: first until every face
     # region's mean is known to required_rel_se whatever the clock (only max_paths stops it
     # short), then toward target_rel_se within budget_s (groundtruth/progressive.py).  A wall
-    # budget alone gave 6-26 % on a loaded machine (load 3-14, 40 s each) where an idle one
-    # gave 1-3 %; 2 % everywhere took 0.36-1.6 M paths per reference, aimed at directly, at
-    # ~120 CPU-us a path (bench/results/reference_cost.json); 1 % everywhere takes 4x that
-    # (0.6-3.8 M paths per lighting condition of the main camera, reference_passes.json).
+    # budget alone (40 s each) reached 3-26 % in the worst region at load 3-14, 1.3-6 % at
+    # load ~2; 2 % everywhere took 0.26-1.6 M paths per reference, aimed at directly (6.9 M
+    # for the default eight, 1,010 CPU s at load ~10: bench/results/reference_cost.json);
+    # 1 % everywhere takes 4x that (0.6-3.8 M paths per condition, reference_passes.json).
     enabled: bool = spec(True, doc="render Mitsuba 3 references (skipped with one message where "
                                    "Mitsuba cannot run)")
     # 100 reference pixels across the default camera's 800: 8x8-pixel blocks, where the
