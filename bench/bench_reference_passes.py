@@ -103,6 +103,9 @@ def main(argv=None) -> int:
     ap.add_argument("--cache", default="/tmp/dermis-bench-reference-passes")
     ap.add_argument("--target", type=float, default=0.01)
     ap.add_argument("--max-spp", type=int, default=4096)
+    ap.add_argument("--required", type=float, default=0.0,
+                    help="[reference] required_rel_se (0: the passes aim at --target throughout, "
+                         "as measured in reference_passes.json)")
     ap.add_argument("--lights", nargs="*", default=None)
     ap.add_argument("--frame-check", action="store_true",
                     help="also time a whole-frame render against the head's pixels alone")
@@ -115,7 +118,7 @@ def main(argv=None) -> int:
     from dermis.pipeline.config import load_scene
     over = {"render": {"geometries": ["high"], "models": []}, "output": {"previews": False},
             "reference": {"budget_s": 0, "target_rel_se": args.target,
-                          "max_spp": args.max_spp}}
+                          "required_rel_se": args.required, "max_spp": args.max_spp}}
     if args.lights:
         over["reference"]["lights"] = args.lights
     scene = load_scene(None, overrides=over)

@@ -50,10 +50,12 @@ def render_passes(mi, scene, *, spp: int, seed: int,
     return acc / max(done, 1), time.perf_counter() - t0
 
 
-def pixel_hits(mi, scene, *, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """Mitsuba's camera rays through the pixel centres: (H, W) hit mask and (H, W) int64
-    primitive (face) index of the first shape hit (-1 where none)."""
-    sensor = scene.sensors()[0]
+def pixel_hits(mi, scene, *, width: int, height: int, sensor=None
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Mitsuba's camera rays through the pixel centres of ``sensor`` (None: the scene's
+    first): (H, W) hit mask and (H, W) int64 primitive (face) index of the first shape hit
+    (-1 where none)."""
+    sensor = scene.sensors()[0] if sensor is None else sensor
     j, i = np.meshgrid(np.arange(width), np.arange(height))
     pos = mi.Point2f(((j + 0.5) / width).ravel().astype(np.float32),
                      ((i + 0.5) / height).ravel().astype(np.float32))

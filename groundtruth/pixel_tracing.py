@@ -8,24 +8,41 @@ only, it spends no path on the background (:mod:`dermis.groundtruth.progressive`
 
 :class:`TraceJob` is everything a process needs to build the scene itself (mesh, layer stack,
 camera, lights, export options, Mitsuba variant); :func:`trace_tile` traces one task of a
-pass with it, building the scene once per process and job (``token``), so the same function
-runs in the planning process and on Dask workers (``pipeline/taskpool.py``), with the same
-bytes: a tile's result depends on its pixels, samples and seeds alone.
+pass with it, so the same function runs in the planning process and on Dask workers
+(``pipeline/taskpool.py``), with the same bytes: a tile's result depends on its pixels,
+samples and seeds alone.
+
+Loading the exported head is most of a reference's cost beyond its paths (the PLY export and
+Mitsuba's scene build of the ~1.1 M-triangle scan and its offset layer: ~11 CPU seconds,
+bench/results/reference_cost.json), and the camera is no part of it: a path's radiance does
+not depend on the sensor that started it.  So a process keeps the :data:`KEEP_SCENES` most
+recently used scenes by content (``TraceJob.scene_key``: mesh, stack, export options,
+lights, variant) and traces through each job's own sensor: the close-ups lit by a lighting
+condition of the main camera (``point@nose_shadow``, ``area@lips``) reuse its scene.
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import threading
 import time
-from dataclasses import dataclass
+from collections import OrderedDict
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
 
 from dermis.groundtruth import mitsuba
 from dermis.groundtruth.passes import MAX_LANES
-from dermis.groundtruth.scene_export import HeadSceneOptions, head_scene, release
+from dermis.groundtruth.scene_export import HeadSceneOptions, camera_dict, head_scene, release
 
-__all__ = ["trace_pixels", "sensor_mean", "TraceJob", "trace_tile", "job_scene", "forget"]
+__all__ = ["trace_pixels", "sensor_mean", "TraceJob", "trace_tile", "job_scene", "job_sensor",
+           "forget", "KEEP_SCENES"]
+
+# Scenes a process keeps (each ~0.3 GB for the default scan: two 1.1 M-triangle surfaces and
+# their acceleration structure): the reference nodes run the close-ups right after the main
+# camera's condition of the same lights (stages/reference.py), so two suffice.
+KEEP_SCENES = 2
 
 
 def _sampler(mi, seed: int, lanes: int):
@@ -42,14 +59,15 @@ def _lanes(spectrum, n: int) -> np.ndarray:
 
 
 def trace_pixels(mi, scene, pixels: np.ndarray, spp: int, seed: int, *, width: int,
-                 height: int) -> np.ndarray:
+                 height: int, sensor=None) -> np.ndarray:
     """(M, 3) float64 sums of ``spp`` paths at each of ``pixels`` ((M, 2) x, y).
 
     Each path starts at a uniform point of its pixel (a box filter, as ``mi.render``) through
-    the scene's first sensor and is traced by the scene's integrator; calls of at most
-    :data:`MAX_LANES` paths, call k seeded ``seed + k`` (mod 2^32).
+    ``sensor`` (None: the scene's first) and is traced by the scene's integrator; calls of at
+    most :data:`MAX_LANES` paths, call k seeded ``seed + k`` (mod 2^32).
     """
-    sensor, integrator = scene.sensors()[0], scene.integrator()
+    sensor = scene.sensors()[0] if sensor is None else sensor
+    integrator = scene.integrator()
     px = np.asarray(pixels, np.int64).reshape(-1, 2)
     out = np.zeros((len(px), 3))
     per_call = max(1, MAX_LANES // max(int(spp), 1))
@@ -92,10 +110,11 @@ def sensor_mean(mi, scene, samples: int, seed: int, sensor=None) -> np.ndarray:
 class TraceJob:
     """The reference scene of one lighting condition, as data a worker can build it from.
 
-    token : names the job (the node's cache key): one scene per token and process
-    mesh : the high mesh (``Mesh`` artifact); stack : ``LayerStack``; camera : CameraConfig;
-    lights : list of LightConfig; width, height : reference pixels; options : the export's
-    ``HeadSceneOptions``; variant : the Mitsuba variant the planning process chose
+    token : names the job (its sensor); mesh : the high mesh (``Mesh`` artifact); stack :
+    ``LayerStack``; camera : CameraConfig; lights : list of LightConfig; width, height :
+    reference pixels; options : the export's ``HeadSceneOptions``; variant : the Mitsuba
+    variant the planning process chose; mesh_key : the mesh's content (its cache key), which
+    with the rest of :attr:`scene_key` names the loaded scene a process may reuse
     """
 
     token: str
@@ -107,36 +126,69 @@ class TraceJob:
     height: int
     options: HeadSceneOptions
     variant: str
+    mesh_key: str = ""
+
+    @property
+    def scene_key(self) -> str:
+        """The loaded scene's content: the same for every camera (empty mesh key: this job's
+        own scene)."""
+        if not self.mesh_key:
+            return self.token
+        opts = {k: (None if v is None else np.asarray(v).tolist()) if k == "tint_rd" else v
+                for k, v in asdict(self.options).items()}
+        blob = json.dumps([self.mesh_key, self.stack.to_dict(), opts,
+                           [asdict(l) for l in self.lights], self.variant],
+                          sort_keys=True, default=str)
+        return hashlib.sha256(blob.encode()).hexdigest()
 
 
-_SCENES: dict = {}          # token -> (mitsuba module, HeadScene), per process
+_SCENES: OrderedDict = OrderedDict()   # scene key -> (mitsuba module, HeadScene), per process
+_SENSORS: dict = {}                    # job token -> its sensor, per process
 _LOCK = threading.Lock()
 
 
 def job_scene(job: TraceJob):
-    """(mitsuba module, loaded HeadScene) of ``job`` in this process, built on first use."""
+    """(mitsuba module, loaded HeadScene) of ``job`` in this process, built on first use (a
+    scene of the same content loaded for an earlier job is reused)."""
+    key = job.scene_key
     with _LOCK:
-        if job.token not in _SCENES:
+        if key in _SCENES:
+            _SCENES.move_to_end(key)
+        else:
             mi = mitsuba.load_mitsuba(job.variant)
-            _SCENES[job.token] = (mi, head_scene(mi, job.mesh, job.stack, job.camera, job.lights,
-                                                 width=job.width, height=job.height,
-                                                 options=job.options))
-        return _SCENES[job.token]
+            head = head_scene(mi, job.mesh, job.stack, job.camera, job.lights,
+                              width=job.width, height=job.height, options=job.options)
+            release(head)   # Mitsuba has read the PLY files
+            _SCENES[key] = (mi, head)
+            while len(_SCENES) > KEEP_SCENES:
+                _SCENES.popitem(last=False)
+        return _SCENES[key]
+
+
+def job_sensor(job: TraceJob):
+    """The Mitsuba sensor of ``job``'s camera at its size (made once per process and job)."""
+    mi, _ = job_scene(job)
+    with _LOCK:
+        if job.token not in _SENSORS:
+            _SENSORS[job.token] = mi.load_dict(camera_dict(mi, job.camera, width=job.width,
+                                                           height=job.height))
+        return _SENSORS[job.token]
 
 
 def trace_tile(job: TraceJob, tile) -> tuple[np.ndarray, np.ndarray, float]:
     """Sums of half A and half B of one :class:`~dermis.groundtruth.progressive.Tile`, and
     the seconds they took (the scene built first if this process has not yet)."""
     mi, head = job_scene(job)
+    sensor = job_sensor(job)
     t0 = time.perf_counter()
     a, b = (trace_pixels(mi, head.scene, tile.pixels, tile.spp, seed, width=job.width,
-                         height=job.height) for seed in tile.seeds)
+                         height=job.height, sensor=sensor) for seed in tile.seeds)
     return a, b, time.perf_counter() - t0
 
 
 def forget(token: str) -> None:
-    """Release this process's scene of the job ``token`` (its temporary files too)."""
+    """Release this process's sensor of the job ``token`` and its own scene (a scene named by
+    content stays for the next job of the same content, :data:`KEEP_SCENES`)."""
     with _LOCK:
-        entry = _SCENES.pop(token, None)
-    if entry is not None:
-        release(entry[1])
+        _SENSORS.pop(token, None)
+        _SCENES.pop(token, None)

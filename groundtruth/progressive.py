@@ -19,8 +19,14 @@ their mean.  So the reference is rendered in passes (docs/ground-truth.md):
   worst first: those within a factor 2 of the worst region's error): a
   region at relative error s with n samples per pixel needs n (s / target)^2; a pass adds
   that many, at least ``pass_spp`` and at most doubling n (the estimate of s is itself noisy
-  at small n), never beyond ``max_spp``.  The stopping rule reads only the buffers, so the
-  passes are the same on every machine; only the time budget depends on the clock.
+  at small n), never beyond ``max_spp``.  The passes are chosen from the buffers alone, so
+  they are the same on every machine.
+* **Required, then refined.**  The passes first bring every region to ``required_rel_se``
+  (aiming at it, so by the fewest paths), whatever the clock says: only a hard cap on paths
+  (``max_paths``) or passes stops them earlier.  Then they aim at ``target_rel_se`` while
+  the rendering seconds stay within ``budget_s``.  The guaranteed part is the same passes and
+  the same bytes on a loaded machine as on an idle one; only how far the refinement gets
+  depends on the clock.
 * **Tasks.**  A pass is a list of tasks: tiles of at most :data:`TILE_PIXELS` pixels times
   chunks of their samples of about :data:`TASK_PATHS` paths per half, each traced with its
   own seed, derived from (seed, pass, task, half) alone.  The tasks of a pass are independent
@@ -71,6 +77,11 @@ class PassSettings:
     budget_s : stop before a pass that would end after this many seconds of rendering (0: no
         time limit)
     max_passes : stop after this many passes (0: no limit)
+    required_rel_se : every region reaches this relative standard error before the time budget
+        may stop the passes (0: no guarantee, the budget stops them at any point); only
+        ``max_paths``, ``max_passes`` and ``max_spp`` stop them short of it
+    max_paths : stop before a pass that would take the paths traced (both halves) beyond
+        this (0: no limit): the hard cap of the guaranteed part
     """
 
     pass_spp: int = 8
@@ -79,6 +90,14 @@ class PassSettings:
     target_rel_se: float = 0.01
     budget_s: float = 0.0
     max_passes: int = 0
+    required_rel_se: float = 0.0
+    max_paths: int = 0
+
+    def required_met(self, rel: dict) -> bool:
+        """Whether regions of relative errors ``rel`` meet the guaranteed part (always, when
+        there is no ``required_rel_se``)."""
+        return not self.required_rel_se or (bool(rel) and
+                                             max(rel.values()) <= self.required_rel_se)
 
 
 @dataclass
@@ -107,6 +126,11 @@ class HalfBuffers:
     @property
     def seconds(self) -> float:
         return float(sum(p["seconds"] for p in self.log))
+
+    @property
+    def paths(self) -> int:
+        """Paths traced into both halves."""
+        return 2 * int(self.count.sum())
 
     def halves(self) -> tuple[np.ndarray, np.ndarray]:
         """The two half images (per-pixel means; 0 where a pixel has no sample)."""
@@ -166,9 +190,12 @@ def region_rel_se(buffers: HalfBuffers, labels: np.ndarray) -> dict:
 
 
 def next_pass(buffers: HalfBuffers, hit: np.ndarray, labels: np.ndarray,
-              settings: PassSettings) -> tuple[np.ndarray, np.ndarray, str | None]:
-    """The next pass: (H, W) int64 samples per half to add at each pixel, the regions' relative
-    errors, and why to stop instead (``"target"``, ``"max_spp"``; None: go on)."""
+              settings: PassSettings, target: float | None = None
+              ) -> tuple[np.ndarray, np.ndarray, str | None]:
+    """The next pass toward ``target`` (None: ``settings.target_rel_se``): (H, W) int64
+    samples per half to add at each pixel, the regions' relative errors, and why to stop
+    instead (``"target"``, ``"max_spp"``; None: go on)."""
+    target = settings.target_rel_se if target is None else target
     add = np.zeros(hit.shape, np.int64)
     rel = region_rel_se(buffers, labels) if buffers.count.any() else {}
     low = hit & (buffers.count < settings.min_spp)
@@ -181,7 +208,7 @@ def next_pass(buffers: HalfBuffers, hit: np.ndarray, labels: np.ndarray,
     # dark ones (nostril, ear) get the samples before the large ones go below the target
     # (default scene, 40 s: the nostril stayed at 4-6 % while the forehead reached 1.6 %)
     worst = max(rel.values(), default=0.0)
-    wanting = [r for r, s in rel.items() if s > max(settings.target_rel_se, worst / 2)]
+    wanting = [r for r, s in rel.items() if s > max(target, worst / 2)]
     if not wanting:
         return add, rel, "target"
     for name in wanting:
@@ -189,7 +216,7 @@ def next_pass(buffers: HalfBuffers, hit: np.ndarray, labels: np.ndarray,
         if not sel.any():
             continue
         n = int(buffers.count[sel].min())
-        need = math.ceil(n * (rel[name] / settings.target_rel_se) ** 2) - n
+        need = math.ceil(n * (rel[name] / target) ** 2) - n
         step = min(max(need, settings.pass_spp), max(n, settings.pass_spp))
         add[sel] = np.minimum(step, settings.max_spp - buffers.count[sel])
     if not add.any():
@@ -220,8 +247,9 @@ def render_pass(trace_tiles: Callable[[list], list], buffers: HalfBuffers, add: 
                 seed: int) -> float:
     """Trace one pass into ``buffers``: ``trace_tiles(tiles)`` returns each tile's (sums of
     half A, sums of half B[, seconds it took]), in any way (serially, on workers); they are
-    added in tile order.  Returns its seconds and the tasks' own seconds."""
-    t0 = time.perf_counter()
+    added in tile order.  Returns its seconds, the tasks' own seconds and this process's CPU
+    seconds (its Mitsuba threads' included)."""
+    t0, c0 = time.perf_counter(), time.process_time()
     tiles = _tiles(add, seed, buffers.passes)
     task_seconds = []
     for tile, (a, b, *took) in zip(tiles, trace_tiles(tiles)):
@@ -230,33 +258,45 @@ def render_pass(trace_tiles: Callable[[list], list], buffers: HalfBuffers, add: 
         buffers.sum_a[y, x] += a
         buffers.sum_b[y, x] += b
         buffers.count[y, x] += tile.spp
-    return time.perf_counter() - t0, task_seconds
+    return time.perf_counter() - t0, task_seconds, time.process_time() - c0
 
 
 def refine(trace_tiles: Callable[[list], list], buffers: HalfBuffers, hit: np.ndarray,
            labels: np.ndarray, settings: PassSettings, *, seed: int,
            progress: Callable[[float], None] | None = None) -> str:
-    """Add passes to ``buffers`` until :func:`next_pass` says stop, or the time budget or the
-    pass limit is reached.  Returns why it stopped: ``"target"``, ``"max_spp"``,
-    ``"budget"`` or ``"max_passes"``."""
+    """Add passes to ``buffers``: first toward ``required_rel_se`` whatever the time, then
+    toward ``target_rel_se`` within the time budget (:class:`PassSettings`), until
+    :func:`next_pass` says stop or a limit is reached.  Returns why it stopped: ``"target"``,
+    ``"max_spp"``, ``"budget"``, ``"max_paths"`` or ``"max_passes"``."""
     while True:
-        add, rel, stop = next_pass(buffers, hit, labels, settings)
+        rel = region_rel_se(buffers, labels) if buffers.count.any() else {}
+        guaranteed = not settings.required_met(rel) or not buffers.count[hit].all()
+        aim = settings.required_rel_se if guaranteed and settings.required_rel_se \
+            else settings.target_rel_se
+        add, rel, stop = next_pass(buffers, hit, labels, settings, target=aim)
+        if stop == "target" and aim != settings.target_rel_se:   # required met: refine
+            guaranteed = False
+            add, rel, stop = next_pass(buffers, hit, labels, settings)
         if stop:
             return stop
         if settings.max_passes and buffers.passes >= settings.max_passes:
             return "max_passes"
-        if settings.budget_s > 0 and buffers.passes:
+        if settings.max_paths and buffers.paths + 2 * int(add.sum()) > settings.max_paths:
+            return "max_paths"
+        if settings.budget_s > 0 and buffers.passes and not (guaranteed and
+                                                             settings.required_rel_se):
             # the next pass's time, from the seconds per path so far
-            per_path = buffers.seconds / max(2 * int(buffers.count.sum()), 1)
+            per_path = buffers.seconds / max(buffers.paths, 1)
             if buffers.seconds + per_path * 2 * int(add.sum()) > settings.budget_s:
                 return "budget"
         uniform = bool(add[hit].all())
-        seconds, task_seconds = render_pass(trace_tiles, buffers, add, seed=seed)
+        seconds, task_seconds, cpu_seconds = render_pass(trace_tiles, buffers, add, seed=seed)
         rel = region_rel_se(buffers, labels)
         entry = {"pixels": int((add > 0).sum()), "paths": 2 * int(add.sum()),
-                 "seconds": seconds, "worst_rel_se": max(rel.values()) if rel else 0.0,
-                 "uniform": uniform, "spp_min": 2 * int(buffers.count[hit].min()),
-                 "task_seconds": task_seconds}
+                 "seconds": seconds, "cpu_seconds": cpu_seconds,
+                 "worst_rel_se": max(rel.values()) if rel else 0.0,
+                 "uniform": uniform, "guaranteed": bool(guaranteed and settings.required_rel_se),
+                 "spp_min": 2 * int(buffers.count[hit].min()), "task_seconds": task_seconds}
         if uniform:   # the noise-vs-samples curve of the whole head (reports/ground_truth.py)
             a, b = buffers.halves()
             entry["noise"] = {f: v["rel"] for f, v in two_seed_noise(a, b, hit).items()}
@@ -264,6 +304,6 @@ def refine(trace_tiles: Callable[[list], list], buffers: HalfBuffers, hit: np.nd
         if progress is not None:
             worst = max(rel.values()) if rel else 0.0
             frac = min(1.0, (settings.target_rel_se / worst) ** 2) if worst > 0 else 1.0
-            if settings.budget_s > 0:
+            if settings.budget_s > 0 and settings.required_met(rel):
                 frac = max(frac, min(1.0, buffers.seconds / settings.budget_s))
             progress(frac)

@@ -207,12 +207,13 @@ class BssrdfConfig:
 @dataclass(frozen=True)
 class ReferenceConfig:
     # Mitsuba 3 path-traced ground truth (stages/reference.py, docs/ground-truth.md), rendered
-    # in progressive passes of two half-buffers over the head's pixels until every face
-    # region's mean is known to target_rel_se or budget_s runs out (groundtruth/progressive.py).
-    # 1 % everywhere took 0.6-3.8 M paths per lighting condition of the default scene
-    # (bench/results/reference_passes.json), ~30 us a path on 2 idle cores: 340 s for the
-    # four, so the default budget (40 s each) reaches ~1.5-2 % and keeps a cold default run
-    # near 5 minutes; a larger budget_s continues from the cached passes.
+    # in progressive passes of two half-buffers over the head's pixels: first until every face
+    # region's mean is known to required_rel_se whatever the clock (only max_paths stops it
+    # short), then toward target_rel_se within budget_s (groundtruth/progressive.py).  A wall
+    # budget alone (40 s each) reached 3-26 % in the worst region at load 3-14, 1.3-6 % at
+    # load ~2; 2 % everywhere took 0.26-1.6 M paths per reference, aimed at directly (6.9 M
+    # for the default eight, 1,010 CPU s at load ~10: bench/results/reference_cost.json);
+    # 1 % everywhere takes 4x that (0.6-3.8 M paths per condition, reference_passes.json).
     enabled: bool = spec(True, doc="render Mitsuba 3 references (skipped with one message where "
                                    "Mitsuba cannot run)")
     # 100 reference pixels across the default camera's 800: 8x8-pixel blocks, where the
@@ -223,11 +224,22 @@ class ReferenceConfig:
     target_rel_se: float = spec(0.01, lo=0.0, lo_open=True, hi=1.0,
                                 doc="stop when every face region's luminance mean has this "
                                     "relative standard error")
-    budget_s: float = spec(40.0, lo=0.0, hi=1e7, doc="seconds of rendering per lighting condition "
+    # after the required 2 % (which alone takes longer than this on the main camera), only the
+    # cheap references (the sunset, close-ups) refine toward 1 %
+    budget_s: float = spec(20.0, lo=0.0, hi=1e7, doc="seconds of rendering per lighting condition "
                                                      "(0 = no limit); a larger budget continues "
                                                      "from the cached passes")
     max_passes: int = spec(0, lo=0, hi=1 << 20, doc="stop after this many passes (0 = no limit); "
                                                     "like budget_s, continued from the cache")
+    # 2 %: the report's accuracy ([report] accuracy), a region's mean the ranking can trust
+    required_rel_se: float = spec(0.02, lo=0.0, hi=1.0,
+                                  doc="every face region's luminance mean reaches this relative "
+                                      "standard error whatever budget_s says (0 = no guarantee)")
+    # 16.8 M paths: 10x the most the required 2 % took (1.6 M, reference_cost.json), ~8 min on
+    # 2 idle cores at ~30 us a path: a runaway stops, never a reference on a busy machine
+    max_paths: int = spec(1 << 24, lo=0, hi=1 << 40,
+                          doc="paths (both halves) a reference never exceeds, the required "
+                              "error's hard cap (0 = no limit); continued from the cache")
     min_spp: int = spec(32, lo=1, hi=1 << 20, doc="samples per pixel of each half-buffer every "
                                                  "head pixel gets")
     max_spp: int = spec(4096, lo=1, hi=1 << 24, doc="samples per pixel of each half-buffer no "

@@ -29,7 +29,7 @@ from __future__ import annotations
 import json
 import sys
 import time
-from dataclasses import asdict
+from dataclasses import asdict, fields
 
 import numpy as np
 
@@ -37,7 +37,7 @@ from dermis.geometry.regions import REGION_LABELS, face_regions, region_colours,
 from dermis.groundtruth import mitsuba
 from dermis.groundtruth.noise import noise_fit, two_seed_noise
 from dermis.groundtruth.passes import pixel_hits
-from dermis.groundtruth.pixel_tracing import TraceJob, forget, job_scene, trace_tile
+from dermis.groundtruth.pixel_tracing import TraceJob, forget, job_scene, job_sensor, trace_tile
 from dermis.groundtruth.progressive import HalfBuffers, PassSettings, refine, region_rel_se
 from dermis.groundtruth.scene_export import HeadSceneOptions
 from dermis.groundtruth.slab import SLABS, slab_reflectance
@@ -46,6 +46,7 @@ from dermis.optics.layers import LayerStack
 from dermis.pipeline.artifacts import RenderedImage
 from dermis.pipeline.config import CameraConfig, LightConfig
 from dermis.pipeline.graph import Node, StageResult
+from dermis.pipeline.schema import condition_of
 from dermis.pipeline.scene_rules import reference_size
 from dermis.pipeline.imageio import write_exr, write_png
 
@@ -76,7 +77,7 @@ def node(scene, label: str, lights: tuple) -> Node:
               "reference": {**asdict(scene.reference), "width": w, "height": h}}
     return Node(node_id(label), NAME, __name__, params, {"mesh": MESH_NODE},
                 label=f"reference / {label} (Mitsuba)", locations=("lights[].map",),
-                resumable=("reference.budget_s", "reference.max_passes"))
+                resumable=("reference.budget_s", "reference.max_passes", "reference.max_paths"))
 
 
 @mitsuba.exclusive
@@ -101,16 +102,14 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
                                env_clamp=r["env_clamp"], max_depth=r["max_depth"],
                                rr_depth=r["rr_depth"])
     job = TraceJob(f"{NAME}-{params['label']}-{time.time_ns()}", mesh, stack, camera, lights,
-                   w, h, options, variant)
-    settings = PassSettings(pass_spp=r["pass_spp"], min_spp=r["min_spp"], max_spp=r["max_spp"],
-                            target_rel_se=r["target_rel_se"], budget_s=r["budget_s"],
-                            max_passes=r["max_passes"])
+                   w, h, options, variant, getattr(ctx, "input_keys", {}).get("mesh", ""))
+    settings = PassSettings(**{f.name: r[f.name] for f in fields(PassSettings)})
     try:
         t0 = time.perf_counter()
         _, head = job_scene(job)
         t_load = time.perf_counter() - t0
         export = head.export
-        hit, prim = pixel_hits(mi, head.scene, width=w, height=h)
+        hit, prim = pixel_hits(mi, head.scene, width=w, height=h, sensor=job_sensor(job))
         labels = np.where(hit, face_regions(mesh.vertices, mesh.faces)[np.maximum(prim, 0)], 0)
         buffers, resumed = _resumed(ctx, h, w)
         stopped = refine(lambda tiles: ctx.tasks.map(trace_tile, job, tiles), buffers, hit,
@@ -143,6 +142,8 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
             if hit.any() else 0, "spp_max": 2 * int(buffers.count.max()),
             "paths": paths, "passes": buffers.passes, "resumed_passes": resumed,
             "stopped": stopped, "target_rel_se": settings.target_rel_se,
+            "required_rel_se": settings.required_rel_se,
+            "required_met": settings.required_met(rel_se), "max_paths": settings.max_paths,
             "budget_s": settings.budget_s, "region_rel_se": rel_se,
             "noise": noise, "noise_curve": curve,
             "noise_fit": noise_fit(noise, curve, curve[-1]["spp"] // 2) if curve else {},
@@ -192,5 +193,8 @@ def plan(scene, plan) -> None:
             print(f"dermis: reference stage skipped: {reason}", file=sys.stderr)
         plan.skipped[NAME] = f"Reference stage skipped: {reason}"
         return
-    for label in wanted:
+    # the close-ups right after the main camera's condition of the same lights: they trace
+    # the same loaded scene (groundtruth/pixel_tracing.py, KEEP_SCENES)
+    conditions = list(dict.fromkeys(condition_of(label) for label in wanted))
+    for label in sorted(wanted, key=lambda l: conditions.index(condition_of(l))):
         plan.add(node(scene, label, groups[label]), target=True)

@@ -128,6 +128,67 @@ def test03_budget_and_pass_limits_and_resuming(monkeypatch, tmp_path):
     assert np.array_equal(one.sum_a, a.sum_a) and np.array_equal(one.sum_b, a.sum_b)
 
 
+def test03b_the_required_part_does_not_depend_on_the_clock(monkeypatch):
+    """Every region reaches ``required_rel_se`` by the same passes and the same bytes whatever
+    the clock says: a clock on which every path takes 1 s (a budget of 20 s is spent before
+    the first pass ends) and one on which paths take no time give the same buffers up to
+    the pass that met the requirement; only the refinement after it stops at the budget.
+    A hard cap on paths is what stops the guaranteed part short."""
+    clock = [0.0]
+
+    def timed_trace(per_path):
+        def trace(tiles):
+            clock[0] += per_path * sum(2 * len(t.pixels) * t.spp for t in tiles)
+            return fake_trace(tiles)
+        return trace
+
+    monkeypatch.setattr(progressive.time, "perf_counter", lambda: clock[0])
+    settings = PassSettings(pass_spp=4, min_spp=8, max_spp=1 << 16, target_rel_se=0.002,
+                            required_rel_se=0.006, budget_s=20.0)
+    slow = HalfBuffers.empty(H, W)
+    assert refine(timed_trace(1.0), slow, HIT, LABELS, settings, seed=11) == "budget"
+    assert slow.seconds > settings.budget_s                  # the budget was spent long ago
+    assert max(region_rel_se(slow, LABELS).values()) <= settings.required_rel_se
+    assert all(p["guaranteed"] for p in slow.log)            # it stopped as soon as met
+    fast = HalfBuffers.empty(H, W)
+    assert refine(timed_trace(0.0), fast, HIT, LABELS, settings, seed=11) == "target"
+    assert fast.passes > slow.passes
+    upto = HalfBuffers.empty(H, W)
+    refine(timed_trace(0.0), upto, HIT, LABELS,
+           PassSettings(**{**settings.__dict__, "max_passes": slow.passes}), seed=11)
+    assert np.array_equal(upto.sum_a, slow.sum_a) and np.array_equal(upto.sum_b, slow.sum_b)
+    assert np.array_equal(upto.count, slow.count)
+    # the hard cap: fewer paths than the requirement needs stop it, on any clock
+    capped = PassSettings(**{**settings.__dict__, "max_paths": slow.paths // 2})
+    c = HalfBuffers.empty(H, W)
+    assert refine(timed_trace(1.0), c, HIT, LABELS, capped, seed=11) == "max_paths"
+    assert c.paths <= capped.max_paths
+    assert max(region_rel_se(c, LABELS).values()) > settings.required_rel_se
+
+
+def test03c_one_scene_per_lighting_condition_whatever_the_camera():
+    """A close-up traces the scene of its lighting condition through its own sensor: the
+    loaded scene's key is the same for two cameras and two jobs, and differs for other lights,
+    another mesh or another export; a job without a mesh key keeps a scene of its own."""
+    from dataclasses import replace
+    from dermis.groundtruth.pixel_tracing import TraceJob
+    from dermis.groundtruth.scene_export import HeadSceneOptions
+    from dermis.optics.layers import PRESETS
+    from dermis.pipeline.config import CameraConfig, LightConfig
+    point = LightConfig(name="point", type="point", position=(1.0, 2.0, 3.0))
+    other = LightConfig(name="point", type="point", position=(1.0, 2.0, 4.0))
+    cam = CameraConfig()
+    near = replace(cam, fov_deg=cam.fov_deg / 4)
+    job = TraceJob("a", None, PRESETS["two_layer"], cam, [point], 20, 20,
+                   HeadSceneOptions(roughness=0.3, tint_rd=np.array([0.5, 0.4, 0.3])),
+                   "llvm_ad_rgb", "mesh-key")
+    assert replace(job, token="b", camera=near).scene_key == job.scene_key
+    for changed in (replace(job, lights=[other]), replace(job, mesh_key="another"),
+                    replace(job, options=replace(job.options, roughness=0.2))):
+        assert changed.scene_key != job.scene_key
+    assert replace(job, mesh_key="").scene_key == "a"
+
+
 # ------------------------------------------------------------------------ with Mitsuba
 def _mitsuba():
     from dermis.groundtruth import mitsuba
