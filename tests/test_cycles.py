@@ -23,7 +23,7 @@ MODELS = ["cycles_burley", "cycles_random_walk", "cycles_random_walk_skin"]
 needs_bpy = pytest.mark.skipif(availability.missing_reason() is not None,
                                reason=f"Cycles: {availability.missing_reason()}")
 # a few samples on 4-pixel blocks: the plumbing, not the noise
-FAST = {"cycles": {"mappings": ["native"], "block": 4, "target_noise": 0.5, "pilot_spp": 2,
+FAST = {"cycles": {"mappings": ["native"], "noise_block": 1, "target_noise": 0.5, "pilot_spp": 2,
                    "max_spp": 2},
         "optics": {"preset": "two_layer", "photons": 20_000},
         "render": {"models": MODELS, "lights": ["point"], "geometries": ["high"]}}
