@@ -137,9 +137,12 @@ def close_servers() -> None:
 atexit.register(close_servers)
 
 
-def _serve(folder: Path, threads: int) -> None:
-    """Run the job in ``folder`` on the serving process of ``threads`` (started if none)."""
+def _serve(folder: Path, threads: int) -> float:
+    """Run the job in ``folder`` on the serving process of ``threads`` (started if none);
+    returns its seconds, from when the process was free for it (another job's wait left
+    out)."""
     with _LOCK:
+        t0 = time.perf_counter()
         for _ in range(2):
             server = _SERVERS.get(threads)
             if server is None or not server.alive():
@@ -147,7 +150,7 @@ def _serve(folder: Path, threads: int) -> None:
                     server.close()
                 server = _SERVERS[threads] = _Server(threads)
             if server.render(folder):
-                return
+                return time.perf_counter() - t0
             tail = (Path(server.cwd) / "serve.log").read_text(errors="replace")[-3000:]
             server.close()
             del _SERVERS[threads]
@@ -170,7 +173,7 @@ def run_job(job: dict, arrays: dict | None = None, *, serve: bool = False
         t0 = time.perf_counter()
         returncode = None
         if serve:
-            _serve(folder, threads)
+            wall = _serve(folder, threads)
         else:
             # run in the job's folder: ``python -m`` puts the working directory first on the
             # path, and from dermis's own folder its ``cycles`` package would hide Blender's
@@ -180,7 +183,7 @@ def run_job(job: dict, arrays: dict | None = None, *, serve: bool = False
                                       stdout=log, stderr=subprocess.STDOUT, env=_env(threads),
                                       cwd=folder, preexec_fn=_parent_death_signal())
             returncode = proc.returncode
-        wall = time.perf_counter() - t0
+            wall = time.perf_counter() - t0
         if returncode not in (None, 0) or not (folder / "result.json").is_file():
             raise _failure(folder, returncode)
         result = json.loads((folder / "result.json").read_text())

@@ -265,13 +265,14 @@ def run_folder(folder: Path) -> None:
     """The job in ``folder``: its result written there (module docstring)."""
     import bpy
     job = json.loads((folder / "job.json").read_text())
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     if job["kind"] == "head":
         with np.load(folder / "arrays.npz") as arrays:
             result = render_head(job, arrays, folder)
     else:
         result = render_slabs(job, folder)
     result["process_seconds"] = time.perf_counter() - t0
+    result["cpu_seconds"] = time.process_time() - c0     # every thread's, this job's
     result["blender"] = bpy.app.version_string
     (folder / "result.json").write_text(json.dumps(result))
     try:

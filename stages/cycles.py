@@ -144,7 +144,7 @@ def _run_image(params: dict, inputs: dict, ctx) -> StageResult:
     up = _upsample(camera.height // h, camera.width // w)
     timings = {"total": result["wall_seconds"], "render": result["render_seconds"],
                "scene_build": result["build_seconds"], "startup": result["startup_seconds"],
-               "kernel_seconds": 0.0}
+               "cpu": result["cpu_seconds"], "kernel_seconds": 0.0}
     info = {"model": image_name(params["model"], params["mapping"]), "light": params["label"],
             "geometry": params["geometry"], "renderer": f"Blender {result['blender']} Cycles",
             "method": params["method"], "mapping": params["mapping"], "inputs": material,
@@ -172,7 +172,9 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     curves = slab_curves(params["method"], ior=params["ior"], roughness=params["roughness"],
                          anisotropy=params["anisotropy"], threads=params["threads"],
                          seed=params["seed"])
-    return StageResult(curves, info={"seconds": curves.info["seconds"], "kernel_seconds": 0.0,
+    return StageResult(curves, info={"seconds": curves.info["seconds"],
+                                     "cpu_seconds": curves.info["cpu_seconds"],
+                                     "kernel_seconds": 0.0,
                                      "specular": curves.specular.tolist()})
 
 
