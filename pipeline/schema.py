@@ -284,7 +284,7 @@ class CyclesConfig:
     # truth is measured, to target_noise on blocks of noise_block reference pixels: the
     # ranking's 4 x 4 blocks (reports/ground_truth.py RANK_FACTOR), where the reference's own
     # noise was 12-27 % in a cold default run (docs/cycles.md "Cost"); 4 %, a third of the
-    # smallest, adds at most 5 % to the ranking's error bars, and its 24 images cost 1.6 x
+    # smallest, adds at most 5 % to the ranking's error bars, and takes 2.6 x
     # fewer samples than 2.5 % (bench/results/cycles.json)
     mappings: tuple = spec(("matched", "native"), choices=("matched", "native"),
                            doc="inputs from the skin: matched (fitted to the skin's flat-slab "

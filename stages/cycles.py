@@ -141,29 +141,22 @@ def _run_image(params: dict, inputs: dict, ctx) -> StageResult:
     # the artifact at the camera's size, each rendered pixel repeated over the camera pixels
     # it covers: every consumer (sheets, differences, the truth's block means, the page)
     # reads it as any model image, and its block means are the render's pixels exactly
-    up = _upsample(camera.height // h, camera.width // w)
+    fy, fx = camera.height // h, camera.width // w
+    up = (lambda a: np.repeat(np.repeat(a, fy, axis=0), fx, axis=1))   # noqa: E731
     timings = {"total": result["wall_seconds"], "render": result["render_seconds"],
                "scene_build": result["build_seconds"], "startup": result["startup_seconds"],
                "cpu": result["cpu_seconds"], "kernel_seconds": 0.0}
     info = {"model": image_name(params["model"], params["mapping"]), "light": params["label"],
             "geometry": params["geometry"], "renderer": f"Blender {result['blender']} Cycles",
             "method": params["method"], "mapping": params["mapping"], "inputs": material,
-            "spp": result["spp"], "noise": result["noise"],
-            "noise_block": params["sampling"]["block"], "rendered_size": [w, h],
-            "mesh_reused": result.get("mesh_reused", False),
+            "spp": result["spp"], "noise": result["noise"], "rendered_size": [w, h],
+            "noise_block": params["sampling"]["block"], "mesh_reused": result["mesh_reused"],
             "target_noise": params["sampling"]["target_noise"], "passes": result["passes"]}
     return StageResult(RenderedImage(up(linear), up(out["coverage"].astype(bool)), timings, info,
                                      noise=up(((a - b) / 2).astype(np.float32))),
                        files=[f"{name}.exr"], info={"timings": timings, "spp": result["spp"],
                                                     "noise": result["noise"],
                                                     "kernel_seconds": 0.0})
-
-
-def _upsample(fy: int, fx: int):
-    """Nearest upsampling by whole factors (rows, columns)."""
-    if fy == 1 and fx == 1:
-        return lambda a: a
-    return lambda a: np.repeat(np.repeat(a, fy, axis=0), fx, axis=1)
 
 
 def run(params: dict, inputs: dict, ctx) -> StageResult:
