@@ -308,6 +308,7 @@ def serve(done_fd: int, idle_s: float) -> int:
             run_folder(folder)
         except Exception:
             (folder / "error.txt").write_text(traceback.format_exc())
+            _Kept.arrays = None      # the next job starts from an empty Blender
         finally:
             sys.stdout.flush()
             sys.stderr.flush()
