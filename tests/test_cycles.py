@@ -321,3 +321,32 @@ def test10_rendered_on_the_reference_grid_and_handed_on_at_the_camera_size(tmp_p
     cam = load_scene(scene_file(tmp_path, {**fast, "cycles": {**fast["cycles"],
                                                                  "size": "camera"}}))
     assert render_size(cam) == (W, H) and render_size(scene) == (w, h)
+
+
+@needs_bpy
+def test11_one_node_per_image_so_a_knob_rebuilds_only_its_images(tmp_path):
+    """Batching keeps the nodes one per image (stages/cycles.py): adding the matched mapping
+    leaves the native images' nodes as they were (no re-render), the noise target and the
+    size change every image's; the close-up views get no Cycles image."""
+    from dermis.pipeline.plan import build_graph
+
+    def images(overrides):
+        cyc = {**FAST["cycles"], **overrides}
+        scene = load_scene(scene_file(tmp_path, {**FAST, "cycles": cyc,
+                                                 "reference": {"width": 8, "height": 8}}))
+        nodes, _ = build_graph(scene)
+        return {k: (n.params, n.deps) for k, n in nodes.items()
+                if n.stage == "cycles" and n.params["kind"] == "image"}
+
+    native = images({"mappings": ["native"]})
+    both = images({"mappings": ["native", "matched"]})
+    assert native and set(native) < set(both)
+    assert all(both[k] == v for k, v in native.items())
+    for change in ({"target_noise": 0.3}, {"size": "camera"}):
+        other = images({"mappings": ["native"], **change})
+        assert set(other) == set(native) and all(other[k] != native[k] for k in native)
+    default = load_scene()
+    nodes, _ = build_graph(default)
+    labels = {n.params["label"] for n in nodes.values() if n.stage == "cycles"
+              and n.params["kind"] == "image"}
+    assert labels == {"point", "area", "dir_left+dir_right", "sunset"}
