@@ -1,23 +1,31 @@
 """Benchmark Blender Cycles' skin models: seconds per image at equal noise, the samples that
 took, the noise reached, and the matched mapping's fitted inputs per skin preset.
 
-Runs the default scene (packaged scan, high mesh, the four lighting conditions) with only
-the Cycles models and no reference into a cache (``--size`` pixels square, default 400,
-whose reference blocks are 4 x 4 camera pixels), reads every Cycles image and slab node
-back, and fits the matched inputs of every optics preset on the slab curves:
+Runs the default scene's Cycles part (packaged scan, high mesh, the four lighting
+conditions of the main camera, both mappings: ``dermis run --until cycles``, no reference)
+into a cache (cold unless ``--cache`` holds it: the meshes and the Monte Carlo profile are
+seeded from ``--seed-cache`` when given, so only the Cycles nodes are timed), reads every
+Cycles image and slab node back, and fits the matched inputs of every optics preset on the
+slab curves:
 
-* ``bench/results/cycles.json``: per image (model, mapping, lighting) the wall seconds (the
-  Blender process, its start and scene build included), render seconds, samples per pixel,
-  noise reached on reference-pixel blocks and the inputs Cycles got; per method the slab
+* ``bench/results/cycles.json``: the run's wall and CPU seconds (this process and its
+  Blender processes, ``os.getloadavg`` before and after: the machine may be shared); per
+  image (model, mapping, lighting) the wall and CPU seconds of its job (a serving Blender
+  process's start counted in its first job), render seconds, samples per pixel, noise
+  reached on ``[cycles] noise_block`` blocks and the inputs Cycles got; per method the slab
   curves (Rd_e(b), m(b)) and their cost; per preset and method the matched and native
   inputs.
 
-    python3 bench/bench_cycles.py [--cache DIR] [--size 400] [--lights L ...] [--no-run]
+    python3 bench/bench_cycles.py [--cache DIR] [--seed-cache DIR] [--size 800]
+                                  [--cycles-size reference|camera] [--lights L ...] [--no-run]
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import resource
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -31,7 +39,10 @@ from bench_reference import newest  # noqa: E402  (bench/ is on sys.path when ru
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--cache", default=str(REPO / ".dermis-cache-bench-cycles"))
-    ap.add_argument("--size", type=int, default=400)
+    ap.add_argument("--seed-cache", default=None,
+                    help="a cache whose mesh and profile nodes are copied in first")
+    ap.add_argument("--size", type=int, default=800, help="camera pixels (square)")
+    ap.add_argument("--cycles-size", default="reference", choices=("reference", "camera"))
     ap.add_argument("--lights", nargs="*", default=None,
                     help="lighting conditions (default: the scene's four)")
     ap.add_argument("--no-run", action="store_true")
@@ -47,12 +58,25 @@ def main(argv=None) -> int:
         "render": {"models": models, "geometries": ["high"],
                    **({"lights": args.lights} if args.lights else {})},
         "camera": {"width": args.size, "height": args.size},
+        "cycles": {"size": args.cycles_size},
         "reference": {"enabled": False}, "output": {"previews": False}})
     cache = Path(args.cache)
-    t0 = time.perf_counter()
+    if args.seed_cache and not args.no_run:
+        seed = Path(args.seed_cache)
+        (cache / "index").mkdir(parents=True, exist_ok=True)
+        for n in ("mesh_source", "mesh_high", "profiles-monte_carlo"):
+            if (seed / n).is_dir() and not (cache / n).exists():
+                shutil.copytree(seed / n, cache / n)
+                shutil.copy(seed / "index" / f"{n}.json", cache / "index" / f"{n}.json")
+    from dermis.cycles.job import close_servers
+    load0 = os.getloadavg()
+    t0, c0 = time.perf_counter(), time.process_time()
     if not args.no_run:
-        run(scene, cache=cache, export=False)
-    wall = time.perf_counter() - t0
+        run(scene, cache=cache, export=False, until="cycles")
+        close_servers()     # its CPU time counts once it has been waited for
+    wall, cpu_self = time.perf_counter() - t0, time.process_time() - c0
+    ch = resource.getrusage(resource.RUSAGE_CHILDREN)
+    load1 = os.getloadavg()
     nodes, _ = build_graph(scene)
     images, slabs = [], {}
     for nid, node in nodes.items():
@@ -71,6 +95,11 @@ def main(argv=None) -> int:
         images.append({"image": info["model"], "method": info["method"],
                        "mapping": info["mapping"], "light": info["light"],
                        "seconds": art.timings["total"], "render_seconds": art.timings["render"],
+                       "cpu_seconds": art.timings.get("cpu"),
+                       "startup_seconds": art.timings.get("startup"),
+                       "scene_build_seconds": art.timings.get("scene_build"),
+                       "rendered_size": info.get("rendered_size"),
+                       "mesh_reused": info.get("mesh_reused"),
                        "spp": info["spp"], "noise": info["noise"],
                        "noise_block": info["noise_block"],
                        "target_noise": info["target_noise"], "inputs": info["inputs"]})
@@ -91,8 +120,16 @@ def main(argv=None) -> int:
             except ValueError as exc:
                 rec[f"matched_{method}"] = {"error": str(exc)}
         fits[preset] = rec
-    out = {"scene": "default (packaged scan), high mesh, Cycles models only",
-           "size": args.size, "lights": args.lights or "all", "run_wall_seconds": wall, "cores": 2,
+    out = {"scene": "default (packaged scan), high mesh, Cycles models only "
+                    "(dermis run --until cycles)",
+           "size": args.size, "cycles_size": args.cycles_size, "lights": args.lights or "all",
+           "cores": os.cpu_count(),
+           "run": None if args.no_run else {
+               "wall_seconds": wall, "cpu_seconds_self": cpu_self,
+               "cpu_seconds_children": ch.ru_utime + ch.ru_stime,
+               "cpu_seconds": cpu_self + ch.ru_utime + ch.ru_stime,
+               "max_rss_children_mb": ch.ru_maxrss / 1024.0,
+               "loadavg_before": load0, "loadavg_after": load1},
            "images": sorted(images, key=lambda r: (r["image"], r["light"])),
            "slab_curves": slabs, "fits_multipole_targets": fits,
            "note": "fits here target the multipole profile (no Monte Carlo table); the run "

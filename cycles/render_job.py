@@ -1,11 +1,14 @@
-"""The Cycles render process: ``python -m dermis.cycles.render_job FOLDER``.
+"""The Cycles render process: ``python -m dermis.cycles.render_job FOLDER`` (one job), or
+``python -m dermis.cycles.render_job --serve FD IDLE_S`` (jobs one after another).
 
-``bpy`` is one Blender per process (its scene, its threads, its numpy build), so every Cycles
-render runs in a process of its own, started by :mod:`dermis.cycles.job`: the pipeline's
+``bpy`` is one Blender per process (its scene, its threads, its numpy build), so Cycles
+renders in processes of its own, started by :mod:`dermis.cycles.job`: the pipeline's
 process never imports ``bpy``, a crash in Blender is a failed node with Blender's output,
 and a render's threads are exactly the job's.  The folder holds ``job.json`` (what to
 render) and ``arrays.npz`` (dermis's arrays); the process writes ``result.npz`` and
-``result.json`` there.  Two kinds of job:
+``result.json`` there.  A serving process (:func:`serve`) keeps the head mesh it built,
+and with it Blender's BVH of it (persistent data), for the next job of the same mesh: the
+other images of a head then cost their renders only.  Two kinds of job:
 
 * ``head``: the scene (:mod:`dermis.cycles.scene_build`) rendered as two halves of
   independent seeds, a pilot and then as many samples as the target noise needs
@@ -21,6 +24,7 @@ render) and ``arrays.npz`` (dermis's arrays); the process writes ``result.npz`` 
 """
 from __future__ import annotations
 
+import importlib
 import json
 import os
 import sys
@@ -44,15 +48,70 @@ def _material(obj, m: dict, texture=None) -> None:
                      volume=m.get("volume"))
 
 
-def render_head(job: dict, arrays, folder: Path) -> dict:
-    """Build the head scene and render it to the job's target noise (module docstring)."""
-    t0 = time.perf_counter()
-    scene = sb.reset()
-    w, h = int(job["width"]), int(job["height"])
-    sb.settings(scene, width=w, height=h, threads=job["threads"])
+MESH_ARRAYS = ("vertices", "faces", "normals", "uv", "uv_faces")
+
+
+class _Kept:
+    """The head mesh a serving process keeps between its jobs (:func:`serve`): the arrays it
+    was built from, its scene and object."""
+    arrays: dict | None = None
+    scene = None
+    obj = None
+
+
+def _same_mesh(arrays) -> bool:
+    if _Kept.arrays is None:
+        return False
+    for k in MESH_ARRAYS:
+        a, b = _Kept.arrays.get(k), (arrays[k] if k in arrays.files else None)
+        if (a is None) != (b is None) or (a is not None and not np.array_equal(a, b)):
+            return False
+    return True
+
+
+def _clear_but_mesh(scene, obj) -> None:
+    """Everything of the previous job but the head mesh: camera, lights, world, material and
+    images go (the next job adds its own); Blender's render data of the mesh (its BVH) stays
+    with persistent data."""
+    import bpy
+    for ob in list(scene.collection.objects):
+        if ob != obj:
+            bpy.data.objects.remove(ob, do_unlink=True)
+    obj.data.materials.clear()
+    for coll in (bpy.data.lights, bpy.data.cameras, bpy.data.worlds, bpy.data.materials):
+        for d in list(coll):
+            coll.remove(d)
+    for img in list(bpy.data.images):
+        if img.type != "RENDER_RESULT":
+            bpy.data.images.remove(img)
+
+
+def _head_mesh(job: dict, arrays, w: int, h: int):
+    """(scene, head object, reused): the kept mesh when this process built the same arrays
+    before (only its job's other parts cleared), else a new scene."""
+    if _same_mesh(arrays):
+        _clear_but_mesh(_Kept.scene, _Kept.obj)
+        sb.settings(_Kept.scene, width=w, height=h, threads=job["threads"])
+        return _Kept.scene, _Kept.obj, True
     get = (lambda k: arrays[k] if k in arrays.files else None)
+    scene = sb.reset()
+    _Kept.arrays = None
+    sb.settings(scene, width=w, height=h, threads=job["threads"])
     obj = sb.add_mesh(scene, arrays["vertices"], arrays["faces"], normals=get("normals"),
                       uv=get("uv"), uv_faces=get("uv_faces"))
+    _Kept.arrays = {k: (np.array(arrays[k]) if k in arrays.files else None)
+                    for k in MESH_ARRAYS}
+    _Kept.scene, _Kept.obj = scene, obj
+    return scene, obj, False
+
+
+def render_head(job: dict, arrays, folder: Path) -> dict:
+    """Build the head scene (or reuse the mesh this process built: :func:`serve`) and render
+    it to the job's target noise (module docstring)."""
+    t0 = time.perf_counter()
+    w, h = int(job["width"]), int(job["height"])
+    get = (lambda k: arrays[k] if k in arrays.files else None)
+    scene, obj, reused = _head_mesh(job, arrays, w, h)
     cam = job["camera"]
     sb.add_camera(scene, position=cam["position"], forward=cam["forward"], up=cam["up"],
                   fov_deg=cam["fov_deg"], width=w, height=h)
@@ -94,7 +153,7 @@ def render_head(job: dict, arrays, folder: Path) -> dict:
              coverage=coverage)
     return {"spp_per_half": halves.spp, "spp": 2 * halves.spp, "noise": noise,
             "passes": halves.passes, "build_seconds": t_build, "render_seconds": t_render,
-            "faces": int(len(arrays["faces"]))}
+            "faces": int(len(arrays["faces"])), "mesh_reused": reused}
 
 
 def _occluder(scene, *, height: float, side: float):
@@ -155,6 +214,7 @@ def render_slabs(job: dict, folder: Path) -> dict:
     t0 = time.perf_counter()
     out, log = {}, []
     scratch = str(folder / "pass.exr")
+    _Kept.arrays = None      # each slab render starts from an empty Blender
     for i, r in enumerate(job["renders"]):
         scene = sb.reset()
         sb.settings(scene, width=ROWS, height=ROWS, threads=job["threads"])
@@ -201,23 +261,70 @@ def render_slabs(job: dict, folder: Path) -> dict:
     return {"renders": log, "seconds": time.perf_counter() - t0}
 
 
-def main(argv=None) -> int:
-    folder = Path((argv or sys.argv[1:])[0])
+def run_folder(folder: Path) -> None:
+    """The job in ``folder``: its result written there (module docstring)."""
+    import bpy
     job = json.loads((folder / "job.json").read_text())
-    import bpy   # noqa: F401  (fails here, with Blender's message, where bpy cannot load)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     if job["kind"] == "head":
         with np.load(folder / "arrays.npz") as arrays:
             result = render_head(job, arrays, folder)
     else:
         result = render_slabs(job, folder)
     result["process_seconds"] = time.perf_counter() - t0
+    result["cpu_seconds"] = time.process_time() - c0     # every thread's, this job's
     result["blender"] = bpy.app.version_string
     (folder / "result.json").write_text(json.dumps(result))
     try:
         os.remove(folder / "pass.exr")
     except OSError:
         pass
+
+
+def serve(done_fd: int, idle_s: float) -> int:
+    """Render the jobs whose folders arrive one per line on stdin, in this one process (the
+    head mesh and its BVH kept between jobs of the same mesh: :func:`render_head`); after
+    each, write its folder's name and a newline to the file descriptor ``done_fd``.  Each
+    job's console output (Blender's included) goes to its folder's ``blender.log``, a
+    failure's traceback to ``error.txt``.  Exits at the end of stdin or after ``idle_s``
+    seconds without a job."""
+    import select
+    import traceback
+    importlib.import_module("bpy")   # Blender's start, once (fails here without bpy)
+    done = os.fdopen(done_fd, "w")
+    saved_out, saved_err = os.dup(1), os.dup(2)
+    while True:
+        ready, _, _ = select.select([sys.stdin], [], [], idle_s)
+        line = sys.stdin.readline() if ready else ""
+        if not line.strip():
+            return 0
+        folder = Path(line.strip())
+        sys.stdout.flush()
+        sys.stderr.flush()
+        log = os.open(folder / "blender.log", os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        os.dup2(log, 1)
+        os.dup2(log, 2)
+        try:
+            run_folder(folder)
+        except Exception:
+            (folder / "error.txt").write_text(traceback.format_exc())
+            _Kept.arrays = None      # the next job starts from an empty Blender
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os.dup2(saved_out, 1)
+            os.dup2(saved_err, 2)
+            os.close(log)
+        done.write(f"{folder}\n")
+        done.flush()
+
+
+def main(argv=None) -> int:
+    args = list(argv or sys.argv[1:])
+    if args[0] == "--serve":
+        return serve(int(args[1]), float(args[2]))
+    importlib.import_module("bpy")   # fails here, with Blender's message, without bpy
+    run_folder(Path(args[0]))
     return 0
 
 

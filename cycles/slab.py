@@ -99,7 +99,8 @@ def slab_response(method: str, colours, *, radius=(1.0, 1.0, 1.0), ior: float,
     return {"specular": spec, "rd_e": rd_e, "mean_radius": mean_r,
             "rd_e_stderr": np.abs(per_seed[0][1] - per_seed[1][1]) / 2,
             "mean_radius_stderr": np.abs(per_seed[0][2] - per_seed[1][2]) / 2,
-            "seconds": seconds, "process_seconds": result.get("process_seconds", 0.0)}
+            "seconds": seconds, "process_seconds": result.get("process_seconds", 0.0),
+            "cpu_seconds": result.get("cpu_seconds", 0.0)}
 
 
 def slab_curves(method: str, *, ior: float, roughness: float, anisotropy: float,
@@ -118,4 +119,5 @@ def slab_curves(method: str, *, ior: float, roughness: float, anisotropy: float,
                       {"method": method, "ior": ior, "roughness": roughness,
                        "anisotropy": anisotropy, "rd_e_stderr": se.tolist(),
                        "mean_radius_stderr": mse.tolist(), "seconds": r["seconds"],
+                       "cpu_seconds": r["cpu_seconds"],
                        "sky_spp": SKY_SPP, "hole_spp": HOLE_SPP, "radii": list(RADII)})

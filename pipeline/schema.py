@@ -292,21 +292,25 @@ class CausesConfig:
 class CyclesConfig:
     # Blender Cycles' skin models (models/cycles_*.py, dermis/cycles/, docs/cycles.md): run
     # where the optional extra is installed (pip install dermis[cycles]), else skipped with
-    # one message.  Noise is measured like the reference's, on blocks of `block` camera
-    # pixels (0: one reference pixel, 8 x 8 on the default camera); 2 % on those blocks took
-    # 30-36 samples per pixel for Burley under point, disc and directional light, 284 under
-    # the sunset, 68 for the random walk (default scan at 400 x 400, bench/results/cycles.json):
-    # 5 %, 6 x fewer samples, keeps them near the reference's own noise at the ranking's
-    # 4 x 4-pixel blocks (2.5 %), where the report subtracts each image's noise
+    # one message.  Rendered on the reference's grid (size), where every distance to the
+    # truth is measured, to target_noise on blocks of noise_block reference pixels: the
+    # ranking's 4 x 4 blocks (reports/ground_truth.py RANK_FACTOR), where the reference's own
+    # noise was 12-27 % in a cold default run (docs/cycles.md "Cost"); 4 %, a third of the
+    # smallest, adds at most 5 % to the ranking's error bars, and takes 2.6 x
+    # fewer samples than 2.5 % (bench/results/cycles.json)
     mappings: tuple = spec(("matched", "native"), choices=("matched", "native"),
                            doc="inputs from the skin: matched (fitted to the skin's flat-slab "
                                "Rd and mean exit radius), native (radius = mean free path, "
                                "base colour = albedo); images of native end in _native")
     geometries: tuple = spec(("high",), choices=("high", "low"),
                              doc="meshes rendered (those also in render.geometries)")
-    target_noise: float = spec(0.05, lo=0.0, lo_open=True, hi=1.0,
-                               doc="relative RMSE noise on reference-pixel blocks to reach")
-    block: int = spec(0, lo=0, hi=1024, doc="noise block in camera pixels (0: the reference's)")
+    size: str = spec("reference", choices=("reference", "camera"),
+                     doc="pixels rendered: the reference's grid (shown upsampled, nearest) or "
+                         "the camera's")
+    target_noise: float = spec(0.04, lo=0.0, lo_open=True, hi=1.0,
+                               doc="relative RMSE noise on noise_block blocks to reach")
+    noise_block: int = spec(4, lo=1, hi=1024,
+                            doc="noise block edge in reference pixels (4: the ranking's)")
     pilot_spp: int = spec(4, lo=1, hi=4096, doc="samples per pixel of each half's first pass")
     max_spp: int = spec(256, lo=1, hi=1 << 16, doc="samples per pixel of each half, at most")
     seed: int = spec(1, lo=0, hi=1 << 20,

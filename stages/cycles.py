@@ -1,10 +1,13 @@
 """Stage ``cycles``: Blender Cycles' skin models (models/cycles_*.py) rendered by Cycles.
 
-One image node per Cycles model x mapping (``[cycles] mappings``) x lighting condition x
-geometry (``[cycles] geometries`` that ``[render] geometries`` also lists): the scene's mesh,
-camera, lights and albedo texture rendered by Blender in a process of its own
-(:mod:`dermis.cycles.job`) as two half images of independent seeds, to the noise
-``[cycles] target_noise`` on reference-pixel blocks (:mod:`dermis.cycles.sampling`).  The
+One image node per Cycles model x mapping (``[cycles] mappings``) x lighting condition of
+the main camera x geometry (``[cycles] geometries`` that ``[render] geometries`` also
+lists): the scene's mesh, camera, lights and albedo texture rendered by Blender
+(:mod:`dermis.cycles.job`: a serving process that keeps the mesh and its BVH from one image
+to the next) as two half images of independent seeds, on the reference's pixel grid
+(``[cycles] size``), to the noise ``[cycles] target_noise`` on blocks of ``noise_block``
+reference pixels (:mod:`dermis.cycles.sampling`), and handed on at the camera's size, each
+rendered pixel repeated over the camera pixels it covers.  The
 ``matched`` images read one slab node per subsurface method (Cycles' flat-slab curves,
 :mod:`dermis.cycles.slab`) and the Monte Carlo layer profile (the skin's Rd and mean exit
 radius); the mapping itself is :mod:`dermis.cycles.mapping`.  Where bpy is missing the
@@ -33,7 +36,7 @@ from dermis.rendering.camera import camera_vectors
 from dermis.rendering.color import srgb_to_linear
 
 NAME = "cycles"
-VERSION = 1
+VERSION = 2
 KERNELS = ()
 OUTPUT_FOLDER = "render"
 PROFILE = "monte_carlo"   # the skin's Rd and mean exit radius: the path-traced layer profile
@@ -52,11 +55,19 @@ def node_id(model: str, mapping_name: str, label: str, geometry: str) -> str:
     return f"render-{image_name(model, mapping_name)}-{label}-{geometry}"
 
 
+def render_size(scene) -> tuple[int, int]:
+    """The pixels Cycles renders: the reference's grid (``[cycles] size = "reference"``),
+    where every distance to the truth is measured, or the camera's."""
+    if scene.cycles.size == "camera":
+        return int(scene.camera.width), int(scene.camera.height)
+    return reference_size(scene.camera, scene.reference)
+
+
 def _block(scene) -> int:
-    if scene.cycles.block:
-        return int(scene.cycles.block)
-    w, _ = reference_size(scene.camera, scene.reference)
-    return max(int(scene.camera.width) // max(w, 1), 1)
+    """The noise block in rendered pixels: ``[cycles] noise_block`` reference pixels."""
+    w, _ = render_size(scene)
+    ref_w, _ = reference_size(scene.camera, scene.reference)
+    return max(int(scene.cycles.noise_block) * w // max(ref_w, 1), 1)
 
 
 def slab_node(scene, method: str) -> Node:
@@ -72,6 +83,7 @@ def node(scene, model: str, mapping_name: str, label: str, lights: tuple, geomet
     c = scene.cycles
     params = {"kind": "image", "model": model, "method": method, "mapping": mapping_name,
               "label": label, "geometry": geometry, "camera": asdict(scene.camera),
+              "size": list(render_size(scene)),
               **light_params(lights), "optics": scene.optics.to_dict(),
               "roughness": scene.reference.roughness,
               "sampling": {"target_noise": c.target_noise, "block": _block(scene),
@@ -114,27 +126,34 @@ def _run_image(params: dict, inputs: dict, ctx) -> StageResult:
     if env:
         arrays["environment"], sun = split_sun(env[0])
         extra = [sun] if sun is not None else []
-    job = {"kind": "head", "width": camera.width, "height": camera.height,
+    w, h = params["size"]
+    job = {"kind": "head", "width": w, "height": h,
            "threads": params["threads"], "seed": params["seed"],
            "camera": {"position": pos.tolist(), "forward": fwd.tolist(), "up": up.tolist(),
                       "fov_deg": camera.fov_deg},
            "lights": [asdict(l) for l in lights] + extra, "material": material,
            "sampling": params["sampling"]}
-    result, out = run_job(job, arrays)
+    result, out = run_job(job, arrays, serve=True)
     a, b = out["half_a"], out["half_b"]
     linear = ((a + b) / 2).astype(np.float32)
     name = f"{image_name(params['model'], params['mapping'])}-{params['label']}-{params['geometry']}"
-    write_exr(ctx.out_dir / f"{name}.exr", linear)
+    write_exr(ctx.out_dir / f"{name}.exr", linear)     # as rendered, at its own size
+    # the artifact at the camera's size, each rendered pixel repeated over the camera pixels
+    # it covers: every consumer (sheets, differences, the truth's block means, the page)
+    # reads it as any model image, and its block means are the render's pixels exactly
+    fy, fx = camera.height // h, camera.width // w
+    up = (lambda a: np.repeat(np.repeat(a, fy, axis=0), fx, axis=1))   # noqa: E731
     timings = {"total": result["wall_seconds"], "render": result["render_seconds"],
-               "scene_build": result["build_seconds"], "kernel_seconds": 0.0}
+               "scene_build": result["build_seconds"], "startup": result["startup_seconds"],
+               "cpu": result["cpu_seconds"], "kernel_seconds": 0.0}
     info = {"model": image_name(params["model"], params["mapping"]), "light": params["label"],
             "geometry": params["geometry"], "renderer": f"Blender {result['blender']} Cycles",
             "method": params["method"], "mapping": params["mapping"], "inputs": material,
-            "spp": result["spp"], "noise": result["noise"],
-            "noise_block": params["sampling"]["block"],
+            "spp": result["spp"], "noise": result["noise"], "rendered_size": [w, h],
+            "noise_block": params["sampling"]["block"], "mesh_reused": result["mesh_reused"],
             "target_noise": params["sampling"]["target_noise"], "passes": result["passes"]}
-    return StageResult(RenderedImage(linear, out["coverage"].astype(bool), timings, info,
-                                     noise=((a - b) / 2).astype(np.float32)),
+    return StageResult(RenderedImage(up(linear), up(out["coverage"].astype(bool)), timings, info,
+                                     noise=up(((a - b) / 2).astype(np.float32))),
                        files=[f"{name}.exr"], info={"timings": timings, "spp": result["spp"],
                                                     "noise": result["noise"],
                                                     "kernel_seconds": 0.0})
@@ -146,7 +165,9 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     curves = slab_curves(params["method"], ior=params["ior"], roughness=params["roughness"],
                          anisotropy=params["anisotropy"], threads=params["threads"],
                          seed=params["seed"])
-    return StageResult(curves, info={"seconds": curves.info["seconds"], "kernel_seconds": 0.0,
+    return StageResult(curves, info={"seconds": curves.info["seconds"],
+                                     "cpu_seconds": curves.info["cpu_seconds"],
+                                     "kernel_seconds": 0.0,
                                      "specular": curves.specular.tolist()})
 
 
@@ -154,10 +175,11 @@ _SKIP_NOTICES: set = set()   # each reason once per process
 
 
 def plan(scene, plan) -> None:
-    """Every Cycles model x mapping x lighting condition x geometry, with the profiles and
-    slab nodes they read; where bpy is missing, none, with the reason said once."""
+    """Every Cycles model x mapping x lighting condition of the main camera x geometry, with
+    the profiles and slab nodes they read (the close-up views get none); where bpy is
+    missing, none, with the reason said once."""
     images = [(m, l, ls, g) for m, l, ls, g in plan.images_of(NAME)
-              if g in scene.cycles.geometries]
+              if g in scene.cycles.geometries and scene.view_of(l) is None]
     if not images:
         return
     reason = availability.missing_reason()

@@ -23,7 +23,7 @@ MODELS = ["cycles_burley", "cycles_random_walk", "cycles_random_walk_skin"]
 needs_bpy = pytest.mark.skipif(availability.missing_reason() is not None,
                                reason=f"Cycles: {availability.missing_reason()}")
 # a few samples on 4-pixel blocks: the plumbing, not the noise
-FAST = {"cycles": {"mappings": ["native"], "block": 4, "target_noise": 0.5, "pilot_spp": 2,
+FAST = {"cycles": {"mappings": ["native"], "noise_block": 1, "target_noise": 0.5, "pilot_spp": 2,
                    "max_spp": 2},
         "optics": {"preset": "two_layer", "photons": 20_000},
         "render": {"models": MODELS, "lights": ["point"], "geometries": ["high"]}}
@@ -254,3 +254,99 @@ def test08_images_are_named_ranked_and_sweepable_like_any_model():
     assert all(catalog.ranked(m) for m in ("hk93", "cycles_burley", "cycles_random_walk_skin_native"))
     assert not catalog.ranked("bssrdf_mc") and not catalog.ranked("lafortune_native")
     assert "cycles" in IMAGE_STAGES and KNOBS["cycles.target_noise"].finer == "lower"
+
+
+@needs_bpy
+def test09_a_serving_process_renders_what_a_fresh_process_renders():
+    """Batching (cycles/job.py): a job on the serving process, after a job of the same mesh
+    with another material, light, world and size (so the mesh and its BVH are reused and
+    everything else replaced), gives the bytes a process of its own gives."""
+    from dermis.cycles.job import close_servers, run_job
+    from dermis.geometry.normals import vertex_normals
+    from render_fixtures import icosphere
+    mesh = icosphere(100.0, 3)
+    arrays = {"vertices": mesh.vertices, "faces": mesh.faces, "normals": vertex_normals(mesh)}
+    cam = {"position": [0.0, 0.0, 600.0], "forward": [0.0, 0.0, -1.0], "up": [0.0, 1.0, 0.0],
+           "fov_deg": 24.0}
+    job = {"kind": "head", "width": 16, "height": 16, "threads": 2, "seed": 3, "camera": cam,
+           "lights": [{"type": "point", "name": "p", "position": [300.0, 200.0, 250.0],
+                       "intensity": [2e4, 1e4, 5e3]}],
+           "material": {"method": "BURLEY", "base_colour": [0.6, 0.4, 0.3],
+                        "radius": [3.0, 1.5, 0.8], "ior": 1.4, "roughness": 0.3},
+           "sampling": {"target_noise": 1.0, "block": 1, "pilot_spp": 4, "max_spp": 4}}
+    other = {**job, "width": 8, "height": 8, "seed": 9,
+             "lights": [{"type": "directional", "name": "d", "direction": [-0.7, 0.4, 0.6],
+                         "intensity": [1.0, 0.5, 0.25]}],
+             "material": {"method": "RANDOM_WALK", "base_colour": [0.3, 0.5, 0.7],
+                          "radius": [1.0, 2.0, 3.0], "ior": 1.4, "roughness": 0.3,
+                          "anisotropy": 0.5}}
+    close_servers()
+    _, alone = run_job(job, arrays)
+    first, _ = run_job(other, arrays, serve=True)
+    again, served = run_job(job, arrays, serve=True)
+    close_servers()
+    assert not first["mesh_reused"] and again["mesh_reused"]
+    for k in ("half_a", "half_b", "coverage"):
+        assert np.array_equal(alone[k], served[k]), k
+
+
+@needs_bpy
+def test10_rendered_on_the_reference_grid_and_handed_on_at_the_camera_size(tmp_path):
+    """``[cycles] size = "reference"``: the EXR is the reference's grid; the artifact every
+    consumer reads is the camera's size, each rendered pixel repeated over the camera pixels
+    it covers (its block means are the render); ``size = "camera"`` renders the camera's."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+    from bench_reference import newest
+    from dermis.pipeline.api import run
+    from dermis.pipeline.imageio import read_image
+    from dermis.pipeline.scene_rules import reference_size
+    from dermis.stages.cycles import node_id, render_size
+    fast = {**FAST, "render": {**FAST["render"], "models": ["cycles_burley"]},
+            "reference": {"width": 8, "height": 8}}
+    scene = load_scene(scene_file(tmp_path, fast))
+    run(scene, cache=tmp_path / "cache", export=True)
+    W, H = scene.camera.width, scene.camera.height
+    w, h = reference_size(scene.camera, scene.reference)
+    assert (w, h) != (W, H)
+    exr = read_image(tmp_path / "out" / scene.scene.name / "render" /
+                     "cycles_burley_native-point-high.exr")
+    assert exr.shape[:2] == (h, w)
+    art = newest(tmp_path / "cache", node_id("cycles_burley", "native", "point", "high"))
+    assert art.linear.shape[:2] == (H, W) and art.noise.shape == art.linear.shape
+    assert art.info["rendered_size"] == [w, h]
+    f = W // w
+    blocks = art.linear.reshape(h, f, w, f, 3)
+    assert np.array_equal(blocks.max(axis=(1, 3)), blocks.min(axis=(1, 3)))
+    assert np.allclose(blocks.mean(axis=(1, 3)), exr[..., :3], rtol=1e-6, atol=0)
+    cam = load_scene(scene_file(tmp_path, {**fast, "cycles": {**fast["cycles"],
+                                                                 "size": "camera"}}))
+    assert render_size(cam) == (W, H) and render_size(scene) == (w, h)
+
+
+@needs_bpy
+def test11_one_node_per_image_so_a_knob_rebuilds_only_its_images(tmp_path):
+    """Batching keeps the nodes one per image (stages/cycles.py): adding the matched mapping
+    leaves the native images' nodes as they were (no re-render), the noise target and the
+    size change every image's; the close-up views get no Cycles image."""
+    from dermis.pipeline.plan import build_graph
+
+    def images(overrides):
+        cyc = {**FAST["cycles"], **overrides}
+        scene = load_scene(scene_file(tmp_path, {**FAST, "cycles": cyc,
+                                                 "reference": {"width": 8, "height": 8}}))
+        nodes, _ = build_graph(scene)
+        return {k: (n.params, n.deps) for k, n in nodes.items()
+                if n.stage == "cycles" and n.params["kind"] == "image"}
+
+    native = images({"mappings": ["native"]})
+    both = images({"mappings": ["native", "matched"]})
+    assert native and set(native) < set(both)
+    assert all(both[k] == v for k, v in native.items())
+    for change in ({"target_noise": 0.3}, {"size": "camera"}):
+        other = images({"mappings": ["native"], **change})
+        assert set(other) == set(native) and all(other[k] != native[k] for k in native)
+    default = load_scene()
+    nodes, _ = build_graph(default)
+    labels = {n.params["label"] for n in nodes.values() if n.stage == "cycles"
+              and n.params["kind"] == "image"}
+    assert labels == {"point", "area", "dir_left+dir_right", "sunset"}
