@@ -8,9 +8,9 @@
 * A knife-edge shadow (tests/test_knife_edge.py's scene) makes it gather along the edge, and
   the blend follows the profile's edge-spread function within the knife-edge test's
   tolerance (2 % of E Rd everywhere across +-5 half-energy radii).
-* A thin slab lit from behind is flagged by the thickness predictor (its front gets all its
-  light through the slab: the local model says 0); a slab thicker than the profile's reach
-  is not.
+* A thin slab lit from behind is flagged by the gather's sampled change (its front gets all
+  its light through the slab: the local model says 0); a slab thicker than the profile's
+  reach is not.
 
 The shading points are the hits of a pinhole camera looking straight down at the plate
 (computed here on the plane z = 0: no ray caster needed), one per pixel.
@@ -154,7 +154,7 @@ def test03_thin_slab_lit_from_behind_needs_transmission(cl_env, profile, thickne
     opts = _options(cl_env)
     got, st = adaptive_exitance(pts, E, profile, shading, lights=[light], visibility=vis,
                                 options=opts, camera=cam, pixels=np.arange(len(q)))
-    thin = st["predicted_images"]["thickness"].ravel()
+    thin = st["predicted_images"]["sampled"].ravel()
     if flagged:
         assert np.all(thin >= 1.0) and np.all(st["blend"] == 1.0)
         full, _ = exitance(pts, E, profile, shading, lights=[light], visibility=vis,
