@@ -53,13 +53,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from dermis.subsurface.exitance import ExitanceOptions, ShadingPoints, exitance
-from dermis.subsurface.interpolation import interpolate_points
-from dermis.subsurface.local import pixel_representatives, sharp_irradiance, soft_irradiance
+from dermis.subsurface.local import pixel_representatives, sharp_irradiance
+from dermis.subsurface.sparse_gather import (interpolate, interpolation_error, sample_grid,
+                                             sample_spacing)
 from dermis.subsurface.near_field import SHARP_LIGHTS, split_profile
 
-__all__ = ["KERNELS", "TARGET", "BLEND_LOW", "SAMPLE_SIGMAS", "PREDICTORS", "AdaptiveOptions",
-           "PixelFrame", "pixel_frame", "adaptive_exitance", "local_exitance", "energy_beyond",
-           "blend_weight", "sample_spacing", "sampled_change"]
+__all__ = ["KERNELS", "TARGET", "BLEND_LOW", "PREDICTORS", "AdaptiveOptions", "PixelFrame",
+           "pixel_frame", "adaptive_exitance", "exact_exitance", "energy_beyond",
+           "blend_weight"]
 
 KERNELS = ("point_interpolation.cl",)
 
@@ -80,11 +81,8 @@ DARK_FLOOR = 0.05
 # The image-space predictors work on bins of PREDICTOR_BIN x PREDICTOR_BIN pixels (4x less
 # work; each pixel takes its bin's prediction).
 PREDICTOR_BIN = 2
-# The gather is sampled every SAMPLE_SIGMAS sigma on the image (the change it makes where
-# the local model's own terms are exact varies over the far part's reach, >= 2 sigma).
-SAMPLE_SIGMAS = 1.5
 # The predictors a pixel's blend weight takes the largest of (module docstring).
-PREDICTORS = ("irradiance", "occlusion", "sampled")
+PREDICTORS = ("irradiance", "occlusion", "interpolation")
 
 
 @dataclass(frozen=True)
@@ -195,38 +193,26 @@ def _resolved(options: ExitanceOptions, sigma: float, lights) -> bool:
                 and options.tuning.kernel_sigma_mm is None)
 
 
-def local_exitance(profile, shading: ShadingPoints, ebar_soft: np.ndarray | None, *, lights,
-                   visibility, options: ExitanceOptions, sigma: float,
-                   parts: list | None = None) -> np.ndarray:
-    """The local model's exitance (Q, 3) at the shading points (module docstring): Rd C(x)
-    V(x) of each point or directional light (``subsurface/local.py``), Rd ``ebar_soft``
-    (Q, 3), the points' irradiance of the other light interpolated at the shading points
-    (None: there is none).  ``parts``: if given, a list that gets the terms the gather would
-    blur, for the predictor: (values (Q, 3), the profile part that blurs them, a factor
-    (Q, 3) applied after or None)."""
+def exact_exitance(profile, shading: ShadingPoints, *, lights, visibility,
+                   options: ExitanceOptions, sigma: float, parts: list | None = None):
+    """The part of the exitance (Q, 3) the adaptive model evaluates at every shading point:
+    for point and directional lights, where the near field is resolved, Rd_near C(x) V(x)
+    (``subsurface/local.py``), the exact near field wherever no shadow edge lies within its
+    window; zero otherwise.  ``parts``: if given, a list that gets the terms the gather
+    would blur, for the predictor: (values (Q, 3), the profile part that blurs them, a
+    factor (Q, 3) applied after)."""
     lights = list(lights)
-    rd = np.asarray(profile.Rd, np.float64)
     parts = [] if parts is None else parts
     M = np.zeros((len(shading.positions), 3))
-    if ebar_soft is not None:
-        M += rd[None, :] * np.asarray(ebar_soft, np.float64)
     if not _resolved(options, sigma, lights):
-        # the whole profile from the points (soft light, or the thesis's method)
-        parts.append((M.copy(), profile, None))
         return M
     split = split_profile(profile, sigma, cutoff_mm=options.tuning.cutoff_mm)
     rd_near = np.asarray(split.rd_near, np.float64)
-    if ebar_soft is not None:
-        parts.append((M.copy(), profile, None))
-    lit = np.zeros_like(M)
     for k, light in enumerate(l for l in lights if l.type in SHARP_LIGHTS):
         c, v = sharp_irradiance(shading, light, k, visibility, options.transmittance)
-        lit += c * v[:, None]
+        M += rd_near[None, :] * c * v[:, None]
         # the exact near field blurs only the shadow: C(x) [Rd_near V - edge terms]
         parts.append((np.repeat(v[:, None], 3, axis=1), split.near, rd_near[None, :] * c))
-    M += rd[None, :] * lit
-    # the far part is gathered from the points' irradiance: it blurs C V whole
-    parts.append((np.asarray(split.far.Rd, np.float64)[None, :] * lit, split.far, None))
     return M
 
 
@@ -353,34 +339,6 @@ def predict(frame: PixelFrame, local: np.ndarray, parts: list, pixels: np.ndarra
     return {"irradiance": p_e.ravel()[at], "occlusion": p_occ.ravel()[at]}
 
 
-def sample_spacing(sigma: float, footprint: float) -> int:
-    """Pixels between the gather's samples: SAMPLE_SIGMAS sigma on the image, at least 1."""
-    return max(1, int(SAMPLE_SIGMAS * sigma / max(footprint, 1e-12)))
-
-
-def sampled_change(frame: PixelFrame, local: np.ndarray, gather_at, pixels: np.ndarray,
-                   spacing: int) -> tuple[np.ndarray, int]:
-    """(P,) the measured relative change of the gather, per pixel of ``pixels``: the gather
-    (``gather_at(idx) -> (len(idx), 3)`` at shading points ``idx``) at the first shading
-    point of every ``spacing`` x ``spacing`` cell of the image, against ``local`` (Q, 3)
-    there (floored at DARK_FLOOR of the local image's mean, the largest channel), each pixel
-    taking the largest over its cell and the 8 around it (inf where none of them was hit);
-    and the number of samples gathered."""
-    from scipy.ndimage import maximum_filter
-    cells = _bin_of(frame.pixel, frame.width, spacing)
-    hc, wc = -(-frame.height // spacing), -(-frame.width // spacing)
-    ids, rep, _ = pixel_representatives(cells)
-    m_g = np.asarray(gather_at(rep), np.float64)
-    m_l = np.asarray(local, np.float64)
-    floor = DARK_FLOOR * np.maximum(m_l.mean(axis=0), 1e-30)
-    change = (np.abs(m_g - m_l[rep]) / np.maximum(m_l[rep], floor[None, :])).max(axis=1)
-    grid = np.full(hc * wc, -1.0)
-    grid[ids] = change
-    grid = maximum_filter(grid.reshape(hc, wc), size=3, mode="nearest").ravel()
-    out = grid[_bin_of(pixels, frame.width, spacing)]
-    return np.where(out < 0, np.inf, out), len(rep)
-
-
 # --------------------------------------------------------------------------- the whole
 def adaptive_exitance(points, irradiance, profile, shading: ShadingPoints, *, lights,
                       visibility, options: ExitanceOptions, camera, pixels: np.ndarray,
@@ -404,33 +362,6 @@ def adaptive_exitance(points, irradiance, profile, shading: ShadingPoints, *, li
     ns = np.asarray(shading.shading_normals)
     frame = pixel_frame(camera, pixels, q, ng)
     pixels, rep, rep_of = pixel_representatives(frame.pixel)
-    resolved = _resolved(options, sigma, lights)
-    sharp = [l for l in lights if l.type in SHARP_LIGHTS]
-    soft = (E if not resolved else soft_irradiance(points, E, sharp, visibility, options)
-            if len(sharp) < len(lights) or options.indirect else None)
-    kernel = 0.0
-    ebar_n = None
-    if soft is not None:
-        # the soft light's irradiance once per pixel (its first sample): Ebar varies over
-        # sigma, ~3 pixels
-        it = interpolate_points(points.positions, points.normals, points.areas,
-                                np.asarray(soft, np.float32), q[rep], ng[rep], sigma,
-                                env=options.env)
-        ebar_n = it.values[rep_of, :3]
-        kernel += it.seconds
-    parts: list = []
-    smooth = local_exitance(profile, shading, ebar_n, lights=lights, visibility=visibility,
-                            options=options, sigma=sigma, parts=parts)
-    M = smooth
-    if soft is not None:
-        # the gather's own reconstruction (values x weight: the ripple of the points'
-        # partition of unity) in the image, the normalised one for the predictor
-        M = smooth + np.asarray(profile.Rd, np.float64)[None, :] * (
-            it.values[:, :3] * it.weight[:, None] - it.values[:, :3])[rep_of]
-    t_local = time.perf_counter() - t0
-    t1 = time.perf_counter()
-    pred = predict(frame, smooth, parts, pixels, profile)
-    t_pred = time.perf_counter() - t1
     stats: dict = {}
 
     def gather_at(idx):
@@ -442,14 +373,33 @@ def adaptive_exitance(points, irradiance, profile, shading: ShadingPoints, *, li
                           shared=shared, keys=keys)
         stats["kernel_seconds"] = stats.get("kernel_seconds", 0.0) + float(
             st.get("kernel_seconds", 0.0))
-        return mg
+        return np.asarray(mg, np.float64)
+    # the exact part at every shading point, the smooth rest from the sampled gather
+    parts: list = []
+    exact = exact_exitance(profile, shading, lights=lights, visibility=visibility,
+                           options=options, sigma=sigma, parts=parts)
+    t_local = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    grid = sample_grid(frame.pixel, frame.width, frame.height,
+                       sample_spacing(sigma, float(np.median(frame.footprint))))
+    m_s = gather_at(grid.points)
+    smooth_s = m_s - exact[grid.points]
+    smooth, complete, corners = interpolate(grid, smooth_s, pixels, frame.width)
+    M = exact + smooth[rep_of]
+    t_sample = time.perf_counter() - t1
     t2 = time.perf_counter()
-    spacing = sample_spacing(sigma, float(np.median(frame.footprint)))
-    pred["sampled"], n_samples = sampled_change(frame, M, gather_at, pixels, spacing)
-    t_sample = time.perf_counter() - t2
+    pred = predict(frame, M, parts, pixels, profile)
+    floor = DARK_FLOOR * np.maximum(m_s.mean(axis=0), 1e-30) if len(m_s) else np.ones(3)
+    cell_err = interpolation_error(grid, smooth_s, m_s, floor)
+    # a sample near a shadow edge carries the edge's near-field terms: the pixels
+    # interpolated from it are gathered with it
+    at = np.searchsorted(pixels, frame.pixel[grid.points])
+    cell_err[grid.cells] = np.maximum(cell_err[grid.cells], pred["irradiance"][at])
+    pred["interpolation"] = np.where(complete, cell_err[corners].max(axis=1), np.inf)
     p = np.maximum.reduce([pred[k] for k in PREDICTORS])
     w_pix = blend_weight(p, adaptive)
     w = w_pix[rep_of]
+    t_pred = time.perf_counter() - t2
     t3 = time.perf_counter()
     idx = np.flatnonzero(w > 0)
     if len(idx):
@@ -471,10 +421,9 @@ def adaptive_exitance(points, irradiance, profile, shading: ShadingPoints, *, li
                   "blend_image": image.reshape(frame.height, frame.width),
                   "gathered_fraction": float(len(idx)) / max(len(w), 1),
                   "gathered_pixel_fraction": float(np.mean(w_pix > 0)) if len(w_pix) else 0.0,
-                  "sample_spacing_pixels": spacing, "sampled_points": n_samples,
-                  "local_seconds": t_local, "predictor_seconds": t_pred + t_sample,
+                  "sample_spacing_pixels": grid.spacing, "sampled_points": len(grid.points),
+                  "local_seconds": t_local, "predictor_seconds": t_pred,
                   "sample_gather_seconds": t_sample, "adaptive_gather_seconds": t_gather,
-                  **flagged,
-                  "kernel_seconds": stats.get("kernel_seconds", 0.0) + kernel,
+                  **flagged, "kernel_seconds": stats.get("kernel_seconds", 0.0),
                   "seconds": time.perf_counter() - t0})
     return np.nan_to_num(M, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32), stats

@@ -154,7 +154,7 @@ def test03_thin_slab_lit_from_behind_needs_transmission(cl_env, profile, thickne
     opts = _options(cl_env)
     got, st = adaptive_exitance(pts, E, profile, shading, lights=[light], visibility=vis,
                                 options=opts, camera=cam, pixels=np.arange(len(q)))
-    thin = st["predicted_images"]["sampled"].ravel()
+    thin = st["predicted_images"]["interpolation"].ravel()
     if flagged:
         assert np.all(thin >= 1.0) and np.all(st["blend"] == 1.0)
         full, _ = exitance(pts, E, profile, shading, lights=[light], visibility=vis,
