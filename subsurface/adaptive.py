@@ -1,48 +1,44 @@
-"""The adaptive BSSRDF: a local model everywhere, the hierarchical gather only where a
-predictor says it changes the pixel (docs/science.md §4 "Adaptive gather").
+"""The adaptive BSSRDF: the exact part of the exitance at every pixel, the smooth rest from
+the gather sampled on a coarse grid of pixels and interpolated, and the gather itself only
+where a predictor says the interpolation would miss the target (docs/science.md §4
+"Adaptive gather").
 
-Local model.  Where the irradiance is uniform over the profile's reach on a flat, thick
-surface, the gather's exitance is the profile's total reflectance times the irradiance at
-the point, M = Rd E(x) (the "energy" normalisation makes the gather's integral of the
-profile Rd exactly, ``subsurface/profile_table.py``).  The local model is that limit, split
-as the full BSSRDF splits the profile (``subsurface/exitance.py``, ``near_field.py``):
+Split.  The full BSSRDF (``subsurface/exitance.py``) is, for point and directional lights,
+the exact near field C(x) [Rd_near V(x) - edge terms] at the shading point plus the far part
+gathered from the points; for other light, the whole profile gathered.  The adaptive model
+takes
 
-* the far part, Rd_far Ebar(x), with Ebar the points' irradiance reconstructed at x with the
-  gather's own Gaussian, sum G_sigma(|x - p|) A_p E_p (``subsurface/interpolation.py``):
-  what the gather of a profile no wider than sigma returns, ripple of the points' partition
-  of unity included (1.8 % standard deviation on the default scan; normalising it away left
-  the local model 0.2-0.4 % further from the gather in the median pixel);
-* the near part, for point and directional lights, Rd_near C(x) V(x): the light's entering
-  irradiance at the shading point and its shadow ray, what the exact near field returns
-  where no shadow edge lies within the window; for other light Rd_near Ebar_soft(x).
-  Without the resolved near field (soft lights only) the whole profile is Rd Ebar(x).
+* the exact part, Rd_near C(x) V(x) (``subsurface/local.py``: the light's entering
+  irradiance at the shading point and its shadow ray), what the near field is wherever no
+  shadow edge lies within its window: evaluated at every shading point, as a BRDF is;
+* the smooth part, the gather less the exact part, which is the points' irradiance
+  reconstructed at width sigma and convolved with the profile (its far part, beyond 2 sigma,
+  for point and directional light): gathered at the centre pixel of every cell of about
+  sigma on the image and interpolated bilinearly between them
+  (``subsurface/sparse_gather.py``).
 
-On a flat, uniformly lit plate the gather returns Rd E up to its own approximation error
-(clusters: ~0.2-0.4 % rRMSE at epsilon 0.5, bench/results/gather.json; the points'
-partition of unity: their areas sum to the surface to 0.1 %, ``subsurface/points.py``), so
-the two agree to that error (tests/test_bssrdf_adaptive.py).
+On a flat, uniformly lit plate the smooth part is constant and the model equals the gather
+to its own approximation error (tests/test_bssrdf_adaptive.py).
 
-Predictor.  Per pixel, the relative change the gather would make to it, in units of the
-target; the largest of four documented estimates:
+Predictor.  Per pixel, the relative error of that interpolation, in units of the target;
+the largest of three estimates:
 
-* irradiance: the image of the local exitance convolved with the profile (per channel,
-  radial, at the image's median pixel footprint; normalised over the pixels that hit, so
-  the head's outline extrapolates) minus the image itself, over the pixel (screen-space
-  diffusion, Jimenez et al. 2009, used here only to predict): shadow edges and light falloff
-  within the profile's reach;
-* thickness: the profile's energy beyond the mesh's thickness along -normal at the points
-  (a ray cast; less the 2 sigma the points' Gaussian reaches), the share of the exitance
-  the other side could hand over if it were lit as this side: thin parts transmit;
-* curvature: kappa^2 <r^2>_profile / 8, kappa from the spread of the points' normals about
-  the pixel (1 - |mean normal| = kappa^2 <d^2> / 2 on a sphere): the order of the second-
-  order term of the profile's integral over a curved surface;
+* interpolation: the samples' second differences along both image axes (bilinear
+  interpolation's error, ``sparse_gather.interpolation_error``), the largest of the four
+  samples the pixel is interpolated from; inf where one is missing (the head's outline);
+* irradiance: the shadow V convolved with the near part of the profile on the image (per
+  channel, radial, at the image's median pixel footprint; normalised over the pixels that
+  hit) minus V, times Rd_near C(x), over the pixel's exitance (screen-space diffusion,
+  Jimenez et al. 2009, used here only to predict): the edge terms the exact part leaves
+  out; a sample near a shadow edge carries them, so the pixels interpolated from it take
+  its prediction too;
 * occlusion: the profile's energy beyond the distance to a depth discontinuity of the image
   (a surface the camera does not see may lie within reach).
 
 The blend weight is w = smoothstep((p - BLEND_LOW) / (1 - BLEND_LOW)) of the predicted change
-p / target; the gather runs where w > 0 and the image is (1 - w) local + w gather, so no
-pixel switches model abruptly: where w < 1 the two differ by less than the target by the
-predictor's estimate.
+p / target; the gather runs where w > 0 and the image is (1 - w) interpolated + w gathered,
+so no pixel switches model abruptly.  Every gather shares the run's octree and shadow edges
+with the full BSSRDF's image of the same lighting condition.
 """
 from __future__ import annotations
 
