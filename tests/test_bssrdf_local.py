@@ -89,3 +89,12 @@ def test03_registered_as_the_transport_pair():
     assert m.stage == "bssrdf" and m.exitance is local_limit_exitance and m.profiles
     pair = next(e for e in EFFECTS if e.name == "subsurface transport")
     assert pair.with_ == ("bssrdf", "high") and pair.without == ("bssrdf_local", "high")
+
+
+def test04_the_requirement_table_measures_transport_with_it():
+    from test_requirements import ear_brighter, image, run
+    req = run([image("bssrdf", ear_brighter(0.5, 0.05)), image("bssrdf_local", 0.5)])
+    rows = req["main"]["point"]["regions"]
+    e = rows["ear"]["effects"]["subsurface transport"]
+    assert e["measured"] and e["verdict"] == "visible" and abs(e["signed"] - 0.05) < 1e-6
+    assert rows["cheek"]["effects"]["subsurface transport"]["verdict"] == "absent"
