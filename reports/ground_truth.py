@@ -60,7 +60,7 @@ from dermis.reports.truth_noise import (RESOLVE_K, compare, mean_se, model_noise
                                         region_difference, scale_noise)
 from dermis.reports.truth_verdicts import thesis_checks
 
-__all__ = ["region_labels_for", "ground_truth_metrics", "metrics_ground_truth",
+__all__ = ["RegionLabeller", "region_labels_for", "ground_truth_metrics", "metrics_ground_truth",
            "write_ground_truth", "ground_truth_pages", "ground_truth_section", "thesis_checks",
            "RESOLVE_K", "GEOMETRY"]
 
@@ -71,20 +71,44 @@ RANK_FACTOR = 4
 MODEL_ORDER = MODEL_NAMES      # the tables; the ranking is of the thesis's four (THESIS_MODELS)
 
 
+class RegionLabeller:
+    """The face region of every pixel any camera sees of one mesh: the mesh's ray scene and
+    face regions are built once (on the 1.1M-triangle scan they took most of a cast's
+    seconds) and each camera and size is cast once, for every page that asks."""
+
+    def __init__(self, mesh):
+        self.mesh = mesh
+        self._scene = None
+        self._regions = None
+        self._cast: dict = {}
+
+    def __call__(self, camera, *, width: int, height: int, with_faces: bool = False):
+        from dataclasses import replace
+        cam = replace(camera, width=int(width), height=int(height))
+        key = repr(cam)
+        if key not in self._cast:
+            from dermis.lighting.visibility import Visibility
+            from dermis.rendering.camera import camera_rays
+            if self._scene is None:
+                self._scene = Visibility(self.mesh.vertices, self.mesh.faces)
+                self._regions = face_regions(self.mesh.vertices, self.mesh.faces)
+            o, d = camera_rays(cam)
+            hits = self._scene.intersect(o, d)
+            tri = np.where(hits.hit, hits.tri, -1).astype(np.int64)
+            lab = np.zeros(len(o), np.int8)
+            lab[hits.hit] = self._regions[tri[hits.hit]]
+            self._cast[key] = (lab.reshape(cam.height, cam.width),
+                               tri.reshape(cam.height, cam.width))
+        lab, tri = self._cast[key]
+        return (lab, tri) if with_faces else lab
+
+
 def region_labels_for(mesh, camera, *, width: int, height: int, with_faces: bool = False):
     """(H, W) int8 region labels of the pixel-centre hits of ``camera`` at width x height,
-    through dermis's own camera rays and Embree (and the (H, W) face index, -1 = miss)."""
-    from dataclasses import replace
-    from dermis.lighting.visibility import Visibility
-    from dermis.rendering.camera import camera_rays
-    cam = replace(camera, width=int(width), height=int(height))
-    o, d = camera_rays(cam)
-    hits = Visibility(mesh.vertices, mesh.faces).intersect(o, d)
-    tri = np.where(hits.hit, hits.tri, -1).astype(np.int64)
-    lab = np.zeros(len(o), np.int8)
-    lab[hits.hit] = face_regions(mesh.vertices, mesh.faces)[tri[hits.hit]]
-    lab = lab.reshape(height, width)
-    return (lab, tri.reshape(height, width)) if with_faces else lab
+    through dermis's own camera rays and Embree (and the (H, W) face index, -1 = miss);
+    ``mesh`` a Mesh or a :class:`RegionLabeller` of one (its casts are kept)."""
+    labeller = mesh if isinstance(mesh, RegionLabeller) else RegionLabeller(mesh)
+    return labeller(camera, width=width, height=height, with_faces=with_faces)
 
 
 def _labels(image) -> tuple[str, str, str]:

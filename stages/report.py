@@ -23,7 +23,7 @@ from dermis.pipeline.graph import Node, StageResult
 from dermis.pipeline.registry import stage
 from dermis.reports import diff, pdf_report
 from dermis.reports.comparison_images import load_thumbnails
-from dermis.reports.ground_truth import ground_truth_section
+from dermis.reports.ground_truth import RegionLabeller, ground_truth_section
 from dermis.reports.interactive_page import write_page
 from dermis.reports.light_differences import merge_light_differences
 from dermis.reports.profile_pages import profile_pages
@@ -105,8 +105,11 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     if params.get("images"):   # the images stage's tone-mapped thumbnails for the image pages
         thumbs, _ = load_thumbnails(inputs[params["images"]])
     refs = {inputs[nid].info["light"]: inputs[nid] for nid in params.get("references", ())}
+    # the high mesh's face regions under every camera, each cast once for all pages
+    mesh = inputs.get(GROUND_TRUTH_MESH)
+    regions = RegionLabeller(mesh) if mesh is not None else None
     opening, details, gt_info = ground_truth_section(
-        images, refs, ctx.out_dir, files, mesh=inputs[GROUND_TRUTH_MESH] if refs else None,
+        images, refs, ctx.out_dir, files, mesh=regions if refs else None,
         camera=CameraConfig(**params["camera"]) if refs else None, extra_seconds=extra,
         skip_reason=params.get("reference_skipped"), differences=metrics,
         tiles=tiles.get("model"),
@@ -121,7 +124,7 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     req = params.get("requires")
     if req:
         metrics["views"] = {view: {"requires": rec} for view, rec in requirements_of(
-            images, inputs[GROUND_TRUTH_MESH], req, metrics.get("ground_truth"), extra).items()}
+            images, regions, req, metrics.get("ground_truth"), extra).items()}
         for view, rec in auto_verdicts({v: r["requires"] for v, r in metrics["views"].items()},
                                        req["chosen"], req["accuracy"]).items():
             metrics["views"].setdefault(view, {})["auto"] = rec
@@ -148,7 +151,7 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
         light: params["camera"] for light in refs}   # lighting label -> its view's camera
     page = write_page(ctx.out_dir, images, refs, metrics, scene_name=params["scene_name"],
                       device=ctx.cl.description, timings_extra=extra,
-                      mesh=inputs.get(GROUND_TRUTH_MESH),
+                      mesh=regions,
                       cameras={k: CameraConfig(**v) for k, v in cameras.items()})
     names = [Path(f).name for f in files] + [pdf.name, page.name]
     pages = (pdf_report.report_page_count(images, metrics) + added["profiles"] + added["requires"]
