@@ -30,7 +30,7 @@ __all__ = ["SAMPLE_SIGMAS", "sample_spacing", "SampleGrid", "sample_grid", "inte
 # 1.24 mm, 0.37 mm a pixel), 9 of a close-up at 8 px/mm.  At 1.5 sigma the interpolation
 # estimate gathered more (one run each at load 10: point light 21 % of the pixels against
 # 16 %, disc 68 % against 53 %, lips close-up 99 % against 96 %) and the point light's
-# image cost 1.14 of the full BSSRDF's CPU seconds against 0.89.
+# image cost 1.14 of the full BSSRDF's CPU seconds against 0.93.
 SAMPLE_SIGMAS = 1.0
 # The error estimate per unit second difference: twice bilinear interpolation's midpoint
 # error of a quadratic, 1/8 (module docstring); with 1/8 the lips close-up (disc light)
