@@ -49,6 +49,7 @@ MODELS = (
     ("bssrdf_mc", "dermis.models.bssrdf_mc"),
     ("bssrdf_single", "dermis.models.bssrdf_single"),
     ("bssrdf_adaptive", "dermis.models.bssrdf_adaptive"),
+    ("bssrdf_local", "dermis.models.bssrdf_local"),
     ("cycles_burley", "dermis.models.cycles_burley"),
     ("cycles_random_walk", "dermis.models.cycles_random_walk"),
     ("cycles_random_walk_skin", "dermis.models.cycles_random_walk_skin"),

@@ -12,8 +12,12 @@ in this process on its cached inputs, ``--repeats`` times, interleaved (full, ad
 adaptive, full, ...: the 2-core machine is shared, load drifts), medians kept.  Each call
 gets a fresh set of run-wide intermediates except those of the mesh, made once here and
 handed over as a run shares them between every image of the mesh: its Embree scene (both
-models) and the points' thickness (the adaptive model; 0.26-0.35 s of ray casts); the
-gather's query tiles are dropped before each call (each image pays its own sort).  Times are the node's
+models); the gather's query tiles are dropped before each call (each image pays its own sort).  The
+intermediates a run shares between the BSSRDF images of one lighting condition (the
+points' octree, their shadow edges, the near-field table, the points' kd-tree:
+``subsurface/exitance.py``) are excluded for both models: made by a first call of the full
+model and handed to every measured call (``--standalone``: each call makes its own, as when
+one BSSRDF image is alone in its run).  Times are the node's
 own "total" (its work after the shared visibility: gather or local model + predictor +
 gather, exit to radiance, surface term, EXR) and its exitance part alone ("gather").
 Relative RMSE: sqrt(mean (a - b)^2) / sqrt(mean b^2) over the pixels that hit, all
@@ -96,7 +100,10 @@ def against_reference(image: np.ndarray, mask: np.ndarray, ref, block: int) -> d
 class Runner:
     """Re-runs BSSRDF nodes of the planned scene on their cached inputs."""
 
-    def __init__(self, scene, cache: Path):
+    # the kinds a run shares between the BSSRDF images of one lighting condition
+    SHARED_KINDS = ("octree", "shadow_edges", "near_table", "points_kdtree")
+
+    def __init__(self, scene, cache: Path, standalone: bool = False):
         from dermis.pipeline.graph import key_parts, node_key, plan_order
         from dermis.pipeline.plan import build_graph
         from dermis.pipeline.store import Store
@@ -105,8 +112,10 @@ class Runner:
         for nid in plan_order(self.nodes, targets):
             self.keys[nid] = node_key(key_parts(self.nodes[nid], self.keys))
         self.store = Store(cache)
-        self._inputs, self._scenes, self._thickness = {}, {}, {}
+        self._inputs, self._scenes = {}, {}
         self.env = None
+        self.standalone = standalone
+        self._kept: dict = {}     # lighting label -> {kind: RecentResults}
 
     def load(self, nid: str):
         from dermis.pipeline.graph import _load
@@ -119,10 +128,15 @@ class Runner:
         from dermis.pipeline.api import RunContext
         from dermis.pipeline.shared import RunCache
         from dermis.subsurface import gather
-        from dermis.subsurface.adaptive import THICKNESS, point_thickness
         node = self.nodes[nid]
         inputs = {d: self.load(d) for d in node.dep_ids}
         ctx = RunContext(shared=RunCache())
+        if not self.standalone:
+            from dermis.pipeline.reuse import RecentResults
+            label = self.nodes[nid].params["label"]
+            if label not in self._kept:
+                self._kept = {label: {k: RecentResults(1 << 62) for k in self.SHARED_KINDS}}
+            ctx.shared._stores.update(self._kept[label])
         if self.env is not None:
             ctx._env = self.env
         stage = importlib.import_module(node.module)
@@ -133,17 +147,14 @@ class Runner:
         if mesh_key not in self._scenes:
             self._scenes[mesh_key] = Visibility(mesh.vertices, mesh.faces)
         ctx.shared.get(EMBREE_SCENES, mesh_key, lambda: self._scenes[mesh_key])
-        if THICKNESS in node.shares:     # per mesh too: every lighting condition's image
-            pkey = ctx.input_keys["points"]
-            if pkey not in self._thickness:
-                self._thickness[pkey] = point_thickness(inputs[node.deps["points"]],
-                                                        self._scenes[mesh_key])
-            ctx.shared.get(THICKNESS, ("thickness", pkey), lambda: self._thickness[pkey])
         gather._QUERY_TILES._items.clear()
         ctx.out_dir = Path(tempfile.mkdtemp(prefix="bench-adaptive-"))
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         result = node.call(inputs, ctx)
         wall = time.perf_counter() - t0
+        # CPU seconds of the process (PoCL's device threads included): less sensitive to
+        # other jobs on the machine than wall seconds
+        result.artifact.timings["cpu"] = time.process_time() - c0
         self.env = ctx.cl
         return result, wall, ctx.out_dir
 
@@ -177,6 +188,9 @@ def main() -> None:
     ap.add_argument("--png-dir", default=None)
     ap.add_argument("--out", default=str(REPO / "bench" / "results" / "bssrdf_adaptive.json"))
     ap.add_argument("--label", default="default")
+    ap.add_argument("--standalone", action="store_true",
+                    help="each call makes the intermediates a run shares between the BSSRDF "
+                         "images of a lighting condition (octree, shadow edges)")
     args = ap.parse_args()
     from dermis.pipeline import api
     from dermis.subsurface.adaptive import TARGET
@@ -187,7 +201,7 @@ def main() -> None:
     t0 = time.perf_counter()
     api.run(scene, cache=work / "cache", export=False, jobs=1)
     first_run = time.perf_counter() - t0
-    runner = Runner(scene, work / "cache")
+    runner = Runner(scene, work / "cache", standalone=args.standalone)
     labels = [lab for lab, _ in scene.light_groups()]
     if args.lights:
         labels = [lab for lab in labels if lab in args.lights.split(",")]
@@ -205,16 +219,19 @@ def main() -> None:
             with_target(target)
             times = {"bssrdf": [], "bssrdf_adaptive": []}
             outs = {}
+            if not args.standalone:
+                runner.call(full_id)     # makes the shared intermediates (not measured)
             for r in range(args.repeats):
                 order = ("bssrdf", "bssrdf_adaptive") if r % 2 == 0 else ("bssrdf_adaptive",
                                                                          "bssrdf")
                 for model in order:
                     res, wall, folder = runner.call(full_id if model == "bssrdf" else ad_id)
                     tm = res.artifact.timings
-                    times[model].append({"wall": wall, "total": tm["total"],
+                    times[model].append({"wall": wall, "cpu": tm["cpu"], "total": tm["total"],
                                          "gather": tm["gather"], **{
                                              k: tm[k] for k in ("local_seconds",
                                                                 "predictor_seconds",
+                                                                "sample_gather_seconds",
                                                                 "adaptive_gather_seconds",
                                                                 "surface_reflection")
                                              if k in tm}})
@@ -228,6 +245,7 @@ def main() -> None:
                 "rel_rmse_vs_bssrdf": rel_rmse(ad.linear, full.linear, mask),
                 "seconds_median": med, "seconds_all": times,
                 "time_ratio_total": med["bssrdf_adaptive"]["total"] / med["bssrdf"]["total"],
+                "time_ratio_cpu": med["bssrdf_adaptive"]["cpu"] / med["bssrdf"]["cpu"],
                 "time_ratio_exitance": med["bssrdf_adaptive"]["gather"] / med["bssrdf"]["gather"],
                 **{k: g[k] for k in g if k.startswith(("gathered", "flagged"))}}
             if ref is not None:
@@ -257,6 +275,9 @@ def main() -> None:
     result = {"scene": str(args.scene), "geometry": "high", "repeats": args.repeats,
               "shipped_target": TARGET, "first_run_seconds": first_run,
               "loadavg": os.getloadavg(), "cpus": os.cpu_count(),
+              "intermediates": ("made by each image (standalone)" if args.standalone else
+                                "shared by both images, excluded: octree, shadow edges, "
+                                "near-field table, points' kd-tree, Embree scene"),
               "note": "2-core machine shared with other jobs: times noisy; A/B interleaved, "
                       "medians of the repeats", "lights": rows}
     save_labelled(args.out, args.label, result)

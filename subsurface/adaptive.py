@@ -1,48 +1,44 @@
-"""The adaptive BSSRDF: a local model everywhere, the hierarchical gather only where a
-predictor says it changes the pixel (docs/science.md §4 "Adaptive gather").
+"""The adaptive BSSRDF: the exact part of the exitance at every pixel, the smooth rest from
+the gather sampled on a coarse grid of pixels and interpolated, and the gather itself only
+where a predictor says the interpolation would miss the target (docs/science.md §4
+"Adaptive gather").
 
-Local model.  Where the irradiance is uniform over the profile's reach on a flat, thick
-surface, the gather's exitance is the profile's total reflectance times the irradiance at
-the point, M = Rd E(x) (the "energy" normalisation makes the gather's integral of the
-profile Rd exactly, ``subsurface/profile_table.py``).  The local model is that limit, split
-as the full BSSRDF splits the profile (``subsurface/exitance.py``, ``near_field.py``):
+Split.  The full BSSRDF (``subsurface/exitance.py``) is, for point and directional lights,
+the exact near field C(x) [Rd_near V(x) - edge terms] at the shading point plus the far part
+gathered from the points; for other light, the whole profile gathered.  The adaptive model
+takes
 
-* the far part, Rd_far Ebar(x), with Ebar the points' irradiance reconstructed at x with the
-  gather's own Gaussian, sum G_sigma(|x - p|) A_p E_p (``subsurface/interpolation.py``):
-  what the gather of a profile no wider than sigma returns, ripple of the points' partition
-  of unity included (1.8 % standard deviation on the default scan; normalising it away left
-  the local model 0.2-0.4 % further from the gather in the median pixel);
-* the near part, for point and directional lights, Rd_near C(x) V(x): the light's entering
-  irradiance at the shading point and its shadow ray, what the exact near field returns
-  where no shadow edge lies within the window; for other light Rd_near Ebar_soft(x).
-  Without the resolved near field (soft lights only) the whole profile is Rd Ebar(x).
+* the exact part, Rd_near C(x) V(x) (``subsurface/local.py``: the light's entering
+  irradiance at the shading point and its shadow ray), what the near field is wherever no
+  shadow edge lies within its window: evaluated at every shading point, as a BRDF is;
+* the smooth part, the gather less the exact part, which is the points' irradiance
+  reconstructed at width sigma and convolved with the profile (its far part, beyond 2 sigma,
+  for point and directional light): gathered at the centre pixel of every cell of about
+  sigma on the image and interpolated bilinearly between them
+  (``subsurface/sparse_gather.py``).
 
-On a flat, uniformly lit plate the gather returns Rd E up to its own approximation error
-(clusters: ~0.2-0.4 % rRMSE at epsilon 0.5, bench/results/gather.json; the points'
-partition of unity: their areas sum to the surface to 0.1 %, ``subsurface/points.py``), so
-the two agree to that error (tests/test_bssrdf_adaptive.py).
+On a flat, uniformly lit plate the smooth part is constant and the model equals the gather
+to its own approximation error (tests/test_bssrdf_adaptive.py).
 
-Predictor.  Per pixel, the relative change the gather would make to it, in units of the
-target; the largest of four documented estimates:
+Predictor.  Per pixel, the relative error of that interpolation, in units of the target;
+the largest of three estimates:
 
-* irradiance: the image of the local exitance convolved with the profile (per channel,
-  radial, at the image's median pixel footprint; normalised over the pixels that hit, so
-  the head's outline extrapolates) minus the image itself, over the pixel (screen-space
-  diffusion, Jimenez et al. 2009, used here only to predict): shadow edges and light falloff
-  within the profile's reach;
-* thickness: the profile's energy beyond the mesh's thickness along -normal at the points
-  (a ray cast; less the 2 sigma the points' Gaussian reaches), the share of the exitance
-  the other side could hand over if it were lit as this side: thin parts transmit;
-* curvature: kappa^2 <r^2>_profile / 8, kappa from the spread of the points' normals about
-  the pixel (1 - |mean normal| = kappa^2 <d^2> / 2 on a sphere): the order of the second-
-  order term of the profile's integral over a curved surface;
+* interpolation: the samples' second differences along both image axes (bilinear
+  interpolation's error, ``sparse_gather.interpolation_error``), the largest of the four
+  samples the pixel is interpolated from; inf where one is missing (the head's outline);
+* irradiance: the shadow V convolved with the near part of the profile on the image (per
+  channel, radial, at the image's median pixel footprint; normalised over the pixels that
+  hit) minus V, times Rd_near C(x), over the pixel's exitance (screen-space diffusion,
+  Jimenez et al. 2009, used here only to predict): the edge terms the exact part leaves
+  out; a sample near a shadow edge carries them, so the pixels interpolated from it take
+  its prediction too;
 * occlusion: the profile's energy beyond the distance to a depth discontinuity of the image
   (a surface the camera does not see may lie within reach).
 
 The blend weight is w = smoothstep((p - BLEND_LOW) / (1 - BLEND_LOW)) of the predicted change
-p / target; the gather runs where w > 0 and the image is (1 - w) local + w gather, so no
-pixel switches model abruptly: where w < 1 the two differ by less than the target by the
-predictor's estimate.
+p / target; the gather runs where w > 0 and the image is (1 - w) interpolated + w gathered,
+so no pixel switches model abruptly.  Every gather shares the run's octree and shadow edges
+with the full BSSRDF's image of the same lighting condition.
 """
 from __future__ import annotations
 
@@ -52,13 +48,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dermis.pipeline.shared import Shared
 from dermis.subsurface.exitance import ExitanceOptions, ShadingPoints, exitance
-from dermis.subsurface.interpolation import CUT_SIGMAS, interpolate_points
+from dermis.subsurface.local import pixel_representatives, sharp_irradiance
+from dermis.subsurface.sparse_gather import (interpolate, interpolation_error, sample_grid,
+                                             sample_spacing)
 from dermis.subsurface.near_field import SHARP_LIGHTS, split_profile
 
-__all__ = ["KERNELS", "TARGET", "BLEND_LOW", "AdaptiveOptions", "PixelFrame", "THICKNESS",
-           "pixel_frame", "adaptive_exitance", "local_exitance", "energy_beyond",
+__all__ = ["KERNELS", "TARGET", "BLEND_LOW", "PREDICTORS", "AdaptiveOptions", "PixelFrame",
+           "pixel_frame", "adaptive_exitance", "exact_exitance", "energy_beyond",
            "blend_weight"]
 
 KERNELS = ("point_interpolation.cl",)
@@ -80,8 +77,8 @@ DARK_FLOOR = 0.05
 # The image-space predictors work on bins of PREDICTOR_BIN x PREDICTOR_BIN pixels (4x less
 # work; each pixel takes its bin's prediction).
 PREDICTOR_BIN = 2
-# The points' thickness along -normal, kept per run for every lighting condition of a mesh.
-THICKNESS = Shared("point_thickness")
+# The predictors a pixel's blend weight takes the largest of (module docstring).
+PREDICTORS = ("irradiance", "occlusion", "interpolation")
 
 
 @dataclass(frozen=True)
@@ -154,15 +151,6 @@ def energy_beyond(profile, d) -> np.ndarray:
     return out
 
 
-def _mean_square_radius(profile) -> float:
-    """<r^2> of the profile (energy-weighted), the widest channel, mm^2."""
-    r, m = _energy_within(profile)
-    rd = np.maximum(m[-1], 1e-300)
-    dm = np.diff(m, axis=0)
-    rm = 0.5 * (r[1:] + r[:-1])
-    return float(np.max((dm * rm[:, None] ** 2).sum(axis=0) / rd))
-
-
 def _profile_kernel(profile, footprint: float, channel: int) -> np.ndarray:
     """The profile on the pixel grid (pixels ``footprint`` mm wide), each pixel holding the
     energy of its ring of radii, normalised to sum 1."""
@@ -201,79 +189,26 @@ def _resolved(options: ExitanceOptions, sigma: float, lights) -> bool:
                 and options.tuning.kernel_sigma_mm is None)
 
 
-def _ebar_share(profile, sigma: float, options: ExitanceOptions, lights) -> np.ndarray:
-    """(3,) the part of Rd the local model takes from the points' irradiance: Rd_far where
-    the near field is resolved at the shading points, else all of Rd."""
-    rd = np.asarray(profile.Rd, np.float64)
-    if not _resolved(options, sigma, lights):
-        return rd
-    split = split_profile(profile, sigma, cutoff_mm=options.tuning.cutoff_mm)
-    return rd - np.asarray(split.rd_near, np.float64)
-
-
-def _sharp_irradiance(shading: ShadingPoints, light, k: int, visibility, transmittance):
-    """C(x) (Q, 3) and V(x) (Q,) of one point or directional light at the shading points:
-    as ``shadow_edges.sharp_near_field`` takes them (shading normal, entry transmittance)."""
-    from dermis.lighting.emitters import sample_lights
-    x = np.asarray(shading.positions, np.float32)
-    ns = np.asarray(shading.shading_normals, np.float64)
-    ns = ns / np.maximum(np.linalg.norm(ns, axis=1, keepdims=True), 1e-30)
-    ng = np.asarray(shading.geo_normals, np.float32)
-    ls = sample_lights(light, x, ng)
-    wi, wt, dist = ls.directions[:, 0], ls.weights[:, 0].astype(np.float64), ls.distance[:, 0]
-    cos = np.einsum("ij,ij->i", wi, ns)
-    live = (cos > 0) & (wt.sum(axis=1) > 0)
-    out, seen = np.zeros((len(x), 3)), np.zeros(len(x))
-    if not live.any():
-        return out, seen
-    c = wt[live] * cos[live, None]
-    if transmittance is not None:
-        c = c * np.asarray(transmittance(cos[live]))
-    if shading.visible is not None:
-        vis = np.asarray(shading.visible[:, k], bool)[live]
-    else:
-        vis = ~visibility.occluded(x[live], ng[live], wi[live], dist[live])
-    out[live] = c
-    seen[live] = vis
-    return out, seen
-
-
-def local_exitance(points, irradiance, profile, shading: ShadingPoints, ebar: np.ndarray, *,
-                   lights, visibility, options: ExitanceOptions, interp=None,
-                   parts: list | None = None) -> np.ndarray:
-    """The local model's exitance (Q, 3) at the shading points (module docstring).
-
-    ``ebar`` (Q, 3): the points' irradiance interpolated at the shading points
-    (:func:`interpolate_points`); ``interp(values (N, k)) -> (Q, k)`` interpolates other
-    per-point values the same way (needed only when soft light or indirect light shares the
-    condition with a point or directional light).  ``parts``: if given, a list that gets
-    the terms the gather would blur, for the predictor: (values (Q, 3), the profile part
-    that blurs them, a factor (Q, 3) applied after or None)."""
+def exact_exitance(profile, shading: ShadingPoints, *, lights, visibility,
+                   options: ExitanceOptions, sigma: float, parts: list | None = None):
+    """The part of the exitance (Q, 3) the adaptive model evaluates at every shading point:
+    for point and directional lights, where the near field is resolved, Rd_near C(x) V(x)
+    (``subsurface/local.py``), the exact near field wherever no shadow edge lies within its
+    window; zero otherwise.  ``parts``: if given, a list that gets the terms the gather
+    would blur, for the predictor: (values (Q, 3), the profile part that blurs them, a
+    factor (Q, 3) applied after)."""
     lights = list(lights)
-    sigma = float(points.info.get("kernel_sigma_mm") or 0.0)
-    M = _ebar_share(profile, sigma, options, lights)[None, :] * np.asarray(ebar, np.float64)
     parts = [] if parts is None else parts
+    M = np.zeros((len(shading.positions), 3))
     if not _resolved(options, sigma, lights):
-        parts.append((M, profile, None))
         return M
     split = split_profile(profile, sigma, cutoff_mm=options.tuning.cutoff_mm)
-    parts.append((M.copy(), split.far, None))
     rd_near = np.asarray(split.rd_near, np.float64)
-    sharp = [l for l in lights if l.type in SHARP_LIGHTS]
-    soft = [l for l in lights if l.type not in SHARP_LIGHTS]
-    for k, light in enumerate(sharp):
-        c, v = _sharp_irradiance(shading, light, k, visibility, options.transmittance)
+    for k, light in enumerate(l for l in lights if l.type in SHARP_LIGHTS):
+        c, v = sharp_irradiance(shading, light, k, visibility, options.transmittance)
         M += rd_near[None, :] * c * v[:, None]
         # the exact near field blurs only the shadow: C(x) [Rd_near V - edge terms]
         parts.append((np.repeat(v[:, None], 3, axis=1), split.near, rd_near[None, :] * c))
-    if soft or options.indirect:
-        from dermis.lighting.irradiance import irradiance as point_irradiance
-        e_sharp = point_irradiance(points.positions, points.normals, sharp,
-                                   visibility.occluded, transmittance=options.transmittance)
-        e_soft = np.maximum(np.asarray(irradiance, np.float64) - e_sharp, 0.0)
-        near_soft = rd_near[None, :] * np.asarray(interp(e_soft), np.float64)[:, :3]
-        M += near_soft
-        parts.append((near_soft, split.near, None))
     return M
 
 
@@ -281,16 +216,6 @@ def _spacing(points) -> float:
     return float(points.info.get("spacing_mm") or math.sqrt(
         float(np.sum(points.areas)) / max(len(points.areas), 1)))
 # --------------------------------------------------------------------------- predictor
-def point_thickness(points, visibility) -> np.ndarray:
-    """(N,) the mesh's thickness along -normal at each point, mm (inf where the ray leaves
-    the mesh): the first hit of a ray cast inwards from just below the surface."""
-    p = np.asarray(points.positions, np.float64)
-    n = np.asarray(points.normals, np.float64)
-    off = float(visibility.offset_mm)
-    hits = visibility.intersect(p - off * n, -n)
-    return np.where(hits.hit, hits.t.astype(np.float64) + off, np.inf)
-
-
 def _image(values: np.ndarray, pixel: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
     """Per-pixel mean of per-sample values (Q, k) -> (size, k), and the hit count."""
     count = np.bincount(pixel, minlength=size).astype(np.float64)
@@ -361,7 +286,9 @@ def occlusion_change(depth_img: np.ndarray, foot_img: np.ndarray, mask: np.ndarr
         a[axis], b[axis] = slice(1, None), slice(None, -1)
         both = mask[tuple(a)] & mask[tuple(b)]
         step = np.abs(depth_img[tuple(a)] - depth_img[tuple(b)])
-        big = both & (step > DEPTH_JUMP_FOOTPRINTS * np.maximum(foot_img[tuple(a)],
+        # the less steep side's expectation: at an occluding edge the near side is seen
+        # grazing (a large slope) and the surface behind it is not
+        big = both & (step > DEPTH_JUMP_FOOTPRINTS * np.minimum(foot_img[tuple(a)],
                                                                  foot_img[tuple(b)]))
         jump[tuple(a)] |= big
         jump[tuple(b)] |= big
@@ -374,18 +301,23 @@ def occlusion_change(depth_img: np.ndarray, foot_img: np.ndarray, mask: np.ndarr
     return np.where(mask, energy_beyond(profile, apart.ravel()).reshape(mask.shape), 0.0)
 
 
-def predict(frame: PixelFrame, local: np.ndarray, parts: list, it, pixels: np.ndarray,
+def _bin_of(pixel: np.ndarray, width: int, size: int) -> np.ndarray:
+    """The bin (``size`` x ``size`` pixels, row-major) of flat pixel indices."""
+    pixel = np.asarray(pixel, np.int64)
+    return (pixel // width // size) * (-(-width // size)) + (pixel % width) // size
+
+
+def predict(frame: PixelFrame, local: np.ndarray, parts: list, pixels: np.ndarray,
             profile) -> dict:
-    """Per pixel of ``pixels`` (the distinct pixels of the shading points, the rows of
-    ``it``): the four predicted relative changes (module docstring) as (P,) arrays by name,
-    and "missing": no point in reach of the pixel.  ``local`` (Q, 3) the local exitance,
-    ``parts`` its terms (:func:`local_exitance`)."""
+    """Per pixel of ``pixels`` (the distinct pixels of the shading points): the image-space
+    predicted relative changes "irradiance" and "occlusion" (module docstring) as (P,)
+    arrays.  ``local`` (Q, 3) the local exitance, ``parts`` its terms
+    (:func:`local_exitance`)."""
     # on an image binned PREDICTOR_BIN x PREDICTOR_BIN: the profile spans >= 3 pixels of the
     # default scan's (sigma 1.24 mm, 0.37 mm a pixel)
     b = PREDICTOR_BIN
     hb, wb = -(-frame.height // b), -(-frame.width // b)
-    row, col = frame.pixel // frame.width, frame.pixel % frame.width
-    binned = (row // b) * wb + col // b
+    binned = _bin_of(frame.pixel, frame.width, b)
     size, shape = hb * wb, (hb, wb)
     local_img, count = _image(local, binned, size)
     mask = (count > 0).reshape(shape)
@@ -395,18 +327,12 @@ def predict(frame: PixelFrame, local: np.ndarray, parts: list, it, pixels: np.nd
         return _image(np.asarray(v, np.float64), binned, size)[0].reshape(shape + (3,))
     terms = [(img(v), part, None if f is None else img(f)) for v, part, f in parts]
     p_e = irradiance_change(terms, local_img.reshape(shape + (3,)), mask, footprint)
-    geo, _ = _image(np.stack([frame.depth, frame.footprint * b * (1.0 + frame.slope)], 1),
+    dep, _ = _image(np.stack([frame.depth, frame.footprint * b * (1.0 + frame.slope)], 1),
                     binned, size)
-    p_occ = occlusion_change(geo[:, 0].reshape(shape), geo[:, 1].reshape(shape), mask, profile,
+    p_occ = occlusion_change(dep[:, 0].reshape(shape), dep[:, 1].reshape(shape), mask, profile,
                              footprint)
-    # back to the pixels: each takes its bin's
-    prow, pcol = pixels // frame.width, pixels % frame.width
-    at = (prow // b) * wb + pcol // b
-    nbar = np.linalg.norm(it.mean_normal, axis=1).astype(np.float64)
-    kappa2 = 2.0 * np.maximum(1.0 - nbar, 0.0) / np.maximum(it.mean_d2.astype(np.float64), 1e-12)
-    return {"irradiance": p_e.ravel()[at], "thickness": it.values[:, 3].astype(np.float64),
-            "curvature": kappa2 * _mean_square_radius(profile) / 8.0,
-            "occlusion": p_occ.ravel()[at], "missing": ~it.found}
+    at = _bin_of(pixels, frame.width, b)     # back to the pixels: each takes its bin's
+    return {"irradiance": p_e.ravel()[at], "occlusion": p_occ.ravel()[at]}
 
 
 # --------------------------------------------------------------------------- the whole
@@ -415,87 +341,85 @@ def adaptive_exitance(points, irradiance, profile, shading: ShadingPoints, *, li
                       adaptive: AdaptiveOptions = AdaptiveOptions(), shared=None,
                       keys=None) -> tuple[np.ndarray, dict]:
     """Exitance (Q, 3) of the adaptive BSSRDF at the shading points seen by ``camera``
-    (a CameraConfig) through ``pixels`` (Q,) flat pixel indices (module docstring), and stats: the gather's (on the gathered points), the blend weight
-    per shading point ("blend") and per pixel ("blend_image", (H, W)), the fraction of
-    shading points and of pixels gathered, and the seconds of each part.
+    (a CameraConfig) through ``pixels`` (Q,) flat pixel indices (module docstring), and
+    stats: the gather's (on the gathered points), the blend weight per shading point
+    ("blend") and per pixel ("blend_image", (H, W)), the predicted changes per pixel
+    ("predicted_images", in units of the target), the fraction of shading points and of
+    pixels gathered, and the seconds of each part.
 
-    ``visibility``: the mesh's Visibility (thickness rays; shadow rays where ``shading``
-    carries none).  The gather is :func:`exitance` itself over the gathered shading points."""
+    ``visibility``: the mesh's Visibility (shadow rays where ``shading`` carries none).  The
+    gather is :func:`exitance` itself, with the run's ``shared`` octree and shadow edges."""
     t0 = time.perf_counter()
     lights = list(lights)
     E = np.asarray(irradiance, np.float32)
     sigma = float(points.info.get("kernel_sigma_mm") or 0.0) or _spacing(points)
     q = np.asarray(shading.positions)
-    frame = pixel_frame(camera, pixels, q, shading.geo_normals)
-    # one interpolation per pixel (its first sample): Ebar varies over sigma, ~3 pixels
-    order = np.argsort(frame.pixel, kind="stable")
-    pixels, first = np.unique(frame.pixel[order], return_index=True)
-    rep = order[first]
-    rep_of = np.searchsorted(pixels, frame.pixel)
-    cache = shared
-    thick_key = ("thickness",) + (tuple(keys[:1]) if keys else (id(points),))
-    thickness = (cache.get(THICKNESS, thick_key, lambda: point_thickness(points, visibility))
-                 if cache is not None else point_thickness(points, visibility))
-    thin = energy_beyond(profile, np.maximum(thickness - CUT_SIGMAS * sigma, 0.0))
-    it = interpolate_points(points.positions, points.normals, points.areas,
-                            np.concatenate([E, thin[:, None].astype(np.float32)], axis=1),
-                            q[rep], np.asarray(shading.geo_normals)[rep], sigma,
-                            env=options.env)
+    ng = np.asarray(shading.geo_normals)
+    ns = np.asarray(shading.shading_normals)
+    frame = pixel_frame(camera, pixels, q, ng)
+    pixels, rep, rep_of = pixel_representatives(frame.pixel)
+    stats: dict = {}
 
-    def interp(values):
-        v = interpolate_points(points.positions, points.normals, points.areas, values, q[rep],
-                               np.asarray(shading.geo_normals)[rep], sigma, env=options.env)
-        return (v.values * v.weight[:, None])[rep_of]
-    # the gather's reconstruction (values x weight) for the image, the normalised one (no
-    # ripple of the points' partition of unity) for the predictor
-    ebar = it.values[:, :3] * it.weight[:, None]
+    def gather_at(idx):
+        # with the run's octree and shadow edges (shared with the full BSSRDF's image)
+        vis_sub = None if shading.visible is None else shading.visible[idx]
+        mg, st = exitance(points, E, profile, ShadingPoints(q[idx], ns[idx], ng[idx],
+                                                            visible=vis_sub),
+                          lights=lights, visibility=visibility, options=options,
+                          shared=shared, keys=keys)
+        stats["kernel_seconds"] = stats.get("kernel_seconds", 0.0) + float(
+            st.get("kernel_seconds", 0.0))
+        return np.asarray(mg, np.float64)
+    # the exact part at every shading point, the smooth rest from the sampled gather
     parts: list = []
-    smooth = local_exitance(points, E, profile, shading, it.values[rep_of, :3], lights=lights,
-                            visibility=visibility, options=options, interp=interp, parts=parts)
-    M = smooth + _ebar_share(profile, sigma, options, lights)[None, :] * (
-        ebar - it.values[:, :3])[rep_of]     # local_exitance is linear in ebar
+    exact = exact_exitance(profile, shading, lights=lights, visibility=visibility,
+                           options=options, sigma=sigma, parts=parts)
     t_local = time.perf_counter() - t0
     t1 = time.perf_counter()
-    pred = predict(frame, smooth, parts, it, pixels, profile)
-    p = np.maximum.reduce([pred[k] for k in ("irradiance", "thickness", "curvature",
-                                             "occlusion")])
-    p[pred["missing"]] = np.inf
+    grid = sample_grid(frame.pixel, frame.width, frame.height,
+                       sample_spacing(sigma, float(np.median(frame.footprint))))
+    m_s = gather_at(grid.points)
+    smooth_s = m_s - exact[grid.points]
+    smooth, complete, corners = interpolate(grid, smooth_s, pixels, frame.width)
+    M = exact + smooth[rep_of]
+    t_sample = time.perf_counter() - t1
+    t2 = time.perf_counter()
+    pred = predict(frame, M, parts, pixels, profile)
+    floor = DARK_FLOOR * np.maximum(m_s.mean(axis=0), 1e-30) if len(m_s) else np.ones(3)
+    cell_err = interpolation_error(grid, smooth_s, m_s, floor)
+    # a sample near a shadow edge carries the edge's near-field terms: the pixels
+    # interpolated from it are gathered with it
+    at = np.searchsorted(pixels, frame.pixel[grid.points])
+    cell_err[grid.cells] = np.maximum(cell_err[grid.cells], pred["irradiance"][at])
+    pred["interpolation"] = np.where(complete, cell_err[corners].max(axis=1), np.inf)
+    p = np.maximum.reduce([pred[k] for k in PREDICTORS])
     w_pix = blend_weight(p, adaptive)
     w = w_pix[rep_of]
-    t_pred = time.perf_counter() - t1
-    t2 = time.perf_counter()
+    t_pred = time.perf_counter() - t2
+    t3 = time.perf_counter()
     idx = np.flatnonzero(w > 0)
-    stats: dict = {}
     if len(idx):
-        # over all the points: an octree of only those within reach of the gathered pixels
-        # clusters them otherwise, and in a close-up (the lips at 8 px/mm, disc light) the
-        # two gathers at epsilon 0.5 differed by 3.3 % rRMSE (bench/bench_bssrdf_adaptive.py)
-        vis_sub = None if shading.visible is None else shading.visible[idx]
-        mg, stats = exitance(points, E, profile, ShadingPoints(
-            q[idx], np.asarray(shading.shading_normals)[idx],
-            np.asarray(shading.geo_normals)[idx], visible=vis_sub), lights=lights,
-            visibility=visibility, options=options)
         wi = w[idx, None]
-        M[idx] = (1.0 - wi) * M[idx] + wi * mg
-    t_gather = time.perf_counter() - t2
+        M[idx] = (1.0 - wi) * M[idx] + wi * gather_at(idx)
+    t_gather = time.perf_counter() - t3
     size = frame.width * frame.height
     image = np.zeros(size, np.float32)
     image[pixels] = w_pix
     flagged = {f"flagged_{k}": float(np.mean(blend_weight(pred[k], adaptive) > 0))
-               for k in ("irradiance", "thickness", "curvature", "occlusion")}
+               for k in PREDICTORS}
     maps = {}
-    for k in ("irradiance", "thickness", "curvature", "occlusion"):
+    for k in PREDICTORS:
         maps[k] = np.zeros(size, np.float32)
-        maps[k][pixels] = pred[k] / adaptive.target
+        maps[k][pixels] = np.minimum(pred[k] / adaptive.target, 1e30)
     stats.update({"blend": w.astype(np.float32),
                   "predicted_images": {k: v.reshape(frame.height, frame.width)
                                        for k, v in maps.items()},
                   "blend_image": image.reshape(frame.height, frame.width),
                   "gathered_fraction": float(len(idx)) / max(len(w), 1),
                   "gathered_pixel_fraction": float(np.mean(w_pix > 0)) if len(w_pix) else 0.0,
+                  "sample_spacing_pixels": grid.spacing, "sampled_points": len(grid.points),
                   "local_seconds": t_local, "predictor_seconds": t_pred,
-                  "adaptive_gather_seconds": t_gather, **flagged,
-                  "missing_pixels": int(pred["missing"].sum()),
-                  "kernel_seconds": float(stats.get("kernel_seconds", 0.0)) + it.seconds,
+                  "sample_gather_seconds": t_sample, "adaptive_gather_seconds": t_gather,
+                  **flagged, "kernel_seconds": stats.get("kernel_seconds", 0.0),
                   "seconds": time.perf_counter() - t0})
     return np.nan_to_num(M, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32), stats

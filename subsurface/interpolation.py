@@ -1,13 +1,13 @@
 """Values of the irradiance points interpolated at surface points (``cl/point_interpolation.cl``).
 
-The adaptive BSSRDF (``subsurface/adaptive.py``) needs, at every shading pixel, the
-irradiance the gather would see there if the profile were no wider than the points' spacing:
-the points' irradiance reconstructed with the gather's own Gaussian of width sigma
-(``subsurface/points.py``), sum_p G_sigma(|x - p|) A_p E_p, from points facing the same way
-only (the other side of an ear is not this side's light).  The kernel returns it as the
-normalised interpolation (Shepard 1968: a constant comes back exactly, no ripple of the
-points' partition of unity; the predictor's input) and the total weight (their product is
-the gather's reconstruction; the local model's input).
+The BSSRDF's local limit (``subsurface/local.py``) needs, at every shading pixel under disc,
+environment or indirect light, the irradiance the gather would see there if the profile
+were no wider than the points' spacing: the points' irradiance reconstructed with the
+gather's own Gaussian of width sigma (``subsurface/points.py``), sum_p G_sigma(|x - p|) A_p
+E_p, from points facing the same way only (the other side of an ear is not this side's
+light).  The kernel returns it as the normalised interpolation (Shepard 1968: a constant
+comes back exactly, no ripple of the points' partition of unity; what the local limit
+takes) and the total weight (their product is the gather's own reconstruction).
 
 A k-nearest-neighbour query with scipy's cKDTree took 1.6 s (k = 4) for the 1.03M camera
 samples of the default scan on 2 loaded cores, as long as the whole gather of an image, so
