@@ -110,7 +110,10 @@ def extrapolate(values: list, errors: list[float], finer: str, order: float,
     the distances: bias (the errors of all values point one way, Richardson's case) and
     noise (independent Monte Carlo errors, adding in quadrature).  The model whose order fits
     the three finest distances is used (both: the larger finest error); neither: the knob's
-    stated model (``noise``) and ``order``.  Returns ``{"model", "order", "order_from",
+    stated model (``noise``) and ``order``.  A fitted order below half the stated one is
+    refused: the values are then outside the asymptotic range, where the bias model's
+    amplification 1 / ((h_{n-1}/h_n)^p - 1) diverges as p -> 0 (the observed order checked
+    against the formal one, as in Roache's grid-convergence practice, docs/references.md).  Returns ``{"model", "order", "order_from",
     "finest_error"}``; ``finest_error`` is None with fewer than two values."""
     if len(values) < 2 or errors[-2] is None:
         return {"model": "noise" if noise else "bias", "order": order,
@@ -121,7 +124,7 @@ def extrapolate(values: list, errors: list[float], finer: str, order: float,
     if len(values) >= 3:
         for model in (False, True):
             p = _order(h[-3:], errors[-3:], model)
-            if p is not None:
+            if p is not None and p >= 0.5 * order:
                 fits.append((_finest_error(h1, hn, d1, p, model), model, p))
     if fits:
         e, model, p = max(fits)

@@ -136,18 +136,29 @@ def test02d_extrapolation_recovers_the_finest_error_of_a_power_law():
     n = [4, 8, 16, 32, 64]
     true = [0.2 * (1 / v) ** 0.5 for v in n]
     d = [t - true[-1] for t in true]
-    ex = extrapolate(n, d, "higher", order=1.0)
+    ex = extrapolate(n, d, "higher", order=0.5)
     assert abs(ex["order"] - 0.5) < 1e-6 and ex["order_from"].startswith("fit")
     assert ex["model"] == "bias" and abs(ex["finest_error"] - true[-1]) < 1e-9
     # independent Monte Carlo noise, sigma_i = 0.2 N^-1/2: the distances add in quadrature,
     # d_i^2 = sigma_i^2 + sigma_n^2; the noise model fits p = 0.5 and returns sigma_n
     dn = [(s ** 2 + true[-1] ** 2) ** 0.5 for s in true[:-1]] + [0.0]
-    ex = extrapolate(n, dn, "higher", order=1.0)
+    ex = extrapolate(n, dn, "higher", order=0.5)
     assert ex["model"] == "noise" and abs(ex["order"] - 0.5) < 1e-6
     assert abs(ex["finest_error"] - true[-1]) < 1e-9
     # two values: the stated order
     ex = extrapolate(n[-2:], d[-2:], "higher", order=0.5, noise=False)
     assert ex["order_from"] == "stated for the knob" and abs(ex["finest_error"] - true[-1]) < 1e-9
+    # distances that fit the bias model only with an order near 0 (3.13 / 1.99 / 0.97 % vs
+    # the finest, as the default scan's point density): that fit is refused, since
+    # E_n = d / ((h_{n-1}/h_n)^p - 1) diverges as p -> 0; the noise model's fit is used
+    dens, dd = [0.005, 0.01, 0.02, 0.04], [0.03128, 0.01988, 0.00968, 0.0]
+    ex = extrapolate(dens, dd, "higher", order=1.0)
+    assert ex["model"] == "noise" and ex["order"] >= 0.5 and ex["finest_error"] < dd[-2]
+    # without the refusal the bias fit would be p < 0.5 and E_n above 10 %: the case is real
+    from dermis.reports.sweep_verify import _order, _finest_error
+    hb = [1 / v for v in dens[-3:]]
+    pb = _order(hb, dd[-3:], False)
+    assert pb is not None and pb < 0.5 and _finest_error(hb[1], hb[2], dd[-2], pb, False) > 0.1
     assert spread([3.0, 1.0, 2.0]) == {"seconds": 2.0, "seconds_min": 1.0, "seconds_max": 3.0,
                                        "seconds_samples": [3.0, 1.0, 2.0]}
 
