@@ -226,9 +226,7 @@ def render_slabs(job: dict, folder: Path) -> dict:
         t1 = time.perf_counter()
         if r["light"] == "holes":
             radii = [float(x) for x in r["radii"]]
-            # a window smaller than the smallest hole, looking at its centre (not smaller
-            # than 1 unit: Cycles' random walk loses light when a pixel sees less than
-            # ~0.25 units, measured in docs/cycles.md)
+            # a window smaller than the smallest hole, looking at its centre
             sb.add_camera(scene, position=(0.0, 0.0, 4.0 * radii[-1] + 1.0), forward=(0, 0, -1),
                           up=(0, 1, 0), fov_deg=0.0, width=ROWS, height=ROWS,
                           orthographic_scale=float(r["window"]))

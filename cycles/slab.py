@@ -33,18 +33,22 @@ __all__ = ["GRID", "RADII", "SKY_SPP", "HOLE_SPP", "slab_curves", "slab_response
 
 # base colours: dense where skin's albedos lie (0.05-0.7), up to 0.98
 GRID = (0.02, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.98)
-# The slab is rendered at Subsurface Radius SCALE and its exit distances divided by it (they
-# scale with the radius): Cycles' random walk loses light where a pixel sees less than
-# ~0.25 scene units (measured, docs/cycles.md), so the camera's 4 pixels see WINDOW = 1
-# unit, far inside the smallest hole.
-SCALE = 100.0
-WINDOW = 1.0
+# The slab is rendered at Subsurface Radius SCALE, in a box of half-width and depth SIDE
+# radius units, and its exit distances divided by SCALE (they scale with the radius).  Cycles'
+# random walk loses light on large triangles: a sun-lit flat plate of base colour 0.486 and
+# radius 1 (or 3: the same) reflects 0.493 / 0.491 / 0.307 at half-widths of 1e2 / 1e4 / 1e6
+# scene units, whatever the radius (float precision of the hit points grows with the
+# coordinates).  So the box stays small in scene units: 200 radii, beyond the largest hole
+# (60) and the walks' reach, at a radius of 1 unit.  The camera's 4 pixels see WINDOW, half
+# the smallest hole.
+SCALE = 1.0
+WINDOW = 0.01
+SIDE = 200.0         # the slab's half-width and depth, radius units
 # hole radii (radius units): 0.02 to 60, 32 geometric steps (ratio 1.3): the exit profiles
 # of the three methods lie within (docs/cycles.md)
 RADII = tuple(float(r) for r in np.geomspace(0.02, 60.0, 32))
 SKY_SPP = 1024       # x 16 pixels per seed
 HOLE_SPP = 256       # x 16 pixels per radius and seed
-SIDE = 1e4           # the slab's half-width and depth, radius units
 
 
 def _material(method, colour, radius, ior, roughness, anisotropy) -> dict:

@@ -224,6 +224,7 @@ def _title_page(plt, images, metrics, *, scene_name, device, timings_extra, cred
         f"ground truth: {'Mitsuba 3 path-traced reference' if truth and truth['truth'] else 'none'}"
         f";  model differences also against: {metrics.get('reference_model', '-')}",
     ]
+    facts = [textwrap.fill(f, 110, subsequent_indent="  ") for f in facts]
     y = _place(fig, 0.77, "\n".join(facts), fontsize=9, family="monospace") - 0.035
     small = bool(truth)   # the ground truth leads: the rest is set smaller
     if truth:

@@ -177,7 +177,7 @@ def _table(fig, rect, gt, light, models):
     ref = gt["references"][light]
     cells.append(["reference", "0", _pct((ref.get("noise", {}).get(fk) or {}).get("rel")), "",
                   "", "", f"{ref.get('seconds', 0.0):.0f}"])
-    widths = [0.18, 0.13, 0.12, 0.11, 0.15, 0.17, 0.14]
+    widths = [0.30, 0.11, 0.10, 0.09, 0.13, 0.15, 0.12]
     rows = len(cells) + 1
     height = min(1.0, rows * 0.1)
     tab = ax.table(cellText=cells, colLabels=header, colWidths=widths, cellLoc="center",
@@ -225,6 +225,7 @@ def _diff_tiles(fig, rect, gt, light, images, ref, models, differences, tiles):
     srgb = _tonemap_pair(shown)
     x0, y0, ww, hh = rect
     ncol = 1 + len(models)
+    fs = 7 if ncol <= 9 else max(4.5, 63 / ncol)   # titles side by side must not overlap
     gs = fig.add_gridspec(2, ncol, left=x0, right=x0 + ww, bottom=y0, top=y0 + hh,
                           hspace=0.32, wspace=0.05)
     f = images and next(iter(images.values())).linear.shape[0] // h
@@ -233,18 +234,18 @@ def _diff_tiles(fig, rect, gt, light, images, ref, models, differences, tiles):
         ax.axis("off")
         if row == 0:
             ax.imshow(srgb[0], interpolation="nearest")
-            ax.set_title("reference (Mitsuba)", fontsize=7)
+            ax.set_title("reference (Mitsuba)", fontsize=fs)
         elif base is not None:
             ax.imshow(srgb[1], interpolation="nearest")
-            ax.set_title("bssrdf", fontsize=7)
+            ax.set_title("bssrdf", fontsize=fs)
     for j, m in enumerate(models):
         rec = gt["models"][f"{m}-{light}"]
         ax = fig.add_subplot(gs[0, 1 + j])
         ax.axis("off")
         ax.imshow(difference_image(vs_ref[m], scale=scale), interpolation="nearest")
         s = rec["scales"].get(str(fk), {})
-        ax.set_title(f"{m} - reference\nrel RMSE {_pct(s.get('rel_rmse'))} ± "
-                     f"{_pct(s.get('noise'))} %", fontsize=7)
+        ax.set_title(f"{m}\n- reference\nrel RMSE {_pct(s.get('rel_rmse'))} ± "
+                     f"{_pct(s.get('noise'))} %", fontsize=fs)
         ax = fig.add_subplot(gs[1, 1 + j])
         ax.axis("off")
         if m == "bssrdf" or base is None:
@@ -256,8 +257,8 @@ def _diff_tiles(fig, rect, gt, light, images, ref, models, differences, tiles):
             tile = difference_image(difference(idx[(m, light, GEOMETRY)], base), scale=scale_b)
         ax.imshow(tile, interpolation="nearest")
         r = mvr.get(f"{m}-{light}-{GEOMETRY}")
-        ax.set_title(f"{m} - bssrdf" + (f"\nrel RMSE {_pct(r['rel_rmse'])} %" if r else ""),
-                     fontsize=7)
+        ax.set_title(f"{m}\n- bssrdf" + (f"\nrel RMSE {_pct(r['rel_rmse'])} %" if r else ""),
+                     fontsize=fs)
     return f, fk, scale
 
 

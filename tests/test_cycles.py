@@ -133,6 +133,42 @@ def test05_flat_slab_fit_reproduces_rd_and_mean_radius(method):
 
 
 @needs_bpy
+def test05b_the_slab_reflects_what_the_head_renderer_reflects_on_a_plate():
+    """The slab curves (cycles/slab.py) are what the head's renders (cycles/render_job.py
+    render_head) do: a random-walk plate 100 units wide under a uniform sky of radiance 1,
+    seen along its normal, has radiance S + (1 - S) Rd_e (S the boundary's own reflectance),
+    with S and Rd_e from slab_response.  A slab measured in a box of 1e6 units (where Cycles'
+    random walk loses light: docs/cycles.md) gave Rd_e 0.26 where the plate gives 0.43.
+    Tolerance: 3 combined standard errors (two seeds each) plus 1 % for the plate's 8 x 8
+    pixels (window 0.87 units) against the slab's 0.01-unit window (measured 0.429 vs 0.425)."""
+    from dermis.cycles.job import run_job
+    from dermis.cycles.slab import slab_response
+    b = [0.486, 0.332, 0.274]
+    mat = {"method": "RANDOM_WALK", "base_colour": b, "radius": [1.0, 1.0, 1.0], "ior": 1.4,
+           "subsurface_ior": 1.4, "roughness": 0.3, "anisotropy": 0.8}
+    slab = slab_response("RANDOM_WALK", [b], ior=1.4, roughness=0.3, anisotropy=0.8,
+                         threads=2, sky_spp=256, hole_spp=4)
+    want = slab["specular"] + (1 - slab["specular"]) * slab["rd_e"][0]
+    se_want = (1 - slab["specular"]) * slab["rd_e_stderr"][0]
+    plate = {"vertices": np.array([[-50, -50, 0], [50, -50, 0], [50, 50, 0], [-50, 50, 0]],
+                                  np.float64),
+             "faces": np.array([[0, 1, 2], [0, 2, 3]], np.int32),
+             "environment": np.ones((16, 32, 3), np.float32)}
+    job = {"kind": "head", "width": 8, "height": 8, "threads": 2, "seed": 3,
+           "camera": {"position": [0.0, 0.0, 500.0], "forward": [0.0, 0.0, -1.0],
+                      "up": [0.0, 1.0, 0.0], "fov_deg": 0.1},
+           "lights": [{"type": "environment", "name": "sky", "rotation_deg": 0.0}],
+           "material": mat,
+           "sampling": {"target_noise": 1.0, "block": 1, "pilot_spp": 128, "max_spp": 128}}
+    _, out = run_job(job, plate)
+    a = out["half_a"].reshape(-1, 3).mean(axis=0)
+    c = out["half_b"].reshape(-1, 3).mean(axis=0)
+    got, se_got = (a + c) / 2, np.abs(a - c) / 2
+    tol = 3 * np.hypot(se_want, se_got) + 0.01 * want
+    assert np.all(np.abs(got - want) <= tol), (got, want, tol)
+
+
+@needs_bpy
 @pytest.mark.parametrize("kind", ["point", "directional", "environment"])
 def test06_cycles_sees_the_scene_as_dermis_does(kind, cl_env):
     """Camera, light positions and directions and the environment's lat-long convention: a
