@@ -177,7 +177,7 @@ def _table(fig, rect, gt, light, models):
     ref = gt["references"][light]
     cells.append(["reference", "0", _pct((ref.get("noise", {}).get(fk) or {}).get("rel")), "",
                   "", "", f"{ref.get('seconds', 0.0):.0f}"])
-    widths = [0.30, 0.11, 0.10, 0.09, 0.13, 0.15, 0.12]
+    widths = [0.28, 0.12, 0.11, 0.10, 0.13, 0.14, 0.12]
     rows = len(cells) + 1
     height = min(1.0, rows * 0.1)
     tab = ax.table(cellText=cells, colLabels=header, colWidths=widths, cellLoc="center",
@@ -186,7 +186,7 @@ def _table(fig, rect, gt, light, models):
     tab.set_fontsize(8)
     for (r, c), cell in tab.get_celld().items():
         if r == 0:
-            cell.set_text_props(weight="bold")
+            cell.set_text_props(weight="bold", fontsize=7)
     ax.set_title(f"Relative RMSE on {fk}×{fk} blocks of reference pixels (the ranking scale); "
                  "± = what noise alone\ngives (reference's and model's own, in quadrature); "
                  f"resolved = above {RESOLVE_K:g}× that", fontsize=8, loc="left")
