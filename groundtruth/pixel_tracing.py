@@ -36,7 +36,7 @@ from dermis.groundtruth import mitsuba
 from dermis.groundtruth.passes import MAX_LANES
 from dermis.groundtruth.scene_export import HeadSceneOptions, camera_dict, head_scene, release
 
-__all__ = ["trace_pixels", "sensor_mean", "TraceJob", "trace_tile", "job_scene", "job_sensor",
+__all__ = ["trace_pixels", "call_lanes", "MIN_CALL_LANES", "sensor_mean", "TraceJob", "trace_tile", "job_scene", "job_sensor",
            "forget", "KEEP_SCENES"]
 
 # Scenes a process keeps (each ~0.3 GB for the default scan: two 1.1 M-triangle surfaces and
@@ -46,9 +46,15 @@ KEEP_SCENES = 2
 
 
 def _sampler(mi, seed: int, lanes: int):
-    """An independent sampler of ``lanes`` lanes seeded with ``seed`` (mod 2^32)."""
+    """An independent sampler of ``lanes`` lanes seeded with ``seed`` (mod 2^32).
+
+    The seed is an opaque Dr.Jit value, not a literal: a literal seed is compiled into the
+    path tracer's kernel, so every call with a new seed (every task of every pass) built the
+    whole ``volpathmis`` kernel again, ~2 s of LLVM compilation a call against ~0.2 s of
+    tracing 16k paths of a small scene (measured: same bytes either way)."""
+    import drjit as dr
     sampler = mi.load_dict({"type": "independent"})
-    sampler.seed(int(seed) % (1 << 32), int(lanes))
+    sampler.seed(dr.opaque(mi.UInt32, int(seed) % (1 << 32)), int(lanes))
     return sampler
 
 
@@ -58,33 +64,52 @@ def _lanes(spectrum, n: int) -> np.ndarray:
     return (v.T if v.ndim == 2 and v.shape == (3, n) else v).reshape(n, 3)
 
 
+# The LLVM kernel is also built anew for every wavefront size (measured: 8,192 and 8,000
+# lanes each compile, ~2 s), so a call's lanes are rounded up to a ladder of a few sizes:
+# MIN_CALL_LANES, then four steps an octave (x 1, 1.25, 1.5, 1.75), at most 25 % of the
+# lanes traced and thrown away, against a compilation per distinct size.
+MIN_CALL_LANES = 4096
+
+
+def call_lanes(n: int) -> int:
+    """The ladder's size for a call of ``n`` paths (at most :data:`MAX_LANES`)."""
+    q = max(int(n), MIN_CALL_LANES)
+    if q >= MAX_LANES:
+        return MAX_LANES
+    step = 1 << (q.bit_length() - 3)          # a quarter of the octave q lies in
+    return min(-(-q // step) * step, MAX_LANES)
+
+
 def trace_pixels(mi, scene, pixels: np.ndarray, spp: int, seed: int, *, width: int,
                  height: int, sensor=None) -> np.ndarray:
     """(M, 3) float64 sums of ``spp`` paths at each of ``pixels`` ((M, 2) x, y).
 
     Each path starts at a uniform point of its pixel (a box filter, as ``mi.render``) through
-    ``sensor`` (None: the scene's first) and is traced by the scene's integrator; calls of at
-    most :data:`MAX_LANES` paths, call k seeded ``seed + k`` (mod 2^32).
+    ``sensor`` (None: the scene's first) and is traced by the scene's integrator.  The M x spp
+    paths go in calls of :func:`call_lanes` lanes, call k seeded ``seed + k`` (mod 2^32); the
+    last call's spare lanes repeat its first pixels and are discarded.
     """
     sensor = scene.sensors()[0] if sensor is None else sensor
     integrator = scene.integrator()
     px = np.asarray(pixels, np.int64).reshape(-1, 2)
     out = np.zeros((len(px), 3))
-    per_call = max(1, MAX_LANES // max(int(spp), 1))
-    for k, lo in enumerate(range(0, len(px), per_call)):
-        part = px[lo:lo + per_call]
-        n = len(part) * int(spp)
-        sampler = _sampler(mi, seed + k, n)
-        x = mi.Float(np.repeat(part[:, 0], spp).astype(np.float32))
-        y = mi.Float(np.repeat(part[:, 1], spp).astype(np.float32))
+    owner = np.repeat(np.arange(len(px)), int(spp))
+    if len(owner) == 0:
+        return out
+    lanes = call_lanes(len(owner))
+    for k, lo in enumerate(range(0, len(owner), lanes)):
+        idx = owner[lo:lo + lanes]
+        n = len(idx)
+        full = np.resize(idx, call_lanes(n))
+        sampler = _sampler(mi, seed + k, len(full))
+        x = mi.Float(px[full, 0].astype(np.float32))
+        y = mi.Float(px[full, 1].astype(np.float32))
         u = sampler.next_2d()
         pos = mi.Point2f((x + u.x) / float(width), (y + u.y) / float(height))
         ray, weight = sensor.sample_ray(0.0, sampler.next_1d(), pos, sampler.next_2d())
         spec, _, _ = integrator.sample(scene, sampler, ray, None, True)
-        out[lo:lo + len(part)] = _lanes(spec * weight, n).reshape(len(part), int(spp), 3
-                                                                  ).sum(axis=1)
+        np.add.at(out, idx, _lanes(spec * weight, len(full))[:n])
     return out
-
 
 
 def sensor_mean(mi, scene, samples: int, seed: int, sensor=None) -> np.ndarray:
