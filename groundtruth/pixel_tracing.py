@@ -51,7 +51,9 @@ def _sampler(mi, seed: int, lanes: int):
     The seed is an opaque Dr.Jit value, not a literal: a literal seed is compiled into the
     path tracer's kernel, so every call with a new seed (every task of every pass) built the
     whole ``volpathmis`` kernel again, ~2 s of LLVM compilation a call against ~0.2 s of
-    tracing 16k paths of a small scene (measured: same bytes either way)."""
+    tracing 16k paths of a small scene (measured: same bytes either way).  The default
+    scene's point-light reference on an empty kernel cache built 28 kernels instead of 51,
+    and its run to the reference took 244 CPU s instead of 253 (its paths dominate)."""
     import drjit as dr
     sampler = mi.load_dict({"type": "independent"})
     sampler.seed(dr.opaque(mi.UInt32, int(seed) % (1 << 32)), int(lanes))
