@@ -373,7 +373,7 @@ def energy_table() -> dict:
             to_device(env, np.tile(np.float32([0, 0, 1]), (h, 1))), to_device(env, wo),
             to_device(env, np.tile(np.asarray(alb, np.float32), (h, 1))),
             to_device(env, bpk), to_device(env, apk), to_device(env, np.ones(1, np.uint8)),
-            np.int32(0), d_out)
+            np.int32(0), d_out, d_out, np.int32(0))
         cl.enqueue_copy(env.queue, outb, d_out)
         return (outb.reshape(h, n, 3) * weight[None, :, None]).sum(1)
 

@@ -81,7 +81,8 @@ inline float3 control_alpha(float3 wo, float3 a, __constant const float *base_pa
 /* Per sample (flags: bit 0 lit - unoccluded, above the geometric horizon; bit 1 in the control
  * variate's region; has_flags = 0: every sample lit):
  *     out = [lit] f(wo, wi) W cos_i  -  [control] alpha W (n_s . wi)
- * (n_s . wi not clamped: the control function is linear in n_s). */
+ * (n_s . wi not clamped: the control function is linear in n_s); with split_ctrl the two
+ * terms apart: out = [lit] f W cos_i, ctrl_out = [control] alpha W (n_s . wi). */
 __kernel void shade_samples(
     __global const int *point, __global const float *wi_world, __global const float *weight,
     const int n,
@@ -89,7 +90,7 @@ __kernel void shade_samples(
     __global const float *albedo,
     __constant const float *base_params, __constant const float *asperity_params,
     __global const uchar *flags, const int has_flags,
-    __global float *out)
+    __global float *out, __global float *ctrl_out, const int split_ctrl)
 {
     int i = get_global_id(0);
     if (i >= n) return;
@@ -121,8 +122,11 @@ __kernel void shade_samples(
 
     float3 w = vload3(i, weight);
     float3 res = (fl & 1) ? f * w * fmax(wi.z, 0.0f) : (float3)(0.0f);
-    if (fl & 2)
-        res -= control_alpha(wo, a, base_params, asperity_params) * w * wi.z;
+    float3 c = (fl & 2) ? control_alpha(wo, a, base_params, asperity_params) * w * wi.z
+                        : (float3)(0.0f);
+    /* split_ctrl: the lit term and the control term apart (one pass for both sums) */
+    if (split_ctrl) vstore3(c, i, ctrl_out);
+    else res -= c;
     vstore3(res, i, out);
 }
 

@@ -45,8 +45,9 @@ class LightSampling:
         unoccluded diffuse light known exactly, the samples estimating only the rest, through
         the never-negative difference/ratio estimator of rendering/shade.py ``_ratio``.  The
         pipeline turns it on (stages/visibility.py): under the Venice sunset it takes the
-        Lafortune image's relative RMSE from 0.072 to 0.043 for 1.7x the shading time
-        (bench/results/env_noise.json "split").  False: the plain mixture estimator
+        Lafortune image's relative RMSE from 0.072 to 0.043 (bench/results/env_noise.json
+        "split") for 1.3x the rays and shading CPU time ("one_pass_cost").  False: the
+        plain mixture estimator
     independent_halves : the two half images of the image's own noise estimate
         (rendering/halves.py) drawn from two independently scrambled nets of the pixel's
         light samples (:class:`lighting.strata.PixelStrata` ``independent``), so noise^2

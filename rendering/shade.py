@@ -149,22 +149,28 @@ class _Shader:
                        to_device(env_cl, np.asarray(asp_block, dtype=np.float32))]
 
     def __call__(self, gidx: np.ndarray, dirs: np.ndarray, wts: np.ndarray,
-                 flags: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+                 flags: np.ndarray | None = None, split: bool = False):
         """Each sample of hit ``gidx``: f W cos(theta_i) where lit, minus the control term
-        (cl/shade.cl; ``flags`` None: all lit): (k, 3) float32, kernel seconds."""
+        (cl/shade.cl; ``flags`` None: all lit): (k, 3) float32, kernel seconds.  ``split``:
+        (lit term, control term, kernel seconds), both (k, 3) float32, from one pass."""
         import pyopencl as cl  # optional until a kernel runs (pipeline/cl.py NoOpenCLError)
 
         env, k = self.env, len(gidx)
         out = np.empty((k, 3), dtype=np.float32)
         out_buf = cl.Buffer(env.context, cl.mem_flags.WRITE_ONLY, out.nbytes)
+        ctrl = np.empty((k, 3) if split else (1, 3), dtype=np.float32)
+        ctrl_buf = cl.Buffer(env.context, cl.mem_flags.WRITE_ONLY, ctrl.nbytes)
         fl = (np.ascontiguousarray(flags, dtype=np.uint8) if flags is not None
               else np.ones(1, np.uint8))
         ev = self.kernel(env.queue, global_size(k), None, to_device(env, gidx),
                          to_device(env, dirs), to_device(env, wts), np.int32(k), *self.inputs,
-                         to_device(env, fl), np.int32(flags is not None), out_buf)
+                         to_device(env, fl), np.int32(flags is not None), out_buf, ctrl_buf,
+                         np.int32(split))
         cl.enqueue_copy(env.queue, out, out_buf, wait_for=[ev])
+        if split:
+            cl.enqueue_copy(env.queue, ctrl, ctrl_buf, wait_for=[ev])
         env.queue.finish()
-        return out, event_seconds(ev)
+        return (out, ctrl, event_seconds(ev)) if split else (out, event_seconds(ev))
 
     def control(self, control_bin: np.ndarray, table: np.ndarray) -> tuple[np.ndarray, float]:
         """The control variate's integral alpha n_s . M_b of every hit: (M, 3) float32, kernel
@@ -222,20 +228,17 @@ def shade(px: PixelSurface, shader, progress=None) -> tuple[np.ndarray, dict]:
         sl = slice(start, min(k_total, start + CHUNK_SAMPLES))
         gidx = owner[sl]
         fl = flags[sl] if flags is not None else None
-        out, seconds = shader(gidx, samples.directions[sl], samples.weights[sl], fl)
+        if control:     # f W cos V of every sample and the control terms alpha W (n_s . w)
+            out, cterm, seconds = shader(gidx, samples.directions[sl], samples.weights[sl],
+                                         fl, split=True)
+        else:
+            out, seconds = shader(gidx, samples.directions[sl], samples.weights[sl], fl)
         stats["kernel_seconds"] += seconds
         pix = px.hit_idx[gidx]
         sign = signs_of(fl) if halves else None
         if control:
-            # the control terms alone: the kernel's output of the region's samples with their
-            # lit bit cleared is - alpha W (n_s . w); the samples' own terms are out + that
             idx = np.flatnonzero(fl & SAMPLE_CONTROL)
-            neg, seconds = shader(gidx.take(idx), samples.directions[sl].take(idx, axis=0),
-                                  samples.weights[sl].take(idx, axis=0),
-                                  fl.take(idx) & np.uint8(0xFF ^ SAMPLE_LIT))
-            stats["kernel_seconds"] += seconds
-            out[idx] -= neg                       # f W cos V of every sample
-            add(ctrl, ctrl_signed, pix.take(idx), -neg, None if sign is None
+            add(ctrl, ctrl_signed, pix.take(idx), cterm.take(idx, axis=0), None if sign is None
                 else sign.take(idx))
             rest = np.flatnonzero((fl & SAMPLE_CONTROL) == 0)
             if len(rest):

@@ -91,7 +91,8 @@ def brdf_exitance(cl_env, name: str, stack: LayerStack, albedo, cos_in) -> np.nd
         to_device(cl_env, np.tile(np.float32([0.0, 0.0, 1.0]), (total, 1))),
         to_device(cl_env, np.tile(wo, (k, 1))), to_device(cl_env, alb),
         to_device(cl_env, bblock), to_device(cl_env, ablock),
-        to_device(cl_env, np.ones(1, np.uint8)), np.int32(0), d_out)   # no flags: every lit
+        to_device(cl_env, np.ones(1, np.uint8)), np.int32(0), d_out, d_out,
+        np.int32(0))   # no flags: every lit; no control term
     cl.enqueue_copy(cl_env.queue, out, d_out)
     # out = f cos_i W (W = 1: unit beam); per unit irradiance E = cos_i
     return (out.reshape(k, n, 3).astype(np.float64) * cos_dw[None, :, None]).sum(1) / ci[:, None]

@@ -77,7 +77,8 @@ def shade_albedo(cl_env, base: str, base_params, asp, albedo) -> np.ndarray:
     knl(cl_env.queue, (len(point),), None, to_device(cl_env, point), to_device(cl_env, wi_all),
         to_device(cl_env, ones), np.int32(len(point)), to_device(cl_env, normal),
         to_device(cl_env, wo), to_device(cl_env, alb), to_device(cl_env, bp),
-        to_device(cl_env, ap), to_device(cl_env, np.ones(1, np.uint8)), np.int32(0), d_out)
+        to_device(cl_env, ap), to_device(cl_env, np.ones(1, np.uint8)), np.int32(0), d_out,
+        d_out, np.int32(0))
     cl.enqueue_copy(cl_env.queue, out, d_out)
     # out = f W cos(theta_i) with W = 1: the albedo is sum out * dmu dphi / cos ... * cos,
     # i.e. int f cos dw = int f cos dmu dphi (dw = dmu dphi)
