@@ -47,7 +47,7 @@ import numpy as np
 
 from dermis.lighting.visibility import Visibility
 from dermis.models.model import Model
-from dermis.pipeline.artifacts import SAMPLE_CONTROL, SAMPLE_LIT
+from dermis.pipeline.artifacts import SAMPLE_CONTROL
 from dermis.pipeline.shared import RunCache
 from dermis.pipeline.cl import event_seconds, get_env, to_device
 from dermis.pipeline.errors import ConfigError
