@@ -110,7 +110,9 @@ def trace_pixels(mi, scene, pixels: np.ndarray, spp: int, seed: int, *, width: i
         pos = mi.Point2f((x + u.x) / float(width), (y + u.y) / float(height))
         ray, weight = sensor.sample_ray(0.0, sampler.next_1d(), pos, sampler.next_2d())
         spec, _, _ = integrator.sample(scene, sampler, ray, None, True)
-        np.add.at(out, idx, _lanes(spec * weight, len(full))[:n])
+        vals = _lanes(spec * weight, len(full))[:n]
+        for c in range(3):          # np.add.at is ~10x slower on millions of lanes
+            out[:, c] += np.bincount(idx, weights=vals[:, c], minlength=len(px))
     return out
 
 
