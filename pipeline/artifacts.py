@@ -145,6 +145,8 @@ class RenderedImage:
         independent half images whose mean is ``linear``: per pixel noise^2 estimates the
         variance of ``linear``, and the variance of a block or region mean is the sum over its
         pixels of (block-averaged noise)^2 / N^2 (independent pixels).  None: no estimate.
+    blend : (H, W) float32 or None, a model's blend weight between its cheap and its full
+        evaluation (the adaptive BSSRDF's: 0 local, 1 gathered); None: the model has none.
     """
 
     linear: np.ndarray
@@ -152,6 +154,7 @@ class RenderedImage:
     timings: dict = field(default_factory=dict)
     info: dict = field(default_factory=dict)
     noise: np.ndarray | None = None
+    blend: np.ndarray | None = None
 
 
 @dataclass

@@ -46,7 +46,7 @@ from dermis.lighting.emitters import light_params
 from dermis.lighting.visibility import EMBREE_SCENES, embree_scene
 
 NAME = "bssrdf"
-VERSION = 2   # 2: optics-resolved near field, entry/exit transmittance
+VERSION = 3   # 2: optics-resolved near field, entry/exit transmittance; 3: the blend weight
 KERNELS = ()
 SHARES = (EMBREE_SCENES, SURFACES, OCTREES, SHADOW_EDGES, NEAR_TABLES, GATHERS, POINT_TREES)
 OUTPUT_FOLDER = "render"   # exported beside the BRDF images: render/<model>-<light>-<geometry>.exr
@@ -165,7 +165,9 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     info = {"model": model, "light": params["label"], "geometry": params["geometry"],
             "profile_model": profile.info.get("model", "multipole"),
             "gather": {k: v for k, v in stats.items() if isinstance(v, (int, float, str))}}
-    return StageResult(RenderedImage(linear, mask, timings, info), files=files,
+    return StageResult(RenderedImage(linear, mask, timings, info,
+                                     blend=None if blend is None else blend.astype(np.float32)),
+                       files=files,
                        info={"timings": timings, "kernel_seconds": timings["kernel_seconds"]})
 
 

@@ -22,6 +22,7 @@ from dermis.pipeline.config import CameraConfig, condition_of
 from dermis.pipeline.graph import Node, StageResult
 from dermis.pipeline.registry import stage
 from dermis.reports import diff, pdf_report
+from dermis.reports.adaptive_pages import adaptive_pages
 from dermis.reports.comparison_images import load_thumbnails
 from dermis.reports.ground_truth import RegionLabeller, ground_truth_section
 from dermis.reports.interactive_page import write_page
@@ -31,7 +32,7 @@ from dermis.reports.requirement_pages import requirement_pages
 from dermis.reports.requirements import auto_verdicts, requirements_of
 
 NAME = "report"
-VERSION = 5
+VERSION = 6   # 6: the adaptive BSSRDF pages
 KERNELS = ()
 GROUND_TRUTH_MESH = "mesh_high"   # the references are of the high mesh; regions are on it
 
@@ -133,7 +134,7 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     if mpath.name not in {Path(f).name for f in files}:
         files.append(mpath)
     profiles = {nid: inputs[nid] for nid in params.get("profiles", ())}
-    added = {"profiles": 0, "requires": 0}
+    added = {"profiles": 0, "requires": 0, "adaptive": 0}
 
     def extra_pages(pdf):   # what the scene requires, the profile page, the truth's details
         if metrics.get("views"):
@@ -141,6 +142,7 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
                                                   accuracy=req["accuracy"],
                                                   threshold=req["effect_threshold"])
         added["profiles"] = profile_pages(pdf, profiles)
+        added["adaptive"] = adaptive_pages(pdf, images)
         details(pdf)
     pdf = pdf_report.write_report(images, metrics, ctx.out_dir / "report.pdf",
                                   scene_name=params["scene_name"], device=ctx.cl.description,
@@ -155,6 +157,6 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
                       cameras={k: CameraConfig(**v) for k, v in cameras.items()})
     names = [Path(f).name for f in files] + [pdf.name, page.name]
     pages = (pdf_report.report_page_count(images, metrics) + added["profiles"] + added["requires"]
-             + gt_info["pages"])
+             + added["adaptive"] + gt_info["pages"])
     summary = {k: gt_info[k] for k in ("references", "pages", "ranking", "thesis") if k in gt_info}
     return StageResult(files=names, info={"pages": pages, "ground_truth": summary})

@@ -105,7 +105,8 @@ class ExitanceOptions:
 def exitance(points, irradiance: np.ndarray, profile, shading: ShadingPoints, *, lights,
              visibility, options: ExitanceOptions,
              shared: RunCache | None = None,
-             keys: tuple[str, str, str] | None = None) -> tuple[np.ndarray, dict]:
+             keys: tuple[str, str, str] | None = None,
+             terms: str = "all") -> tuple[np.ndarray, dict]:
     """Radiant exitance of the BSSRDF at shading points: the far part of the profile
     gathered from the points, the near part at each point (module docstring).
 
@@ -126,6 +127,11 @@ def exitance(points, irradiance: np.ndarray, profile, shading: ShadingPoints, *,
     keys : (points, irradiance, profile) content keys, optional
         With ``shared``: the cache keys of the nodes that made them (``ctx.input_keys``); by
         default digests of their arrays.
+    terms : {"all", "smooth", "near"}
+        "all": the exitance; "smooth": the parts gathered from the points alone (the far part
+        of the point and directional lights and the whole profile of the other light where
+        the near field is resolved, else everything); "near": the point and directional
+        lights' near field alone (zero where it is not resolved).  all = smooth + near.
 
     Returns
     -------
@@ -197,8 +203,12 @@ def exitance(points, irradiance: np.ndarray, profile, shading: ShadingPoints, *,
             return m
         return near
 
-    stats: dict = {"near_field": bool(resolved)}
+    if terms not in ("all", "smooth", "near"):
+        raise ValueError(f"exitance terms {terms!r}: one of 'all', 'smooth', 'near'")
+    stats: dict = {"near_field": bool(resolved), "kernel_seconds": 0.0}
     if not resolved:
+        if terms == "near":
+            return np.zeros((len(queries), 3), np.float32), {**stats, "seconds": 0.0}
         m, st = gathered("all", lambda: E, "all")
         stats.update(st)
         stats["seconds"] = time.perf_counter() - t0
@@ -218,17 +228,22 @@ def exitance(points, irradiance: np.ndarray, profile, shading: ShadingPoints, *,
         return pending
     pending = cache.get(SHADOW_EDGES, (spacing, repr(sharp), repr(transmittance)) + key,
                         locate_edges)
-    m_far, st = gathered("all", lambda: E, "far")
+    M = np.zeros((len(queries), 3))
+    if terms != "near":
+        m_far, st = gathered("all", lambda: E, "far")
+        stats.update(st)
+        M += m_far
     edges = [f.result() for f in pending]
     t_edges = sum(ed.info["seconds"] for ed in edges)
-    stats.update(st)
-    M = m_far.astype(np.float64)
-    if soft or options.indirect:
+    if terms != "near" and (soft or options.indirect):
         m_soft, st_soft = gathered("soft", lambda: np.maximum(
             E - sum(ed.irradiance for ed in edges), 0.0).astype(np.float32), "near")
         M += m_soft
         stats["kernel_seconds"] += st_soft["kernel_seconds"]
     t1 = time.perf_counter()
+    if terms == "smooth":
+        stats.update({"edges_seconds": t_edges, "seconds": time.perf_counter() - t0})
+        return np.nan_to_num(M, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32), stats
     table = cache.get(NEAR_TABLES, (profile_key, sigma, tuning.cutoff_mm), lambda: near_tables(
         split_profile(profile, sigma, cutoff_mm=tuning.cutoff_mm)))
     stats.update({"near_fallback": 0, "near_side_from_visibility": 0})

@@ -41,36 +41,40 @@ __all__ = ["sharp_irradiance", "soft_irradiance", "pixel_representatives",
 
 
 def sharp_irradiance(shading: ShadingPoints, light, k: int, visibility, transmittance):
-    """C(x) (Q, 3) and V(x) (Q,) of one point or directional light (the ``k``-th of the
-    condition's) at the shading points, as ``shadow_edges.sharp_near_field`` takes them."""
+    """C(x) (Q, 3) float32 and V(x) (Q,) of one point or directional light (the ``k``-th of
+    the condition's) at the shading points, as ``shadow_edges.sharp_near_field`` takes them.
+    In float32, with the horizon as a factor (not a selection): a pass over the camera
+    samples' arrays costs what a BRDF evaluation's does."""
     from dermis.lighting.emitters import sample_lights
     x = np.asarray(shading.positions, np.float32)
-    ns = np.asarray(shading.shading_normals, np.float64)
-    ns = ns / np.maximum(np.linalg.norm(ns, axis=1, keepdims=True), 1e-30)
+    ns = np.asarray(shading.shading_normals, np.float32)
     ng = np.asarray(shading.geo_normals, np.float32)
     ls = sample_lights(light, x, ng)
-    wi, wt, dist = ls.directions[:, 0], ls.weights[:, 0].astype(np.float64), ls.distance[:, 0]
-    cos = np.einsum("ij,ij->i", wi, ns)
-    live = (cos > 0) & (wt.sum(axis=1) > 0)
-    out, seen = np.zeros((len(x), 3)), np.zeros(len(x))
+    wi, wt, dist = ls.directions[:, 0], ls.weights[:, 0], ls.distance[:, 0]
+    norm = np.sqrt(np.einsum("ij,ij->i", ns, ns))
+    cos = np.einsum("ij,ij->i", wi, ns) / np.maximum(norm, np.float32(1e-30))
+    live = (cos > 0) & (wt.max(axis=1) > 0)
     if not live.any():
-        return out, seen
-    c = wt[live] * cos[live, None]
+        return np.zeros((len(x), 3), np.float32), np.zeros(len(x))
+    c = wt * (cos * live)[:, None]
     if transmittance is not None:
-        c = c * np.asarray(transmittance(cos[live]))
+        c *= np.asarray(transmittance(np.where(live, cos, np.float32(1.0))), np.float32)
     if shading.visible is not None:
-        vis = np.asarray(shading.visible[:, k], bool)[live]
+        seen = np.asarray(shading.visible[:, k], bool) & live
     else:
-        vis = ~visibility.occluded(x[live], ng[live], wi[live], dist[live])
-    out[live] = c
-    seen[live] = vis
-    return out, seen
+        seen = np.zeros(len(x), bool)
+        seen[live] = ~visibility.occluded(x[live], ng[live], wi[live], dist[live])
+    return c, seen
 
 
 def pixel_representatives(pixels: np.ndarray):
     """(distinct pixels (P,), the first shading point of each (P,), each shading point's
     row among them (Q,)) for ``pixels`` (Q,) flat pixel indices."""
     pixels = np.asarray(pixels, np.int64)
+    if len(pixels) and bool(np.all(pixels[1:] >= pixels[:-1])):   # the renderer's order
+        first = np.flatnonzero(np.r_[True, pixels[1:] != pixels[:-1]])
+        rep_of = np.cumsum(np.r_[False, pixels[1:] != pixels[:-1]])
+        return pixels[first], first, rep_of
     order = np.argsort(pixels, kind="stable")
     distinct, first = np.unique(pixels[order], return_index=True)
     return distinct, order[first], np.searchsorted(distinct, pixels)

@@ -2,9 +2,9 @@
 interpolation's error estimated from the samples (``subsurface/adaptive.py``; docs/science.md
 §4 "Adaptive gather").
 
-What is interpolated is the smooth part of the exitance: the gather less the terms the
-adaptive model evaluates exactly at every shading point (the near part of point and
-directional lights, Rd_near C(x) V(x)).  That part is the points' irradiance reconstructed
+What is interpolated is the smooth part of the exitance (``exitance(terms="smooth")``): all
+but the near field of point and directional lights, which the adaptive model evaluates at
+every shading point.  That part is the points' irradiance reconstructed
 with the gather's Gaussian of width sigma and convolved with the profile (its far part,
 beyond 2 sigma, for point and directional light; all of it for disc, environment and
 indirect light), so it varies over sigma and more: sampled every ``SAMPLE_SIGMAS`` sigma on the
