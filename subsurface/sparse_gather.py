@@ -72,17 +72,20 @@ def sample_grid(pixel: np.ndarray, width: int, height: int, spacing: int) -> Sam
 
 
 def _coords(pixels: np.ndarray, width: int, spacing: int, n: int):
-    """Grid coordinates of pixels along one axis: (lower sample index (P,), fraction (P,)),
-    the fraction outside [0, 1] past the outermost samples (linear extrapolation)."""
+    """Grid coordinates of pixels along one axis: (lower sample index (P,), fraction (P,) in
+    [0, 1]).  Past the outermost samples the fraction is held at 0 or 1 (the nearest
+    sample's value, whose error the one-sided first difference of
+    :func:`interpolation_error` bounds): an extrapolated exitance can be negative, an
+    interpolated one cannot."""
     u = (pixels - spacing // 2) / spacing
     i0 = np.clip(np.floor(u).astype(np.int64), 0, max(n - 2, 0))
-    return i0, u - i0
+    return i0, np.clip(u - i0, 0.0, 1.0)
 
 
 def interpolate(grid: SampleGrid, values: np.ndarray, pixels: np.ndarray, width: int):
     """Bilinear interpolation of per-sample ``values`` (S, k) at flat pixel indices
-    ``pixels`` (P,): ((P, k) values, (P,) bool whether all four samples exist, (P, 4) their
-    flat cell indices)."""
+    ``pixels`` (P,): ((P, k) values, each a convex combination of its four samples, (P,)
+    bool whether all four samples exist, (P, 4) their flat cell indices)."""
     hc, wc = grid.shape
     v = np.zeros((hc * wc, values.shape[1]))
     have = np.zeros(hc * wc, bool)

@@ -171,3 +171,27 @@ def test03_thin_slab_lit_from_behind_carries_transmission(cl_env, profile, thick
         assert _rel_rmse(got, full) < PLATE_TOL
     else:
         assert np.all(got == 0.0)
+
+
+def test04_interpolation_never_extrapolates():
+    """Pixels past the outermost samples (a close-up's border) take the nearest samples'
+    values, never a linear extrapolation (which made a pixel of the default scene's ear
+    close-up -7.6e-11: radiance cannot be negative)."""
+    from dermis.subsurface.sparse_gather import interpolate, sample_grid
+    w = h = 16
+    pixels = np.arange(w * h)
+    grid = sample_grid(pixels, w, h, 4)
+    rows, cols = pixels[grid.points] // w, pixels[grid.points] % w
+    # non-negative ramps, zero at the first sample row / column: extrapolated past it they
+    # go negative
+    values = np.stack([rows - rows.min(), cols - cols.min(), np.full(len(rows), 2.0)],
+                      axis=1).astype(np.float64)
+    out, ok, _ = interpolate(grid, values, pixels, w)
+    assert ok.all()
+    assert out.min() >= 0.0
+    lo, hi = values.min(axis=0), values.max(axis=0)
+    assert np.all((out >= lo - 1e-12) & (out <= hi + 1e-12))
+    r, c = pixels // w, pixels % w
+    inside = (r >= rows.min()) & (r <= rows.max()) & (c >= cols.min()) & (c <= cols.max())
+    # between the samples it is bilinear: exact for a linear function
+    np.testing.assert_allclose(out[inside, 0], (r - rows.min())[inside], atol=1e-12)
