@@ -53,7 +53,7 @@ def adaptive_pages(pdf, images: dict) -> int:
                      f"full BSSRDF (full red / blue at {100 * DIFF_SCALE:g} % of the image's "
                      "99th-percentile luminance)", fontsize=10, y=0.985)
         part = rows[start:start + ROWS]
-        gs = fig.add_gridspec(ROWS, 4, left=0.03, right=0.97, bottom=0.02, top=0.93,
+        gs = fig.add_gridspec(ROWS, 4, left=0.03, right=0.97, bottom=0.02, top=0.90,
                               hspace=0.30, wspace=0.04)
         for r, (light, full, ad) in enumerate(part):
             _row(fig, gs, r, light, full, ad)
