@@ -199,7 +199,7 @@ class BssrdfConfig:
     # spread of each other.  Per view of the default scene (bench/results/gather_views.json,
     # exitance vs brute force at 4000 camera samples): 0.5 is 2.79 % off in the lips close-up
     # (8 px/mm, disc light) and 0.40-0.46 % under the disc and the sky; 0.25 is at most
-    # 0.12 % on every view, for 3-53 % more kernel time (at most 0.18 s an image): 0.25
+    # 0.12 % on every view, for 3-54 % more kernel time (at most 0.18 s an image): 0.25
     epsilon: float = spec(0.25, lo=0.0, lo_open=True, hi=10.0, doc="solid-angle criterion")
     # Jensen-Buhler used <= 8 points per leaf; 16 measured 8-10% faster at lower error
     leaf_size: int = spec(16, lo=1, hi=256, doc="points per octree leaf")
