@@ -360,12 +360,13 @@ def test06b_error_falls_with_epsilon(cl_env, skin1, lit_bump, pixel_queries):
     et = [rel_rmse(G.gather(t, skin1, q, epsilon=eps, env=cl_env, normalisation="thesis")[0], bt)
           for eps in (EPS, 0.2)]
     assert et[1] <= et[0] * 1.05 + 1e-6 and et[0] < 0.005, et
-    # on the pixel-like queries too: eps 0.2 (measured 0.08 %) well below the shipped value
+    # on the pixel-like queries too: 0.4 x the shipped value well below it (measured
+    # 0.032 % at 0.1 against 0.11 % at 0.25; the error falls about linearly with epsilon)
     qd = pixel_queries
     bd, _ = G.gather(t, skin1, qd, epsilon=None, env=cl_env, brute_force=True)
     e_ship = rel_rmse(G.gather(t, skin1, qd, epsilon=EPS, env=cl_env)[0], bd)
-    e_02 = rel_rmse(G.gather(t, skin1, qd, epsilon=0.2, env=cl_env)[0], bd)
-    assert e_02 < 0.5 * e_ship, (e_02, e_ship)
+    e_fine = rel_rmse(G.gather(t, skin1, qd, epsilon=0.4 * EPS, env=cl_env)[0], bd)
+    assert e_fine < 0.5 * e_ship, (e_fine, e_ship)
 
 
 def test07_query_order_does_not_change_results(cl_env, skin1, lit_bump):
