@@ -173,13 +173,9 @@ def with_target(target: float):
         adaptive_exitance, adaptive=AdaptiveOptions(target=target)))
 
 
-def against_brute_force(runner, nid: str, samples: int = 4000, seed: int = 1) -> dict:
-    """Both models' exitance at ``samples`` random camera samples of the adaptive image
-    ``nid`` against the brute-force gather there (every point summed, no clusters; the full
-    BSSRDF's own approximation error, gather epsilon and tile walk, included): relative RMSE
-    of each, all channels."""
-    from dermis.subsurface.adaptive import adaptive_exitance
-    from dermis.subsurface.exitance import ShadingPoints, exitance
+def exitance_inputs(runner, nid: str) -> tuple:
+    """((points, irradiance, profile, shading), keywords) the adaptive BSSRDF node ``nid``
+    passes to its exitance (the full BSSRDF's are the same but for camera and pixels)."""
     mod = importlib.import_module("dermis.models.bssrdf_adaptive")
     shipped, seen = mod.MODEL, {}
 
@@ -191,8 +187,17 @@ def against_brute_force(runner, nid: str, samples: int = 4000, seed: int = 1) ->
         runner.call(nid)
     finally:
         mod.MODEL = shipped
-    points, E, profile, sh = seen["args"]
-    kw = seen["kw"]
+    return seen["args"], seen["kw"]
+
+
+def against_brute_force(runner, nid: str, samples: int = 4000, seed: int = 1) -> dict:
+    """Both models' exitance at ``samples`` random camera samples of the adaptive image
+    ``nid`` against the brute-force gather there (every point summed, no clusters; the full
+    BSSRDF's own approximation error, gather epsilon and tile walk, included): relative RMSE
+    of each, all channels."""
+    from dermis.subsurface.adaptive import adaptive_exitance
+    from dermis.subsurface.exitance import ShadingPoints, exitance
+    (points, E, profile, sh), kw = exitance_inputs(runner, nid)
     common = dict(lights=kw["lights"], visibility=kw["visibility"])
     full, _ = exitance(points, E, profile, sh, options=kw["options"], shared=kw["shared"],
                        keys=kw["keys"], **common)

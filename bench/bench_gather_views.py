@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import importlib
 import os
 import statistics
 import tempfile
@@ -31,25 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bench_bssrdf_adaptive import REPO, Runner, variant
+from bench_bssrdf_adaptive import REPO, Runner, exitance_inputs, variant
 from labelled import save_labelled
-
-
-def inputs_of(runner, nid: str) -> tuple:
-    """The arguments the adaptive BSSRDF node ``nid`` passes to its exitance (the full
-    BSSRDF's are the same but for camera and pixels)."""
-    mod = importlib.import_module("dermis.models.bssrdf_adaptive")
-    shipped, seen = mod.MODEL, {}
-
-    def spy(points, irradiance, profile, shading, **kw):
-        seen.update(args=(points, irradiance, profile, shading), kw=kw)
-        return shipped.exitance(points, irradiance, profile, shading, **kw)
-    mod.MODEL = dataclasses.replace(shipped, exitance=spy)
-    try:
-        runner.call(nid)
-    finally:
-        mod.MODEL = shipped
-    return seen["args"], seen["kw"]
 
 
 def without_gathers(shared):
@@ -83,7 +65,7 @@ def main() -> None:
         labels = [lab for lab in labels if lab in args.lights.split(",")]
     rows = {}
     for lab in labels:
-        (points, E, profile, sh), kw = inputs_of(runner, f"render-bssrdf_adaptive-{lab}-high")
+        (points, E, profile, sh), kw = exitance_inputs(runner, f"render-bssrdf_adaptive-{lab}-high")
         common = dict(lights=kw["lights"], visibility=kw["visibility"])
         pick = np.sort(np.random.default_rng(1).choice(
             len(sh.positions), min(args.samples, len(sh.positions)), replace=False))
