@@ -378,11 +378,9 @@ def predict(frame: PixelFrame, local: np.ndarray, parts: list, pixels: np.ndarra
     b = PREDICTOR_BIN
     hb, wb = -(-frame.height // b), -(-frame.width // b)
     binned = _bin_of(pixels, frame.width, b)
-    count = np.bincount(rep_of, minlength=len(pixels)).astype(np.float64)
-
-    def mean(v):      # a shadow's coverage of the pixel, not its first sample's
-        return np.bincount(rep_of, weights=v, minlength=len(pixels)) / count
-    parts = [(np.repeat(mean(v)[:, None], 3, axis=1) if v.ndim == 1 else v[rep], part,
+    # a shadow's coverage of the pixel, not its first sample's
+    parts = [(np.repeat(_image(np.asarray(v, np.float64)[:, None], rep_of, len(pixels))[0], 3,
+                        axis=1) if v.ndim == 1 else v[rep], part,
               None if f is None else f[rep]) for v, part, f in parts]
     size, shape = hb * wb, (hb, wb)
     local_img, count = _image(local, binned, size)
@@ -469,9 +467,7 @@ def adaptive_exitance(points, irradiance, profile, shading: ShadingPoints, *, li
     t_sample = time.perf_counter() - t1
     # the predictors
     t2 = time.perf_counter()
-    count = np.bincount(rep_of, minlength=len(pixels)).astype(np.float64)
-    local = smooth + np.stack([np.bincount(rep_of, weights=exact[:, c], minlength=len(pixels))
-                               for c in range(3)], axis=1) / count[:, None]
+    local = smooth + _image(exact, rep_of, len(pixels))[0]
     pred = predict(frame, local, parts, pixels, profile, rep, rep_of)
     whole_s = smooth_s + exact[grid.points]
     floor = DARK_FLOOR * np.maximum(whole_s.mean(axis=0), 1e-30) if len(whole_s) else np.ones(3)
@@ -487,17 +483,17 @@ def adaptive_exitance(points, irradiance, profile, shading: ShadingPoints, *, li
     # mean position (smooth over a pixel: its error is second order in the pixel's size),
     # at every shading point of a pixel that straddles a depth step
     t3 = time.perf_counter()
-    flagged = np.flatnonzero(w_smooth > 0)
-    centre, spread = pixel_centroids(flagged, rep_of, q)
+    smooth_rows = np.flatnonzero(w_smooth > 0)
+    centre, spread = pixel_centroids(smooth_rows, rep_of, q)
     one_surface = spread <= CENTROID_SPREAD * sigma
-    at_pixel = flagged[one_surface]
+    at_pixel = smooth_rows[one_surface]
     if len(at_pixel):
         wi = w_smooth[at_pixel, None]
         smooth[at_pixel] = ((1.0 - wi) * smooth[at_pixel]
                             + wi * term("smooth", rep[at_pixel], at=centre[one_surface]))
     M = exact + smooth[rep_of]
     straddle = np.zeros(len(pixels), bool)
-    straddle[flagged[~one_surface]] = True
+    straddle[smooth_rows[~one_surface]] = True
     at_point = np.flatnonzero(straddle[rep_of])
     w_q = w_smooth[rep_of]
     if len(at_point):

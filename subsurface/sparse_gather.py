@@ -28,9 +28,9 @@ __all__ = ["SAMPLE_SIGMAS", "sample_spacing", "SampleGrid", "sample_grid", "inte
 
 # Samples every SAMPLE_SIGMAS sigma on the image: 3 pixels of the default view (sigma
 # 1.24 mm, 0.37 mm a pixel), 9 of a close-up at 8 px/mm (cut to MAX_SPACING).  At 1.5
-# sigma the interpolation estimate gathered more (one run each at load 10: point light 21 % of the pixels against
-# 16 %, disc 68 % against 53 %, lips close-up 99 % against 96 %) and the point light's
-# image cost 1.14 of the full BSSRDF's CPU seconds against 0.93.
+# sigma the interpolation estimate gathered more (one run each at load 10: point light 21 %
+# of the pixels against 16 %, disc 68 % against 53 %, lips close-up 99 % against 96 %) and
+# the point light's image cost 1.14 of the full BSSRDF's CPU seconds against 0.93.
 SAMPLE_SIGMAS = 1.0
 # At most this many pixels between samples (0.5 mm at 8 px/mm): in a close-up sigma spans
 # ~10 pixels, and the surface folds within it.  With samples a sigma apart (9 pixels) the
