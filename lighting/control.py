@@ -20,11 +20,10 @@ any number fixed per hit (the model's cosine-weighted mean of its diffuse part, 
 the added terms have mean zero whatever alpha is, so the estimate stays unbiased, and where
 the surface is unoccluded and diffuse the two sums cancel sample by sample.  That difference
 estimator goes negative where occluders hide more of the region than the samples' average;
-the renderer combines the sums per pixel instead as a non-negative estimator - the
-difference where the control sum is below its integral, the ratio (the lit sum scaled by the
-integral over the control sum) above it - biased by O(1 / samples) (rendering/shade.py
-``_ratio``).  The product
-strategy covers R_b by construction (R_b keeps only pixels it can draw), so the control sum
+the renderer combines the sums per pixel (the irradiance pass per point) instead as a
+non-negative estimator - the difference where the control sum is below its integral, the
+ratio (the lit sum scaled by the integral over the control sum) above it - biased by
+O(1 / samples) (:func:`control_estimate`).  The product strategy covers R_b by construction (R_b keeps only pixels it can draw), so the control sum
 is unbiased for n_s . M_b.  Why: under the Venice sunset one hit's irradiance from 4 samples
 had a relative spread of 10-30 % even with samples drawn in proportion to luminance x cosine:
 the map's colour (a red sun, a blue sky, an orange horizon) cannot follow one scalar pdf;
@@ -40,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["CONTROL_SPLIT", "ControlTable", "control_table", "pixel_moments"]
+__all__ = ["CONTROL_SPLIT", "ControlTable", "control_table", "pixel_moments", "control_estimate"]
 
 # Normal bins of the control variate: CONTROL_SPLIT x CONTROL_SPLIT inside each of the
 # product strategy's 16 x 32 (PRODUCT_NORMAL_BINS), so a hit's control region is one its
@@ -234,3 +233,36 @@ def _exclude(env, t, table: ControlTable, lm: np.ndarray, moments: np.ndarray) -
     q, p = np.nonzero(inside)
     np.add.at(moments, bi[q], -lm[rows[q, p] * w + cols[q, p]])
     return True
+
+
+def control_estimate(total, signed, ctrl, ctrl_signed, exact, exact_signed):
+    """The control variate (lighting/control.py) per pixel and channel as a non-negative
+    estimator: Y the sum of the control region's samples (the others, a split sun's
+    (lighting/sun.py), are added as they are: scaling them by the sky's C / X would add the
+    sky's noise to the sun's light), X the control samples' sum, C the control's exact
+    integral,
+
+        Y + (C - X)                where X <= C   (the difference estimator, >= Y >= 0),
+        Y C / X = Y + (C - X) Y / X  where X > C   (the ratio estimator, Y scaled down),
+
+    so the estimate is Y + beta (C - X) with beta = min over the two (1 or Y / X): never
+    negative, and the scale C / X < 1 never amplifies a sample.  Where the surface is
+    unoccluded and diffuse Y = X sample by sample and both give C.  The difference estimator
+    alone (beta = 1, unbiased) went negative where the control samples outweigh what is lit
+    (occluded hits: X > C + Y); the ratio estimator alone blew up where X is small (HK93's
+    single scattering over a near-empty control sum: 0.34 relative noise).  Biased by
+    O(1 / samples) where X > C: E[Y / X] C is not E[Y] (Cochran 1977, "Sampling Techniques",
+    §6.8), measured in bench/results/env_noise.json.  The halves (rendering/halves.py) each
+    take their own estimate; the noise is half their difference.  Returns the estimate and
+    the noise (or None).  Per pixel in the renderer (rendering/shade.py), per point in the
+    irradiance pass (lighting/irradiance.py)."""
+    def est(y, x, c):
+        over = x > c
+        return np.where(over, y * c / np.where(over, x, 1.0), y + (c - x))
+
+    image = est(total, ctrl, exact)
+    if signed is None:
+        return image, None
+    half = [est((total + k * signed) / 2, (ctrl + k * ctrl_signed) / 2,
+                (exact + k * exact_signed) / 2) for k in (1, -1)]
+    return image, half[0] - half[1]

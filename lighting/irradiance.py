@@ -8,6 +8,21 @@ E = sum_s V_s cos_s weights_s over the light samples of lighting/emitters.py
 the surface).  Points are processed in independent batches (own seed, own rows of the
 result) on IRRADIANCE_THREADS threads, so the result does not depend on the thread count.
 
+Halves (``halves=True``, the pipeline's irradiance stage).  Each point's S samples of a disc
+or environment light are two independent halves, each an Owen-scrambled Sobol net of S / 2
+(lighting/strata.py ``PixelStrata``, the point a pixel of its own), so E = (A + B) / 2 and
+noise = (A - B) / 2 estimates E's variance per point (E[noise^2] = Var E, as the renderer's
+images, rendering/halves.py); point and directional lights have no sampling noise and count
+in both halves.  An environment light is drawn as the renderer draws it (the mixture,
+lighting/mixture.py) with its control variate (lighting/control.py): the unoccluded light
+is known exactly, alpha n . M_b with alpha the cosine-weighted mean of the entry
+transmittance, and the samples estimate only what occluders and T's change with the cosine
+take from it, through the never-negative ``control_estimate`` (each half its own).  Measured
+on 20,000 of the default head's irradiance points against 2,048 samples a point (64 samples,
+4 seeds; bench/results/irradiance.json "halves"): under the Venice sunset the relative RMSE
+falls from 0.040 (one jittered set, luminance x cosine strategy) to 0.017, the noise estimate
+0.017, the bias +0.09 %; under the disc light 0.0033 -> 0.0032.  For CPU time see there.
+
 Guarded by tests/test_lights.py (directional E cos theta, shadowed), tests/test_energy.py
 and tests/test_knife_edge.py.
 """
@@ -18,7 +33,10 @@ from typing import Callable
 
 import numpy as np
 
-from dermis.lighting.emitters import SamplingOptions, check_points, sample_lights
+from dermis.lighting.control import control_estimate
+from dermis.lighting.emitters import (ENV_STRATEGIES, SamplingOptions, check_points,
+                                      sample_lights)
+from dermis.lighting.strata import PixelStrata
 from dermis.pipeline.errors import DermisError
 
 __all__ = ["irradiance", "run_batches", "IRRADIANCE_THREADS"]
@@ -31,7 +49,7 @@ IRRADIANCE_THREADS = 2
 def irradiance(points: np.ndarray, normals: np.ndarray, light,
                occlusion_fn: Callable | None, *, seed: int = 0,
                options: SamplingOptions = SamplingOptions(), chunk: int = 8192,
-               transmittance: Callable | None = None) -> np.ndarray:
+               transmittance: Callable | None = None, halves: bool = False):
     """Irradiance E at surface points from one light (or a list of lights), with shadows.
 
     Parameters
@@ -57,17 +75,23 @@ def irradiance(points: np.ndarray, normals: np.ndarray, light,
         ``transmittance(cos) -> (..., 3)``: the fraction of each light sample that enters
         the surface at its cosine (e.g. Fresnel transmittance, ``optics/transmittance.py
         Transmittance``), applied per sample; None counts all of it (plain irradiance).
+    halves : bool
+        The pipeline's estimator, with its own noise estimate (module docstring, "Halves"):
+        returns (E, noise) instead of E.
 
     Returns
     -------
     (N, 3) float32 irradiance E = integral of L cos(theta) over the hemisphere (units of the
     light's intensity / mm^2 for point and disc lights, of ``intensity`` for directional
     lights, of radiance x sr for environment maps); with ``transmittance``, the entering
-    part integral of T L cos(theta).
+    part integral of T L cos(theta); with ``halves``, also its noise (N, 3) float32.
     """
     p, n = check_points(points, normals)
     if n is None:
         raise DermisError("irradiance: normals are required")
+    if halves:
+        return _irradiance_halves(p, n, light, occlusion_fn, seed=seed, options=options,
+                                  chunk=chunk, transmittance=transmittance)
     out = np.zeros((len(p), 3), dtype=np.float32)
 
     def batch(c: int) -> None:
@@ -96,6 +120,83 @@ def irradiance(points: np.ndarray, normals: np.ndarray, light,
 
     run_batches(batch, len(p), chunk)
     return out
+
+
+def _irradiance_halves(p, n, light, occlusion_fn, *, seed, options, chunk, transmittance):
+    """The pipeline's estimator (module docstring, "Halves"): (E, noise), each (N, 3) float32."""
+    lights = list(light) if isinstance(light, (list, tuple)) else [light]
+    signs = np.concatenate([_column_signs(lt, options) for lt in lights])
+    out = np.zeros((len(p), 3), dtype=np.float32)
+    noise = np.zeros((len(p), 3), dtype=np.float32)
+    # the control's coefficient: any value fixed per point keeps E unbiased; the cosine-
+    # weighted mean of T makes the lit and control sums cancel on unoccluded skin but for
+    # T's change with the cosine
+    alpha = np.asarray(getattr(transmittance, "mean", np.ones(3)), np.float32)
+    # the renderer's estimator where the strategy is the default one (rendering/cast.py)
+    mixture = options.env_strategy == ENV_STRATEGIES[0]
+
+    def batch(c: int) -> None:
+        start = c * chunk
+        ps, ns = p[start:start + chunk], n[start:start + chunk]
+        m = len(ps)
+        strata = PixelStrata(np.arange(start, start + m), np.zeros(m, np.int64), 1, seed,
+                             independent=True)
+        ls = sample_lights(light, ps, ns, seed=(seed, c), options=options, share=1,
+                           strata=strata, mixture=mixture, control=mixture,
+                           product_normals=ns if mixture else None)
+        cos = np.einsum("nsk,nk->ns", ls.directions, ns)
+        live = ls.live()
+        live &= cos > 0
+        factor = np.where(live, cos, np.float32(0.0))
+        if occlusion_fn is not None and live.any():
+            idx = np.flatnonzero(live)
+            rep = idx // live.shape[1]
+            blocked = occlusion_fn(ps.take(rep, axis=0), ns.take(rep, axis=0),
+                                   ls.directions.reshape(-1, 3).take(idx, axis=0),
+                                   ls.distance.ravel().take(idx))
+            factor.ravel()[idx[blocked]] = 0.0
+        w = ls.weights
+        if transmittance is not None:
+            factor = factor[..., None] * np.asarray(transmittance(np.maximum(cos, 0.0)),
+                                                    np.float32)
+        else:
+            factor = factor[..., None]
+
+        def sums(x, where=None):   # (sum, signed sum) over a point's samples, (m, 3) each
+            y = x if where is None else x * where[..., None]
+            return (np.einsum("nsk->nk", y, dtype=np.float64),
+                    np.einsum("nsk,s->nk", y, signs, dtype=np.float64))
+        lit, lit_signed = sums(w * factor)
+        if ls.control is None:
+            e, d = lit, lit_signed
+        else:   # the first environment light's control variate (lighting/control.py)
+            region = ls.control
+            other, other_signed = sums(w * factor, ~region)
+            ctrl, ctrl_signed = sums(w * (alpha * np.where(region, cos, np.float32(0.0))[
+                ..., None]))
+            moments = np.asarray(ls.control_table, np.float64).take(ls.control_bin, axis=0)
+            exact = alpha * np.einsum("nkj,nj->nk", moments, ns.astype(np.float64))
+            e, d = control_estimate(lit - other, lit_signed - other_signed, ctrl, ctrl_signed,
+                                    exact, np.zeros_like(exact))
+            e += other
+            d += other_signed
+        out[start:start + m] = e
+        noise[start:start + m] = d
+    run_batches(batch, len(p), chunk)
+    return out, noise
+
+
+def _column_signs(light, options: SamplingOptions) -> np.ndarray:
+    """The half (+1 A, -1 B, 0 both) of each of a light's sample columns, as
+    :func:`sample_lights` lays them out for a point of its own (``share`` 1, rendering/halves.py
+    ``sample_signs``): one column of a point or directional light, in both halves; of the S of
+    a disc or environment light, the first S // 2 and the next S // 2 (an odd one out in
+    both)."""
+    if light.type in ("point", "directional"):
+        return np.zeros(1, np.float32)
+    s = int(options.samples if options.samples is not None else light.samples)
+    i = np.arange(s)
+    return np.where(i < s // 2, 1.0, np.where(i < 2 * (s // 2), -1.0, 0.0)).astype(np.float32)
 
 
 def run_batches(batch: Callable[[int], None], count: int, chunk: int) -> None:

@@ -177,10 +177,14 @@ class PointIrradiance:
 
     irradiance : (N, 3) float32, light units / mm^2 (point, disc) or as the light's
     intensity (directional) or radiance x sr (environment); info : dict (samples, timings)
+    noise : (N, 3) float32 or None, the signed half difference (A - B) / 2 of two independent
+        half estimates whose mean is ``irradiance`` (lighting/irradiance.py "Halves"): per
+        point noise^2 estimates its variance; the points are independent.  None: no estimate.
     """
 
     irradiance: np.ndarray
     info: dict = field(default_factory=dict)
+    noise: np.ndarray | None = None
 
 
 @dataclass

@@ -43,11 +43,11 @@ class LightSampling:
         :func:`rendering.cast.glossy_lobes` sets it for a scene that renders them
     control_variate : with ``mixture``, the control variate of lighting/control.py: the
         unoccluded diffuse light known exactly, the samples estimating only the rest, through
-        the never-negative difference/ratio estimator of rendering/shade.py ``_ratio``.  The
-        pipeline turns it on (stages/visibility.py): under the Venice sunset it takes the
-        Lafortune image's relative RMSE from 0.072 to 0.043 (bench/results/env_noise.json
-        "split") for 1.3x the rays and shading CPU time ("one_pass_cost").  False: the
-        plain mixture estimator
+        the never-negative difference/ratio estimator of lighting/control.py
+        ``control_estimate``.  The pipeline turns it on (stages/visibility.py): under the
+        Venice sunset it takes the Lafortune image's relative RMSE from 0.072 to 0.043
+        (bench/results/env_noise.json "split") for 1.3x the rays and shading CPU time
+        ("one_pass_cost").  False: the plain mixture estimator
     independent_halves : the two half images of the image's own noise estimate
         (rendering/halves.py) drawn from two independently scrambled nets of the pixel's
         light samples (:class:`lighting.strata.PixelStrata` ``independent``), so noise^2

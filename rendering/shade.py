@@ -45,6 +45,7 @@ from typing import Callable
 
 import numpy as np
 
+from dermis.lighting.control import control_estimate
 from dermis.lighting.visibility import Visibility
 from dermis.models.model import Model
 from dermis.pipeline.artifacts import SAMPLE_CONTROL
@@ -191,7 +192,8 @@ class _Shader:
 
 def shade(px: PixelSurface, shader, progress=None) -> tuple[np.ndarray, dict]:
     """Sum f W cos over every unoccluded light sample into its pixel, / spp; with the control
-    variate (lighting/control.py), the non-negative estimator of :func:`_ratio`.
+    variate (lighting/control.py), the non-negative estimator of
+    :func:`dermis.lighting.control.control_estimate`.
 
     Returns (H*W, 3) float64 radiance and a dict of seconds and counts; its ``"noise"``:
     (H*W, 3) float64 the signed half difference of the samples' halves, / spp
@@ -262,44 +264,13 @@ def shade(px: PixelSurface, shader, progress=None) -> tuple[np.ndarray, dict]:
         # the region's samples through the estimator, the others (a split sun's) as they are
         region = radiance - other
         region_signed = None if noise is None else noise - other_signed
-        radiance, noise = _ratio(region, region_signed, ctrl, ctrl_signed, exact, exact_signed)
+        radiance, noise = control_estimate(region, region_signed, ctrl, ctrl_signed, exact,
+                                           exact_signed)
         radiance += other
         if noise is not None:
             noise += other_signed
     stats["noise"] = noise / px.spp if noise is not None else None
     return radiance / px.spp, stats
-
-
-def _ratio(total, signed, ctrl, ctrl_signed, exact, exact_signed):
-    """The control variate (lighting/control.py) per pixel and channel as a non-negative
-    estimator: Y the sum of the control region's samples (the others, a split sun's
-    (lighting/sun.py), are added as they are: scaling them by the sky's C / X would add the
-    sky's noise to the sun's light), X the control samples' sum, C the control's exact
-    integral,
-
-        Y + (C - X)                where X <= C   (the difference estimator, >= Y >= 0),
-        Y C / X = Y + (C - X) Y / X  where X > C   (the ratio estimator, Y scaled down),
-
-    so the estimate is Y + beta (C - X) with beta = min over the two (1 or Y / X): never
-    negative, and the scale C / X < 1 never amplifies a sample.  Where the surface is
-    unoccluded and diffuse Y = X sample by sample and both give C.  The difference estimator
-    alone (beta = 1, unbiased) went negative where the control samples outweigh what is lit
-    (occluded hits: X > C + Y); the ratio estimator alone blew up where X is small (HK93's
-    single scattering over a near-empty control sum: 0.34 relative noise).  Biased by
-    O(1 / samples) where X > C: E[Y / X] C is not E[Y] (Cochran 1977, "Sampling Techniques",
-    §6.8), measured in bench/results/env_noise.json.  The halves (rendering/halves.py) each
-    take their own estimate; the noise is half their difference.  Returns the radiance and
-    the noise (or None)."""
-    def est(y, x, c):
-        over = x > c
-        return np.where(over, y * c / np.where(over, x, 1.0), y + (c - x))
-
-    image = est(total, ctrl, exact)
-    if signed is None:
-        return image, None
-    half = [est((total + k * signed) / 2, (ctrl + k * ctrl_signed) / 2,
-                (exact + k * exact_signed) / 2) for k in (1, -1)]
-    return image, half[0] - half[1]
 
 
 def _image(radiance: np.ndarray, px: PixelSurface,

@@ -11,14 +11,12 @@ Monte Carlo-tabulated profile; a model with its own ``Model.exitance``, ``bssrdf
 the local model with the gather where its predictor asks, its blend mask written beside the
 image), lighting condition and geometry; pass 1 is the ``irradiance`` stage.
 
-The image carries no noise estimate of its own (``RenderedImage.noise`` None): besides the
-surface term's light samples, which split into halves as the BRDF images' do
-(rendering/halves.py), its noise comes from the irradiance of the points (pass 1), shared by
-every pixel within the profile's reach.  Halves of that would need the irradiance stage to
-keep two half irradiances and the gather to run on each of them (the octree's clusters are
-irradiance-weighted, subsurface/octree.py, so the gather of the halves' difference is not
-the difference of their gathers): about twice the gather's time.  The surface term's half
-alone would understate the image's noise.
+The image carries its own noise estimate (``RenderedImage.noise``, rendering/halves.py): the
+surface term's, from the halves of its light samples as the BRDF images', plus the
+exitance's, the points' irradiance noise (``PointIrradiance.noise``, the halves of pass 1)
+gathered through the profile (``exitance``'s ``noise``) and taken to radiance as M is.  The
+two are independent (different samples), so their signed sum's square estimates the image's
+variance.  Under point and directional light the exitance has no sampling noise.
 """
 from __future__ import annotations
 
@@ -46,7 +44,8 @@ from dermis.lighting.emitters import light_params
 from dermis.lighting.visibility import EMBREE_SCENES, embree_scene
 
 NAME = "bssrdf"
-VERSION = 3   # 2: optics-resolved near field, entry/exit transmittance; 3: the blend weight
+VERSION = 4   # 2: optics-resolved near field, entry/exit transmittance; 3: the blend weight;
+#               4: the image's own noise estimate
 KERNELS = ()
 SHARES = (EMBREE_SCENES, SURFACES, OCTREES, SHADOW_EDGES, NEAR_TABLES, GATHERS, POINT_TREES)
 OUTPUT_FOLDER = "render"   # exported beside the BRDF images: render/<model>-<light>-<geometry>.exr
@@ -89,7 +88,8 @@ def _surface_term(mesh, lights, camera, maps, bump, seed, samples, ctx) -> tuple
                         RenderOptions(maps=maps, bump=bump, seed=seed, samples=samples,
                                       textured=False), cl_env=ctx.cl, shared=ctx.shared,
                         keys=(ctx.input_keys["mesh"], ctx.input_keys.get("maps")))
-    return spec.linear.reshape(-1, 3), spec.timings
+    noise = None if spec.noise is None else spec.noise.reshape(-1, 3)
+    return spec.linear.reshape(-1, 3), spec.timings, noise
 
 
 def run(params: dict, inputs: dict, ctx) -> StageResult:
@@ -123,29 +123,37 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
                               env=ctx.cl, progress=ctx.progress)
     frame = ({"camera": camera, "pixels": px.hit_idx[front]}   # where the points lie in the
              if model.exitance else {})                       # image (Model.exitance)
+    irr = inputs["irradiance"]
     M, stats = (model.exitance or exitance)(
-        inputs["points"], inputs["irradiance"].irradiance, profile, shading, lights=lights,
+        inputs["points"], irr.irradiance, profile, shading, lights=lights,
         visibility=vis_embree, options=options, shared=ctx.shared, **frame,
-        keys=(ctx.input_keys["points"], ctx.input_keys["irradiance"], ctx.input_keys["profile"]))
+        keys=(ctx.input_keys["points"], ctx.input_keys["irradiance"], ctx.input_keys["profile"]),
+        noise=getattr(irr, "noise", None))
+    M_noise = stats.pop("noise", None)
     blend = stats.pop("blend_image", None)
     stats.pop("blend", None)
     stats.pop("predicted_images", None)
     t_gather = time.perf_counter() - t0
     cos_o = np.einsum("ij,ij->i", surf["shading_normal"][front], surf["wo"][front])
     albedo = None if b["albedo_mode"] == "none" else surf["albedo"][front]
-    L = exitance_to_radiance(M, cos_o, params["eta"], albedo=albedo,
-                             albedo_mode="replace" if albedo is None else b["albedo_mode"],
-                             rd=profile.Rd, transmittance=transmit)
-    image = px.pixels(L, front)   # box filter over the pixel's camera samples
+    def radiance(m):
+        return exitance_to_radiance(m, cos_o, params["eta"], albedo=albedo,
+                                    albedo_mode="replace" if albedo is None else b["albedo_mode"],
+                                    rd=profile.Rd, transmittance=transmit)
+    image = px.pixels(radiance(M), front)   # box filter over the pixel's camera samples
+    # the exitance's noise to radiance as M (linear in it), over the same pixels
+    noise = None if M_noise is None else px.pixels(radiance(M_noise), front)
     timings = {"visibility": t_vis, "gather": t_gather,
                **{k: float(stats[k]) for k in ("edges_seconds", "near_seconds", "local_seconds",
                                                "predictor_seconds", "adaptive_gather_seconds")
                   if k in stats},
                "kernel_seconds": float(stats.get("kernel_seconds", 0.0)) + px.kernel_seconds}
     if b["surface_reflection"] == "lafortune_lobes":
-        spec, spec_t = _surface_term(mesh, lights, camera, maps, params["bump"], params["seed"],
-                                     vis, ctx)
+        spec, spec_t, spec_noise = _surface_term(mesh, lights, camera, maps, params["bump"],
+                                                 params["seed"], vis, ctx)
         image += spec
+        if spec_noise is not None:
+            noise = spec_noise if noise is None else noise + spec_noise
         timings["surface_reflection"] = spec_t["total"]
         timings["kernel_seconds"] += spec_t.get("kernel_seconds", 0.0)
     image = np.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0)
@@ -165,7 +173,10 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     info = {"model": model, "light": params["label"], "geometry": params["geometry"],
             "profile_model": profile.info.get("model", "multipole"),
             "gather": {k: v for k, v in stats.items() if isinstance(v, (int, float, str))}}
-    return StageResult(RenderedImage(linear, mask, timings, info,
+    if noise is not None:
+        noise = np.nan_to_num(noise, nan=0.0, posinf=0.0, neginf=0.0).reshape(
+            px.height, px.width, 3).astype(np.float32)
+    return StageResult(RenderedImage(linear, mask, timings, info, noise=noise,
                                      blend=None if blend is None else blend.astype(np.float32)),
                        files=files,
                        info={"timings": timings, "kernel_seconds": timings["kernel_seconds"]})

@@ -8,8 +8,13 @@ enters the skin: each light sample is weighted by the entry transmittance
 surface term min(Fresnel, 1 - the lobes' albedo); docs/science.md §4), because the
 profile's Rd is per entering photon.  With ``[render] indirect`` the points also receive one
 bounce of indirect light (stage ``indirect``, interpolated from the mesh's vertices) times the
-entry transmittance of diffuse light, the hemispherical mean of T.  Cost per mesh and light (64 samples, ~241k points):
-``bench/bench_irradiance.py`` -> ``bench/results/irradiance.json`` (docs/science.md §4).
+entry transmittance of diffuse light, the hemispherical mean of T.  The points' light is
+estimated as the renderer's is (lighting/irradiance.py "Halves": two independent halves,
+the environment's control variate), and the stage keeps the halves' difference, the points'
+own noise estimate (``PointIrradiance.noise``) that the BSSRDF images gather into theirs;
+the indirect bounce adds none (its noise is not estimated).  Cost per mesh and light (64
+samples, ~241k points): ``bench/bench_irradiance.py`` -> ``bench/results/irradiance.json``
+(docs/science.md §4).
 """
 from __future__ import annotations
 
@@ -26,7 +31,7 @@ from dermis.lighting.visibility import EMBREE_SCENES, embree_scene
 from dermis.optics.transmittance import Transmittance
 
 NAME = "irradiance"
-VERSION = 2   # 2: entering irradiance (entry transmittance per light sample)
+VERSION = 3   # 2: entering irradiance (entry transmittance per light sample); 3: halves, control
 KERNELS = ()
 SHARES = (EMBREE_SCENES,)
 
@@ -54,10 +59,11 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     lights = [LightConfig(**d) for d in params["lights"]]
     entry = params["entry"]
     transmit = Transmittance(entry["eta"], entry["surface_reflection"])
-    E = irradiance(pts.positions, pts.normals, lights, vis.occluded, seed=params["seed"],
-                   options=SamplingOptions(samples=params["samples"]), transmittance=transmit)
+    E, noise = irradiance(pts.positions, pts.normals, lights, vis.occluded, seed=params["seed"],
+                          options=SamplingOptions(samples=params["samples"]),
+                          transmittance=transmit, halves=True)
     if "indirect" in inputs:   # one diffuse bounce (lighting/indirect.py): its entering part
         E += at_points(inputs["indirect"].irradiance, mesh, pts.positions, vis) * transmit.mean
     info = {"seconds": time.perf_counter() - t0, "points": int(len(E)),
             "samples": params["samples"], "entry_transmittance": repr(transmit)}
-    return StageResult(PointIrradiance(E, info), info=info)
+    return StageResult(PointIrradiance(E, info, noise=noise), info=info)

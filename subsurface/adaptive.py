@@ -421,7 +421,7 @@ def pixel_centroids(rows: np.ndarray, rep_of: np.ndarray, positions: np.ndarray)
 def adaptive_exitance(points, irradiance, profile, shading: ShadingPoints, *, lights,
                       visibility, options: ExitanceOptions, camera, pixels: np.ndarray,
                       adaptive: AdaptiveOptions = AdaptiveOptions(), shared=None,
-                      keys=None) -> tuple[np.ndarray, dict]:
+                      keys=None, noise: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """Exitance (Q, 3) of the adaptive BSSRDF at the shading points seen by ``camera``
     (a CameraConfig) through ``pixels`` (Q,) flat pixel indices (module docstring), and
     stats: the gathers' kernel seconds, the blend weight per shading point ("blend", the
@@ -431,7 +431,9 @@ def adaptive_exitance(points, irradiance, profile, shading: ShadingPoints, *, li
 
     ``visibility``: the mesh's Visibility (shadow rays where ``shading`` carries none).  The
     gathers are :func:`exitance`'s own terms, with the run's ``shared`` octree and shadow
-    edges."""
+    edges.  ``noise``: the points' irradiance noise; stats["noise"] is then the exitance's
+    noise estimate (``exitance``'s ``noise``), its smooth part's noise gathered, interpolated
+    and blended as the smooth part is (the exact part and the near field have none)."""
     t0 = time.perf_counter()
     lights = list(lights)
     E = np.asarray(irradiance, np.float32)
@@ -443,15 +445,22 @@ def adaptive_exitance(points, irradiance, profile, shading: ShadingPoints, *, li
     pixels, rep, rep_of = pixel_representatives(frame.pixel)
     stats: dict = {"kernel_seconds": 0.0}
 
+    noisy = noise is not None and bool(np.any(noise))
+    noise_parts: list = []    # the smooth terms' noise, in the order they are gathered
+
     def term(terms, idx, at=None):
         """exitance()'s ``terms`` at the shading points ``idx`` (or at positions ``at`` with
-        their normals), with the run's octree and shadow edges."""
+        their normals), with the run's octree and shadow edges (the smooth terms' noise kept
+        in ``noise_parts``)."""
         vis_sub = None if shading.visible is None else shading.visible[idx]
         m, st = exitance(points, E, profile, ShadingPoints(q[idx] if at is None else at,
                                                             ns[idx], ng[idx], visible=vis_sub),
                          lights=lights, visibility=visibility, options=options,
-                         shared=shared, keys=keys, terms=terms)
+                         shared=shared, keys=keys, terms=terms,
+                         noise=noise if noisy and terms == "smooth" else None)
         stats["kernel_seconds"] += float(st.get("kernel_seconds", 0.0))
+        if noisy and terms == "smooth":
+            noise_parts.append(np.asarray(st["noise"], np.float64))
         return np.asarray(m, np.float64)
     # the exact part at every shading point
     parts: list = []
@@ -464,6 +473,8 @@ def adaptive_exitance(points, irradiance, profile, shading: ShadingPoints, *, li
                        sample_spacing(sigma, float(np.median(frame.footprint))))
     smooth_s = term("smooth", grid.points)
     smooth, complete, corners = interpolate(grid, smooth_s, pixels, frame.width)
+    smooth_noise = (interpolate(grid, noise_parts[0], pixels, frame.width)[0] if noisy
+                    else None)
     t_sample = time.perf_counter() - t1
     # the predictors
     t2 = time.perf_counter()
@@ -491,7 +502,10 @@ def adaptive_exitance(points, irradiance, profile, shading: ShadingPoints, *, li
         wi = w_smooth[at_pixel, None]
         smooth[at_pixel] = ((1.0 - wi) * smooth[at_pixel]
                             + wi * term("smooth", rep[at_pixel], at=centre[one_surface]))
+        if noisy:
+            smooth_noise[at_pixel] = (1.0 - wi) * smooth_noise[at_pixel] + wi * noise_parts[-1]
     M = exact + smooth[rep_of]
+    M_noise = smooth_noise[rep_of] if noisy else None
     straddle = np.zeros(len(pixels), bool)
     straddle[smooth_rows[~one_surface]] = True
     at_point = np.flatnonzero(straddle[rep_of])
@@ -499,6 +513,8 @@ def adaptive_exitance(points, irradiance, profile, shading: ShadingPoints, *, li
     if len(at_point):
         wi = w_q[at_point, None]
         M[at_point] += wi * (term("smooth", at_point) - smooth[rep_of[at_point]])
+        if noisy:
+            M_noise[at_point] += wi * (noise_parts[-1] - smooth_noise[rep_of[at_point]])
     # the near field's edge terms where the shadow is predicted to change the pixel
     near = np.flatnonzero(w_near[rep_of] > 0)
     if len(near):
@@ -516,6 +532,7 @@ def adaptive_exitance(points, irradiance, profile, shading: ShadingPoints, *, li
         maps[k][pixels] = np.minimum(pred[k] / tau, 1e30)
     w = w_pix[rep_of]
     stats.update({"blend": w.astype(np.float32),
+                  "noise": None if M_noise is None else M_noise.astype(np.float32),
                   "predicted_images": {k: v.reshape(frame.height, frame.width)
                                        for k, v in maps.items()},
                   "blend_image": image.reshape(frame.height, frame.width),

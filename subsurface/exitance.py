@@ -29,9 +29,9 @@ __all__ = ["ShadingPoints", "ExitanceOptions", "exitance", "SHARED_GATHERS", "OC
 # Gathers kept per run by :func:`exitance` for reuse: the same points, irradiance, profile and
 # query positions give the same exitance, and the low mesh's two bump variants of a lighting
 # condition shade the same positions (the bump moves normals only) and run together.  Each
-# is a (Q, 3) float32 array, ~30 MB at 800 x 800 x 4 spp; 4 hold a condition's far and soft
-# parts for two profiles.
-SHARED_GATHERS = 4
+# is a (Q, 3) float32 array, ~30 MB at 800 x 800 x 4 spp; 6 hold a condition's far and soft
+# parts and its noise for two profiles.
+SHARED_GATHERS = 6
 # What the BSSRDF images of a run share (pipeline/shared.py): the octrees of a mesh's points
 # under a lighting condition, the shadow edges located on them, the near-field tables of a
 # profile, and the last gathers (the low mesh's bump variants gather at the same positions)
@@ -106,7 +106,7 @@ def exitance(points, irradiance: np.ndarray, profile, shading: ShadingPoints, *,
              visibility, options: ExitanceOptions,
              shared: RunCache | None = None,
              keys: tuple[str, str, str] | None = None,
-             terms: str = "all") -> tuple[np.ndarray, dict]:
+             terms: str = "all", noise: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """Radiant exitance of the BSSRDF at shading points: the far part of the profile
     gathered from the points, the near part at each point (module docstring).
 
@@ -132,6 +132,14 @@ def exitance(points, irradiance: np.ndarray, profile, shading: ShadingPoints, *,
         of the point and directional lights and the whole profile of the other light where
         the near field is resolved, else everything); "near": the point and directional
         lights' near field alone (zero where it is not resolved).  all = smooth + near.
+    noise : (N, 3) float, optional
+        The points' irradiance noise (``PointIrradiance.noise``, lighting/irradiance.py
+        "Halves"): stats["noise"] is then the exitance's own noise estimate at the shading
+        points, (Q, 3) float32, the points' noise gathered through the whole profile with
+        the irradiance's clusters (``Octree.carrying``): linear in it, so noise^2 estimates
+        M's variance from the irradiance's sampling (the point and directional lights' part,
+        the near field included, has none).  None for the "near" terms, without ``noise``
+        or where it is zero everywhere.
 
     Returns
     -------
@@ -170,14 +178,15 @@ def exitance(points, irradiance: np.ndarray, profile, shading: ShadingPoints, *,
                progress=progress, tuning=tuning)
     qkey = content_key(queries)
 
-    def gathered(name, e, part):
-        """gather() of the octree ``name`` at the queries, or the same gather made earlier in
-        the run (its stats then with no kernel seconds of this call; which node made it
-        depends on the run's order, so nothing else says so: the artifact stays the same)."""
+    def gathered(name, e, part, made_tree=False):
+        """gather() of the octree ``name`` (``made_tree``: the octree ``e()``) at the queries,
+        or the same gather made earlier in the run (its stats then with no kernel seconds of
+        this call; which node made it depends on the run's order, so nothing else says so:
+        the artifact stays the same)."""
         gk = ((name, part, qkey, profile_key, epsilon, normalisation, brute_force,
                repr(tuning)) + key)
         (m, st), made = cache.get_made(GATHERS, gk, lambda: gather(
-            tree(name, e), profile, queries, part=part, **gkw))
+            e() if made_tree else tree(name, e), profile, queries, part=part, **gkw))
         return m, (st if made else {**st, "kernel_seconds": 0.0})
 
     def lit_near(k, ed):
@@ -205,7 +214,13 @@ def exitance(points, irradiance: np.ndarray, profile, shading: ShadingPoints, *,
 
     if terms not in ("all", "smooth", "near"):
         raise ValueError(f"exitance terms {terms!r}: one of 'all', 'smooth', 'near'")
-    stats: dict = {"near_field": bool(resolved), "kernel_seconds": 0.0}
+    stats: dict = {"near_field": bool(resolved), "kernel_seconds": 0.0, "noise": None}
+    if noise is not None and terms != "near" and np.any(noise):
+        # the noise through the irradiance's clusters: the octree "all" of E, as the gathers'
+        d = np.asarray(noise, np.float32)
+        stats["noise"], st = gathered("noise", lambda: tree("all", lambda: E).carrying(d),
+                                      "all", made_tree=True)
+        stats["kernel_seconds"] += st["kernel_seconds"]
     if not resolved:
         if terms == "near":
             return np.zeros((len(queries), 3), np.float32), {**stats, "seconds": 0.0}

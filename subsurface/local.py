@@ -94,10 +94,13 @@ def soft_irradiance(points, irradiance, sharp, visibility, options: ExitanceOpti
 
 def local_limit_exitance(points, irradiance, profile, shading: ShadingPoints, *, lights,
                          visibility, options: ExitanceOptions, pixels=None, camera=None,
-                         shared=None, keys=None) -> tuple[np.ndarray, dict]:
+                         shared=None, keys=None,
+                         noise: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """M = Rd E(x) (Q, 3) at the shading points (module docstring) and stats (seconds).
     ``pixels`` (Q,): the shading points' flat pixel indices (the soft lights' interpolation
-    runs once per pixel); None: once per shading point."""
+    runs once per pixel); None: once per shading point.  ``noise``: the points' irradiance
+    noise, interpolated as E is into stats["noise"], Rd times it (``exitance``'s
+    ``noise``; the point and directional lights' part has none)."""
     t0 = time.perf_counter()
     lights = list(lights)
     rd = np.asarray(profile.Rd, np.float64)
@@ -108,6 +111,7 @@ def local_limit_exitance(points, irradiance, profile, shading: ShadingPoints, *,
         c, v = sharp_irradiance(shading, light, k, visibility, options.transmittance)
         E += c * v[:, None]
     kernel = 0.0
+    noise_m = None
     if soft or options.indirect:
         e_soft = soft_irradiance(points, irradiance, sharp, visibility, options)
         q = np.asarray(shading.positions)
@@ -123,6 +127,13 @@ def local_limit_exitance(points, irradiance, profile, shading: ShadingPoints, *,
                                 env=options.env)
         E += np.asarray(it.values[:, :3], np.float64)[rep_of]
         kernel = it.seconds
+        if noise is not None and np.any(noise):
+            nt = interpolate_points(points.positions, points.normals, points.areas,
+                                    np.asarray(noise, np.float32), q[rep], n[rep], sigma,
+                                    env=options.env)
+            noise_m = (rd[None, :] * np.asarray(nt.values[:, :3], np.float64)[rep_of]
+                       ).astype(np.float32)
+            kernel += nt.seconds
     M = np.nan_to_num(rd[None, :] * E, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
     return M, {"seconds": time.perf_counter() - t0, "kernel_seconds": kernel,
-               "local_seconds": time.perf_counter() - t0}
+               "local_seconds": time.perf_counter() - t0, "noise": noise_m}

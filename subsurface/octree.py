@@ -18,7 +18,7 @@ grouped into a flattened octree that the device (``cl/bssrdf_gather.cl``, launch
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
@@ -84,6 +84,23 @@ class Octree:
     def mean_irradiance(self) -> np.ndarray:
         """Area-weighted mean irradiance per node, (K, 3)."""
         return self.ea_sum / np.maximum(self.area, 1e-300)[:, None]
+
+    def carrying(self, values: np.ndarray) -> "Octree":
+        """The same tree - nodes, their irradiance-weighted positions and covariances, the
+        points' order - carrying other per-point values (N, 3) of any sign (in the input
+        points' order) in place of the irradiance: a gather of it is the gather of
+        ``values`` through the irradiance's clusters, linear in them (the irradiance's
+        noise, ``subsurface/exitance.py`` :func:`exitance_noise`).  A node's sum of values x
+        area covers its subtree, the points [start[i], start[skip[i]])."""
+        v = np.asarray(values, np.float64)
+        if v.shape != (len(self.order), 3) or not np.isfinite(v).all():
+            raise DermisError(f"octree: values {v.shape} must be finite and "
+                              f"({len(self.order)}, 3)")
+        v = v[self.order]
+        k = self.n_nodes
+        cum = np.vstack([np.zeros((1, 3)), np.cumsum(v * self.areas[:, None], axis=0)])
+        sums = cum[self.start[self.skip[:k]]] - cum[self.start[:k]]
+        return replace(self, ea_sum=sums, irradiance=v.astype(np.float32))
 
 
 def _spread_bits(v: np.ndarray) -> np.ndarray:

@@ -1,5 +1,5 @@
 """An environment map's sun split off and sampled on its own (lighting/sun.py), and the
-renderer's control-variate estimator (rendering/shade.py ``_ratio``) under it.
+renderer's control-variate estimator (lighting/control.py ``control_estimate``) under it.
 
 * the split is exact: the sky's pixels and the sun's sum to the map, the sun's pixels are the
   procedural sunset's disc and its irradiance the one it was built with;
