@@ -49,6 +49,9 @@ norm); ``--sample-counts`` measures the default at other light sample counts; ``
 the scene's own 800 x 800 (interleaved, medians); ``--memory`` measures the peak resident
 memory of a child that casts and shades this setup with 16 and with 1024 light samples per
 pixel in one piece (what the 64x render needs) and the bytes per stored light sample.
+``--bssrdf-own K`` measures only the pipeline's BSSRDF image: its own noise estimate (the
+surface term's halves and the points' irradiance halves gathered, stages/bssrdf.py) against
+its spread over K values of the scene's seed (no converged render needed).
 
 The converged render is kept in ``<cache>/bench_env_noise/`` (``--reuse-reference`` reuses it,
 so "before" and "after" are measured against the same one).
@@ -455,6 +458,36 @@ def bssrdf_noise(cache, seeds: int, env, shaders, ref=None) -> dict:
             "subsurface_share_of_image": float(np.sqrt((st.mean(axis=0) ** 2).mean() / ms))}
 
 
+def bssrdf_own_noise(cache, seeds: int) -> dict:
+    """The pipeline's BSSRDF image (``render-bssrdf``) at ``seeds`` values of ``mesh.seed``
+    (new points, their irradiance, the gather, the surface term's light samples), over the
+    skin (coverage 1, from the visibility's hits): the relative spread of the images between
+    the seeds, against their own noise estimates (``RenderedImage.noise``: the surface term's
+    halves plus the points' irradiance halves gathered, stages/bssrdf.py), all relative to
+    the mean image's RMS.  The spread also holds what the points' placement changes with the
+    seed, which the estimate leaves out (it is not sampling noise of one set of points)."""
+    from dermis.pipeline import api, artifacts
+    base = _scene().mesh.seed
+    imgs, noises, secs = [], [], []
+    for k in range(seeds):
+        sc = _scene(seed=base + k)
+        summary = api.run(sc, cache=cache, until="bssrdf", export=False)
+        got = {rep.id: rep.path for rep in summary.nodes}
+        im = artifacts.load(got[f"render-bssrdf-{LABEL}-high"])
+        imgs.append(im.linear.astype(np.float64))
+        noises.append(np.asarray(im.noise, np.float64))
+        secs.append(float(im.timings.get("total", 0.0)))
+        hits = artifacts.load(got[f"visibility-mesh_high-{LABEL}"])
+        skin = np.bincount(hits.pixel, minlength=SIZE * SIZE).reshape(SIZE, SIZE) \
+            >= hits.spp
+    st = np.stack([x[skin] for x in imgs])
+    ms = float((st.mean(axis=0) ** 2).mean())
+    return {"seeds": seeds, "skin_pixels": int(skin.sum()),
+            "rel_spread_between_seeds": float(np.sqrt(st.var(axis=0, ddof=1).mean() / ms)),
+            "own_rel_noise": float(np.sqrt(np.mean([n[skin] ** 2 for n in noises]) / ms)),
+            "image_seconds": secs}
+
+
 def spread(scene, mesh, lights, vis, env, shaders, seeds, variants) -> dict:
     """Without a converged render: per variant and BRDF model, the relative noise between
     ``seeds`` renders (the seeds' variance over the skin, relative to their mean image's
@@ -584,6 +617,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--memory", action="store_true")
     ap.add_argument("--bssrdf-seeds", type=int, default=0,
                     help="the BSSRDF's noise from its points' irradiance over this many seeds")
+    ap.add_argument("--bssrdf-own", type=int, default=0,
+                    help="only the BSSRDF image's own noise estimate against its spread over "
+                         "this many seeds (bssrdf_own_noise; no reference needed)")
     ap.add_argument("--procedural", action="store_true",
                     help="the variants' noise between seeds under the procedural sunset")
     ap.add_argument("--cache", default=None)
@@ -595,6 +631,15 @@ def main(argv=None) -> dict:
     env = get_env(args.device)
     scene = _scene()
     cache = cache_dir_for(scene, args.cache)
+    if args.bssrdf_own:
+        out = {"code": _commit(), "load": list(os.getloadavg()),
+               "setup": {"scene": "default", "mesh": "high", "light": LABEL,
+                         "size": [SIZE, SIZE]},
+               "bssrdf_own_noise": bssrdf_own_noise(cache, args.bssrdf_own)}
+        print(out, flush=True)
+        if not args.no_save:
+            save_labelled(RESULTS / "env_noise.json", args.label, out)
+        return out
     mesh, lights, vis_default, bssrdf = _inputs(scene, cache)
     from dermis.lighting.visibility import Visibility
     vis = Visibility(mesh.vertices, mesh.faces)
