@@ -465,10 +465,10 @@ def bssrdf_own_noise(cache, seeds: int) -> dict:
     the seeds, against their own noise estimates (``RenderedImage.noise``: the surface term's
     halves plus the points' irradiance halves gathered, stages/bssrdf.py), all relative to
     the mean image's RMS.  The spread also holds what the points' placement changes with the
-    seed, which the estimate leaves out (it is not sampling noise of one set of points)."""
+    seed, which the estimate leaves out."""
     from dermis.pipeline import api, artifacts
     base = _scene().mesh.seed
-    imgs, noises, secs = [], [], []
+    imgs, noises = [], []
     for k in range(seeds):
         sc = _scene(seed=base + k)
         summary = api.run(sc, cache=cache, until="bssrdf", export=False)
@@ -476,7 +476,6 @@ def bssrdf_own_noise(cache, seeds: int) -> dict:
         im = artifacts.load(got[f"render-bssrdf-{LABEL}-high"])
         imgs.append(im.linear.astype(np.float64))
         noises.append(np.asarray(im.noise, np.float64))
-        secs.append(float(im.timings.get("total", 0.0)))
         hits = artifacts.load(got[f"visibility-mesh_high-{LABEL}"])
         skin = np.bincount(hits.pixel, minlength=SIZE * SIZE).reshape(SIZE, SIZE) \
             >= hits.spp
@@ -484,8 +483,7 @@ def bssrdf_own_noise(cache, seeds: int) -> dict:
     ms = float((st.mean(axis=0) ** 2).mean())
     return {"seeds": seeds, "skin_pixels": int(skin.sum()),
             "rel_spread_between_seeds": float(np.sqrt(st.var(axis=0, ddof=1).mean() / ms)),
-            "own_rel_noise": float(np.sqrt(np.mean([n[skin] ** 2 for n in noises]) / ms)),
-            "image_seconds": secs}
+            "own_rel_noise": float(np.sqrt(np.mean([n[skin] ** 2 for n in noises]) / ms))}
 
 
 def spread(scene, mesh, lights, vis, env, shaders, seeds, variants) -> dict:

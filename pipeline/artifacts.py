@@ -208,6 +208,8 @@ class PixelSamples:
     control_bin : (M,) int32 or None, each hit's control bin; control_table : (bins, 3, 3)
         float32 or None, the moments M_b (RGB x world xyz): the control variate's integral
         at a hit is n_s . M_b
+    sub : (M,) int32 or None, each hit's camera sample in [0, spp) (its half of the image,
+        rendering/halves.py); None in hand-made samples
     """
 
     width: int
@@ -223,6 +225,7 @@ class PixelSamples:
     flags: np.ndarray | None = None
     control_bin: np.ndarray | None = None
     control_table: np.ndarray | None = None
+    sub: np.ndarray | None = None
 
 
 # PixelSamples.flags bits

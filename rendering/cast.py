@@ -318,4 +318,4 @@ def cast(mesh, lights, camera, options: RenderOptions = RenderOptions(), *, cl_e
                         flags=(np.concatenate(flags) if flags else np.zeros(0, np.uint8)),
                         control_bin=(np.concatenate(cbins).astype(np.int32)
                                      if table is not None else None),
-                        control_table=table)
+                        control_table=table, sub=sub.astype(np.int32))

@@ -19,7 +19,7 @@ from dermis.rendering.options import LightSampling, RenderOptions
 __all__ = ["NAME", "VERSION", "KERNELS", "node", "run"]
 
 NAME = "visibility"
-VERSION = 1
+VERSION = 2   # 2: each hit's camera sample (PixelSamples.sub)
 KERNELS = ()   # rendering/surface.py declares cl/surface.cl
 SHARES = (EMBREE_SCENES, CAMERA_HITS)
 
