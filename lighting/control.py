@@ -35,11 +35,17 @@ against brute force).
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass
 
 import numpy as np
 
 __all__ = ["CONTROL_SPLIT", "ControlTable", "control_table", "pixel_moments", "control_estimate"]
+
+# Held while a map's table is built: its arrays take ~0.5 GB for a 2048-pixel map while
+# built (the map's L m and their prefix sums, float64), so two threads building the same
+# table at once (the render and the irradiance nodes of a run) doubled a run's peak.
+_BUILDING = threading.Lock()
 
 # Normal bins of the control variate: CONTROL_SPLIT x CONTROL_SPLIT inside each of the
 # product strategy's 16 x 32 (PRODUCT_NORMAL_BINS), so a hit's control region is one its
@@ -163,6 +169,12 @@ def control_table(env) -> ControlTable:
     cached = getattr(env, "_control", None)
     if cached is not None:
         return cached
+    with _BUILDING:   # once per map: the render and irradiance nodes of a run ask at once
+        cached = getattr(env, "_control", None)
+        return cached if cached is not None else _control_table(env)
+
+
+def _control_table(env) -> ControlTable:
     t = env._product()
     h, w = env.height, env.width
     kr, kc = t["kr"] * CONTROL_SPLIT, t["kc"] * CONTROL_SPLIT

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import functools
 import math
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -61,6 +62,9 @@ SUNSET_GROUND_RADIANCE = (0.02, 0.017, 0.015)   # dark ground below the horizon 
 SUNSET_WIDTH = 2048     # 0.18 deg per pixel: the sun spans ~3 pixels
 
 _TWO_PI = 2.0 * math.pi
+# Held while a map's product tables are built (EnvironmentMap._product): the render and the
+# irradiance nodes of a run ask at once, and each build holds the map's blocks twice over.
+_PRODUCT_BUILDING = threading.Lock()
 
 
 def brightness(radiance: np.ndarray) -> np.ndarray:
@@ -221,6 +225,12 @@ class EnvironmentMap:
         a normal's horizon keeps some mass), and the pixels' share inside each block."""
         if getattr(self, "_prod", None) is not None:
             return self._prod
+        with _PRODUCT_BUILDING:   # once per map, whichever node asks first
+            if getattr(self, "_prod", None) is None:
+                self._product_tables()
+            return self._prod
+
+    def _product_tables(self) -> None:
         h, w = self.height, self.width
         bh = max(1, -(-h // PRODUCT_BLOCKS[0]))
         bw = max(1, -(-w // PRODUCT_BLOCKS[1]))

@@ -27,6 +27,7 @@ Guarded by tests/test_env_sun.py and tests/test_cycles.py (the Cycles lamp).
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -127,12 +128,21 @@ class SunSplit:
     sun: Sun
 
 
+_SPLITTING = threading.Lock()
+
+
 def split_sun(env) -> SunSplit | None:
     """The sun and the sky of an EnvironmentMap (module docstring), or None when the map has no
     sun (:func:`sun_mask`); built once per map."""
     cached = getattr(env, "_sun_split", False)
     if cached is not False:
         return cached
+    with _SPLITTING:   # once per map: two threads would make two skies, each with its tables
+        cached = getattr(env, "_sun_split", False)
+        return cached if cached is not False else _split_sun(env)
+
+
+def _split_sun(env) -> SunSplit | None:
     from dermis.lighting.environment import EnvironmentMap
     split = None
     sun = sun_mask(env) if not env.black else None
