@@ -70,6 +70,7 @@ so "before" and "after" are measured against the same one).
 from __future__ import annotations
 
 import argparse
+import math
 import json
 import os
 import platform
@@ -515,6 +516,36 @@ def own_noise_default(cache) -> dict:
                                  "pixel_median": float(np.median(px)),
                                  "pixel_p95": float(np.percentile(px, 95))}
             print(m, lab, out[f"{m}-{lab}"], flush=True)
+        out[f"allocation-{lab}"] = allocation_bound(
+            {m: artifacts.load(got[f"render-{m}-{lab}-high"]) for m in models[:3]})
+        print("allocation", lab, out[f"allocation-{lab}"], flush=True)
+    return out
+
+
+def allocation_bound(images: dict, box: int = 5) -> dict:
+    """What the best per-pixel allocation of the same light samples would give the BRDF images
+    sharing them: each pixel's variance is its own estimate's noise^2 averaged over a box x
+    box window; n_i proportional to the square root of the images' summed variance (the
+    optimum for their sum, Neyman allocation; at least a quarter of the mean) divides pixel
+    i's variance by n_i.  Returns per model the variance ratio (uniform / allocated) and the
+    relative RMSE it would leave: a bound on what adaptive sampling at the default cost could
+    reach, not a render."""
+    from scipy.ndimage import uniform_filter
+    mask = next(iter(images.values())).mask
+    var = {m: np.maximum(uniform_filter((im.noise.astype(np.float64) ** 2).sum(axis=-1),
+                                        box)[mask], 0.0)   # the filter's rounding: >= 0
+           for m, im in images.items()}
+    n = np.sqrt(sum(var.values()))
+    n = np.maximum(n / n.mean(), 0.25)
+    n /= n.mean()
+    out = {"box": box}
+    for m, im in images.items():
+        gain = float(var[m].sum() / (var[m] / n).sum())
+        x = im.linear[mask].astype(np.float64)
+        noise = math.sqrt(float((im.noise[mask].astype(np.float64) ** 2).sum(axis=-1).mean()
+                                / (x ** 2).sum(axis=-1).mean()))
+        out[m] = {"variance_gain": gain, "rel_noise": noise,
+                  "rel_noise_allocated": noise / math.sqrt(gain)}
     return out
 
 
