@@ -40,7 +40,8 @@ import numpy as np
 
 from dermis.lighting.strata import thue_morse_sign
 
-__all__ = ["HALF_A", "HALF_B", "thue_morse_sign", "sample_signs", "half_flags", "signs_of"]
+__all__ = ["HALF_A", "HALF_B", "thue_morse_sign", "sample_signs", "half_flags", "signs_of",
+           "camera_halves"]
 
 # PixelSamples.flags bits of the halves (bits 0 and 1: pipeline/artifacts.py SAMPLE_LIT and
 # SAMPLE_CONTROL); neither bit: in both halves
@@ -80,3 +81,18 @@ def signs_of(flags: np.ndarray | None) -> np.ndarray | None:
         return None
     f = np.asarray(flags, np.uint8)
     return (((f & HALF_A) > 0).astype(np.float32) - ((f & HALF_B) > 0).astype(np.float32))
+
+
+def camera_halves(px, values: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
+    """(H*W, 3) float32 the signed half difference of per-hit ``values`` (of the hits ``idx``
+    of a ``PixelSurface``, default all) over each pixel's camera samples: with an even spp
+    whole camera samples make the halves (an odd one counts in both); zeros where the hits
+    carry no camera sample index (``PixelSamples.sub``).  The BSSRDF's exitance is evaluated
+    per camera sample, not per light sample, so this is its share of the image's noise
+    from the sub-pixel positions (stages/bssrdf.py)."""
+    sub = getattr(px.samples, "sub", None)
+    if sub is None:
+        return np.zeros((px.width * px.height, 3), np.float32)
+    sub = np.asarray(sub) if idx is None else np.asarray(sub)[idx]
+    sign = sample_signs(sub, px.spp, [1])[:, 0].astype(np.float64)
+    return px.pixels(np.asarray(values, np.float64) * sign[:, None], idx)

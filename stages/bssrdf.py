@@ -11,16 +11,9 @@ Monte Carlo-tabulated profile; a model with its own ``Model.exitance``, ``bssrdf
 the local model with the gather where its predictor asks, its blend mask written beside the
 image), lighting condition and geometry; pass 1 is the ``irradiance`` stage.
 
-The image carries its own noise estimate (``RenderedImage.noise``, rendering/halves.py): the
-surface term's, from the halves of its samples as the BRDF images'; the exitance's over the
-same halves of the camera samples (the sub-pixel positions and the albedo under them); and
-the points' irradiance noise (``PointIrradiance.noise``, the halves of pass 1) gathered
-through the profile (``exitance``'s ``noise``) and taken to radiance as M is.  The sources
-are independent, so the square of their signed sum estimates the image's variance.  Under
-point and directional light the points' irradiance has no sampling noise.  Not in it: the
-placement of the points, which a new seed also moves.  Measured under the Venice sunset
-(200 x 200, 4 seeds; bench/results/env_noise.json "bssrdf_own"): the estimate 0.0236 of the
-image's RMS against the images' spread over the seeds 0.0233, so the placement adds little.
+The image carries its own noise estimate (``RenderedImage.noise``): the surface term's halves,
+the exitance's over the same halves of the camera samples, and the points' irradiance noise
+gathered (``exitance``'s ``noise``); docs/science.md §6 "Each image's own noise".
 """
 from __future__ import annotations
 
@@ -36,7 +29,7 @@ from dermis.pipeline.imageio import write_exr
 from dermis.pipeline import registry
 from dermis.models import lafortune
 from dermis.optics.transmittance import Transmittance
-from dermis.rendering.halves import sample_signs
+from dermis.rendering.halves import camera_halves
 from dermis.rendering.options import RenderOptions
 from dermis.rendering import shade
 from dermis.rendering.surface import SURFACES, pixel_surface
@@ -97,17 +90,6 @@ def _surface_term(mesh, lights, camera, maps, bump, seed, samples, ctx) -> tuple
     return spec.linear.reshape(-1, 3), spec.timings, noise
 
 
-def _camera_halves(px, front, values) -> np.ndarray:
-    """(H*W, 3) the signed half difference of per-hit ``values`` over each pixel's camera
-    samples (rendering/halves.py: with an even spp whole camera samples make the halves; an
-    odd one counts in both), zeros where the hits carry no camera sample index."""
-    sub = getattr(px.samples, "sub", None)
-    if sub is None:
-        return np.zeros((px.width * px.height, 3), np.float32)
-    sign = sample_signs(np.asarray(sub)[front], px.spp, [1])[:, 0].astype(np.float64)
-    return px.pixels(np.asarray(values, np.float64) * sign[:, None], front)
-
-
 def run(params: dict, inputs: dict, ctx) -> StageResult:
     t_start = time.perf_counter()
     b = params["bssrdf"]
@@ -160,7 +142,7 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     image = px.pixels(L, front)   # box filter over the pixel's camera samples
     # the exitance's noise: its camera samples' halves (the sub-pixel positions, the albedo
     # under them) and the points' noise gathered, to radiance as M (linear in it)
-    noise = _camera_halves(px, front, L)
+    noise = camera_halves(px, L, front)
     if M_noise is not None:
         noise = noise + px.pixels(radiance(M_noise), front)
     timings = {"visibility": t_vis, "gather": t_gather,
