@@ -101,20 +101,7 @@ def irradiance(points: np.ndarray, normals: np.ndarray, light,
         start = c * chunk
         ps, ns = p[start:start + chunk], n[start:start + chunk]
         ls = sample_lights(light, ps, ns, seed=(seed, c), options=options, horizon=False)
-        # one cosine pass: samples below the horizon (or of zero weight) are not live, get
-        # no shadow ray and add nothing; the sum is E = sum_s V_s cos_s (T_s) weights_s
-        cos = np.einsum("nsk,nk->ns", ls.directions, ns)
-        live = ls.live()
-        live &= cos > 0
-        factor = np.where(live, cos, np.float32(0.0))
-        if occlusion_fn is not None and live.any():
-            # shadow rays of the live samples only (flat indices: one ``take`` per array)
-            idx = np.flatnonzero(live)
-            rep = idx // live.shape[1]
-            blocked = occlusion_fn(ps.take(rep, axis=0), ns.take(rep, axis=0),
-                                   ls.directions.reshape(-1, 3).take(idx, axis=0),
-                                   ls.distance.ravel().take(idx))
-            factor.ravel()[idx[blocked]] = 0.0
+        cos, factor = _lit_cosines(ls, ps, ns, occlusion_fn)
         w = ls.weights
         if transmittance is not None:
             t = np.asarray(transmittance(np.maximum(cos, 0.0)), dtype=np.float32)
@@ -123,6 +110,25 @@ def irradiance(points: np.ndarray, normals: np.ndarray, light,
 
     run_batches(batch, len(p), chunk)
     return out
+
+
+def _lit_cosines(ls, ps, ns, occlusion_fn) -> tuple[np.ndarray, np.ndarray]:
+    """(cos, V cos) (N, S) float32 of the light samples ``ls`` at points ``ps`` with normals
+    ``ns``, in one cosine pass: samples below the horizon (or of zero weight) are not live,
+    get no shadow ray and count 0; V from ``occlusion_fn`` (1 without it)."""
+    cos = np.einsum("nsk,nk->ns", ls.directions, ns)
+    live = ls.live()
+    live &= cos > 0
+    factor = np.where(live, cos, np.float32(0.0))
+    if occlusion_fn is not None and live.any():
+        # shadow rays of the live samples only (flat indices: one ``take`` per array)
+        idx = np.flatnonzero(live)
+        rep = idx // live.shape[1]
+        blocked = occlusion_fn(ps.take(rep, axis=0), ns.take(rep, axis=0),
+                               ls.directions.reshape(-1, 3).take(idx, axis=0),
+                               ls.distance.ravel().take(idx))
+        factor.ravel()[idx[blocked]] = 0.0
+    return cos, factor
 
 
 def _irradiance_halves(p, n, light, occlusion_fn, *, seed, options, chunk, transmittance):
@@ -147,17 +153,7 @@ def _irradiance_halves(p, n, light, occlusion_fn, *, seed, options, chunk, trans
         ls = sample_lights(light, ps, ns, seed=(seed, c), options=options, share=1,
                            strata=strata, mixture=mixture, control=mixture,
                            product_normals=ns if mixture else None)
-        cos = np.einsum("nsk,nk->ns", ls.directions, ns)
-        live = ls.live()
-        live &= cos > 0
-        factor = np.where(live, cos, np.float32(0.0))
-        if occlusion_fn is not None and live.any():
-            idx = np.flatnonzero(live)
-            rep = idx // live.shape[1]
-            blocked = occlusion_fn(ps.take(rep, axis=0), ns.take(rep, axis=0),
-                                   ls.directions.reshape(-1, 3).take(idx, axis=0),
-                                   ls.distance.ravel().take(idx))
-            factor.ravel()[idx[blocked]] = 0.0
+        cos, factor = _lit_cosines(ls, ps, ns, occlusion_fn)
         w = ls.weights
         if transmittance is not None:
             factor = factor[..., None] * np.asarray(transmittance(np.maximum(cos, 0.0)),

@@ -1,4 +1,5 @@
-"""Shared fixtures: the PoCL OpenCL env, a seeded RNG, the shared data folder."""
+"""Shared fixtures: the PoCL OpenCL env, a seeded RNG, the shared data folder, the two-layer
+skin's profiles."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -20,6 +21,14 @@ def cl_env():
 @pytest.fixture
 def rng():
     return np.random.default_rng(20061)
+
+
+@pytest.fixture(scope="session")
+def two_layer_profile():
+    """The layer profiles of the ``two_layer`` preset (optics/layer_profiles.py)."""
+    from dermis.optics.layer_profiles import build_profiles
+    from dermis.optics.layers import PRESETS
+    return build_profiles(PRESETS["two_layer"])
 
 
 ASSETS = REPO / "scenes" / "assets"

@@ -37,15 +37,9 @@ from dermis.pipeline.config import BssrdfConfig, LightConfig
 from dermis.subsurface import points as S
 from dermis.subsurface.exitance import ExitanceOptions, ShadingPoints, exitance
 
-STACK = PRESETS["two_layer"]
+STACK = PRESETS["two_layer"]     # conftest.py two_layer_profile: its profiles
 SEEDS = 12
 SAMPLES = 16
-
-
-@pytest.fixture(scope="module")
-def profile():
-    from dermis.optics.layer_profiles import build_profiles
-    return build_profiles(STACK)
 
 
 @pytest.fixture(scope="module")
@@ -137,7 +131,9 @@ def _queries(n: int, rng):
     return ShadingPoints(q, up, up)
 
 
-def test03_carrying_the_irradiance_gathers_the_exitance(cl_env, scene, profile, rng):
+def test03_carrying_the_irradiance_gathers_the_exitance(cl_env, scene, two_layer_profile,
+                                                        rng):
+    profile = two_layer_profile
     E, _ = _halves(scene, _light("disc"), 0)
     shading = _queries(2000, rng)
     M, st = exitance(scene["pts"], E, profile, shading, lights=[_light("disc")],
@@ -146,7 +142,8 @@ def test03_carrying_the_irradiance_gathers_the_exitance(cl_env, scene, profile, 
     np.testing.assert_allclose(st["noise"], M, rtol=1e-4, atol=1e-5 * float(M.max()))
 
 
-def test04_exitance_noise_tracks_its_spread(cl_env, scene, profile, rng):
+def test04_exitance_noise_tracks_its_spread(cl_env, scene, two_layer_profile, rng):
+    profile = two_layer_profile
     light = _light("sunset")
     shading = _queries(4000, rng)
     Ms, noises = [], []
