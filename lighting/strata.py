@@ -81,8 +81,12 @@ def _sobol_2d(digits: int) -> np.ndarray:
 
 
 # Trees of up to this many flip bits (digits <= 4: 16 points) are applied through a table of
-# every tree's scrambled points (32768 x 16 entries), one lookup per point
+# every tree's scrambled points (32768 x 16 entries), one lookup per point; a tree of 5 or 6
+# digits (one 64-bit word: the irradiance pass's nets of 32) looks its first 4 digits up by
+# value and flips the rest (the same digits, ~2x faster than flipping all of them)
 _LUT_NODES = 15
+_LUT_DIGITS = 4
+_LUT_MASK = (1 << _LUT_NODES) - 1
 
 
 @functools.lru_cache(maxsize=None)
@@ -98,6 +102,20 @@ def _scramble_table(digits: int, dim: int) -> np.ndarray:
         node = (1 << depth) - 1 + (x >> (digits - depth))
         flip = (t >> node) & 1
         y |= (((x >> (digits - 1 - depth)) & 1) ^ flip) << (digits - 1 - depth)
+    return y.ravel()
+
+
+@functools.lru_cache(maxsize=None)
+def _owen_values() -> np.ndarray:
+    """(2^15 * 16,) int64: each 4-digit value v scrambled by the tree of flip bits t (the
+    first 4 levels of any tree, nodes numbered as :func:`_scramble_table`'s), at t * 16 + v."""
+    x = np.arange(1 << _LUT_DIGITS, dtype=np.int64)[None, :]
+    t = np.arange(1 << _LUT_NODES, dtype=np.int64)[:, None]
+    y = np.zeros((1 << _LUT_NODES, 1 << _LUT_DIGITS), np.int64)
+    for depth in range(_LUT_DIGITS):
+        node = (1 << depth) - 1 + (x >> (_LUT_DIGITS - depth))
+        y |= (((x >> (_LUT_DIGITS - 1 - depth)) & 1) ^ ((t >> node) & 1)) \
+            << (_LUT_DIGITS - 1 - depth)
     return y.ravel()
 
 
@@ -200,13 +218,25 @@ class PixelStrata:
         nets = 1 if group is None else 2 + (self.share % 2)
         out = np.empty(index.shape + (dims,), np.int64)
         for k in range(dims):
-            if nodes <= _LUT_NODES:     # one tree word per point's net, the digits looked up
+            if nodes <= 63:             # one tree word per point's net
                 net_salt = _hash_u64(np.arange(nets, dtype=np.uint64) * np.uint64(64 * 4096)
                                      + np.uint64(k * 4096 + 1))
                 word = _hash_u64(key[:, None]
                                  ^ (net_salt[0] if group is None else net_salt.take(group)))
-                bits = (word & np.uint64((1 << nodes) - 1)).astype(np.int64)
-                out[..., k] = _scramble_table(d, k).take(bits * (1 << d) + index)
+                if nodes <= _LUT_NODES:   # the digits looked up
+                    bits = (word & np.uint64((1 << nodes) - 1)).astype(np.int64)
+                    out[..., k] = _scramble_table(d, k).take(bits * (1 << d) + index)
+                    continue
+                # the first LUT_DIGITS digits looked up by value, the rest flipped bit by bit
+                x = _sobol_2d(d)[:, k].take(index)
+                low = d - _LUT_DIGITS
+                bits = (word & np.uint64(_LUT_MASK)).astype(np.int64)
+                y = _owen_values().take(bits * (1 << _LUT_DIGITS) + (x >> low)) << low
+                for depth in range(_LUT_DIGITS, d):
+                    node = ((1 << depth) - 1 + (x >> (d - depth))).astype(np.uint64)
+                    flip = ((word >> node) & np.uint64(1)).astype(np.int64)
+                    y |= (((x >> (d - 1 - depth)) & 1) ^ flip) << (d - 1 - depth)
+                out[..., k] = y
                 continue
             # each net's random tree: a row per point and net (N, nets * words)
             tree = np.stack([_hash_u64(key ^ _hash_u64(np.uint64((g * 64 + k) * 4096 + w + 1)))

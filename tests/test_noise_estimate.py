@@ -15,7 +15,8 @@ nets its halves are drawn from (lighting/strata.py ``PixelStrata``).
   net for the pixel the relation E[noise^2] = 2 Var_indep - Var (module docstring of
   rendering/halves.py);
 * the pixel's light samples are a (0, m, 2)-net and so is each half and each camera
-  sample's share; their points are uniform (chi-square against uniform counts).
+  sample's share; their points are uniform (chi-square against uniform counts); so are a
+  point's 64 samples of the irradiance pass and each half's 32.
 Images are 32 x 32 on planes of a few triangles.
 """
 from __future__ import annotations
@@ -242,6 +243,23 @@ def test05_pixel_samples_are_nets_and_uniform(rng, independent):
     for half in ((0, 3), (1, 2)):      # and per half, one per 1/8
         h = v[:, list(half)].reshape(pixels, 8)
         assert np.all(np.sort(np.floor(h * 8).astype(int), axis=1) == np.arange(8))
+
+
+@pytest.mark.parametrize("independent", (False, True))
+def test05b_a_points_64_samples_are_nets(rng, independent):
+    """The irradiance pass's layout (lighting/irradiance.py "Halves": a point its own pixel,
+    64 samples): each half's 32 points a (0, 5, 2)-net, the point's 64 a (0, 6, 2)-net with
+    one net (the 5- and 6-digit trees, looked up by value for their first 4 digits)."""
+    points = 3000
+    strata = PixelStrata(np.arange(points), np.zeros(points, np.int64), 1, seed=4,
+                         independent=independent)
+    u = strata.uniform_2d(rng, 64, salt=2)
+    assert all(_is_net(u[:, h * 32:(h + 1) * 32]) for h in (0, 1))
+    assert _is_net(u) != independent
+    v = strata.uniform_1d(rng, 64, salt=5)
+    for h in (0, 1):
+        assert np.all(np.sort(np.floor(v[:, h * 32:(h + 1) * 32] * 32).astype(int), axis=1)
+                      == np.arange(32))
 
 
 # ---------------------------------------------------------------------------- the artifact
