@@ -22,9 +22,9 @@ on 20,000 of the default head's irradiance points against 2,048 samples a point 
 4 seeds; bench/results/irradiance.json "halves"): under the Venice sunset the relative RMSE
 falls from 0.040 (one jittered set, luminance x cosine strategy) to 0.017, the noise estimate
 0.017, the bias +0.09 %; under the disc light 0.0033 -> 0.0032.  Its cost on all of the
-high mesh's 241k points (medians of 3): sunset 7.4 -> 12.6 CPU s, disc 2.9 -> 5.4 (the
-32-point nets' scrambling, the mixture's draws, the control's sums); the plain estimator
-would need ~5x the samples for the sunset's noise.
+high mesh's 241k points (medians of 3): sunset 7.8 -> 11.2 CPU s, disc 3.3 -> 4.4 (the
+nets' scrambling, the mixture's draws, the control's sums); the plain estimator would need
+~5x the samples for the sunset's noise.
 
 Guarded by tests/test_lights.py (directional E cos theta, shadowed), tests/test_energy.py
 and tests/test_knife_edge.py.
