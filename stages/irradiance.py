@@ -18,7 +18,10 @@ samples, ~241k points): ``bench/bench_irradiance.py`` -> ``bench/results/irradia
 """
 from __future__ import annotations
 
+import math
 import time
+
+import numpy as np
 
 from dermis.pipeline.artifacts import PointIrradiance
 from dermis.pipeline.config import LightConfig
@@ -64,6 +67,10 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
                           transmittance=transmit, halves=True)
     if "indirect" in inputs:   # one diffuse bounce (lighting/indirect.py): its entering part
         E += at_points(inputs["indirect"].irradiance, mesh, pts.positions, vis) * transmit.mean
+    ms = float(np.mean(np.square(E, dtype=np.float64)))
     info = {"seconds": time.perf_counter() - t0, "points": int(len(E)),
-            "samples": params["samples"], "entry_transmittance": repr(transmit)}
+            "samples": params["samples"], "entry_transmittance": repr(transmit),
+            # the points' own noise, relative to their RMS (0: no sampling noise)
+            "rel_noise": math.sqrt(float(np.mean(np.square(noise, dtype=np.float64))) / ms)
+            if ms > 0 else 0.0}
     return StageResult(PointIrradiance(E, info, noise=noise), info=info)
