@@ -34,6 +34,7 @@ from dermis.models import catalog
 from dermis.geometry.regions import REGION_LABELS, REGIONS
 from dermis.pipeline.config import condition_of, view_name_of
 from dermis.reports.truth_noise import RESOLVE_K, region_difference
+from dermis.rendering.color import LUMINANCE
 
 __all__ = ["Effect", "EFFECTS", "scene_requirements", "requirements_of", "auto_verdicts",
            "COMPLETE_MODELS"]
@@ -84,8 +85,19 @@ def _region_masks(labels: np.ndarray, mask: np.ndarray) -> dict:
 
 
 def _pair(a, b, sel) -> dict:
-    d = region_difference(np.asarray(a.linear, np.float64), np.asarray(b.linear, np.float64),
-                          sel, model_hd=a.noise, ref_var=None, ref_hd=b.noise,
+    """The effect's size in a region, a with it over b without.  Where both images carry
+    their noise, it enters as one half-difference h = n_a - (a / b) n_b (a / b their
+    luminance ratio over the region): the first-order noise of the ratio whether the two
+    share their samples (the same rays, the same points: their noise then cancels in part)
+    or not (then E[h^2] is the two variances' sum, as taken apart)."""
+    A, B = np.asarray(a.linear, np.float64), np.asarray(b.linear, np.float64)
+    model_hd, ref_hd = a.noise, b.noise
+    if model_hd is not None and ref_hd is not None:
+        q = float(B[sel].mean(axis=0) @ LUMINANCE)
+        ratio = float(A[sel].mean(axis=0) @ LUMINANCE) / q if q > 0 else 1.0
+        model_hd = np.asarray(model_hd, np.float64) - ratio * np.asarray(ref_hd, np.float64)
+        ref_hd = None
+    d = region_difference(A, B, sel, model_hd=model_hd, ref_var=None, ref_hd=ref_hd,
                           ref_region=None, calib=np.zeros(3))
     if not (np.asarray(d["ref_rgb"]) > 0).any():
         # the region is black without the effect: 0 if black with it too (a hard shadow in

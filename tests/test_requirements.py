@@ -61,6 +61,35 @@ def test02_noise_makes_a_small_effect_unresolved_not_visible():
     assert e["verdict"] == "visible"      # the same difference without noise is resolved
 
 
+def test02b_a_pair_that_shares_its_samples_shares_its_noise():
+    """Two images drawn from the same samples (their noise one realization, each scaled by
+    its image): the ratio's noise cancels, so a 2 % effect that independent noise of the
+    same size leaves unresolved is visible; with independent realizations the error bar is
+    the two noises' sum in quadrature (E[h^2] of the pair's half-difference)."""
+    rng = np.random.default_rng(2)
+    e = rng.standard_normal((H, W, 3)) * 0.5            # the shared relative noise
+    with_, without = ear_brighter(0.5, 0.02), np.full((H, W, 3), 0.5, np.float32)
+
+    def effect(e_a, e_b):
+        a = image("asperity", with_, noise=(with_ * e_a).astype(np.float32))
+        b = image("lambert", without, noise=(without * e_b).astype(np.float32))
+        return run([a, b])["main"]["point"]["regions"]["ear"]["effects"]["asperity"]
+    shared = effect(e, e)
+    assert shared["verdict"] == "visible" and shared["stderr"] < 1e-6
+    other = rng.standard_normal((H, W, 3)) * 0.5
+    apart = effect(e, other)
+    assert apart["verdict"] == "unresolved"
+    # the same as each image's noise alone in quadrature, to the cross term's chance size
+    # (800 pixels: the normalised cross sum ~ 1 / sqrt(800) of the squares)
+    alone_a = run([image("asperity", with_, noise=(with_ * e).astype(np.float32)),
+                   image("lambert", without)])["main"]["point"]["regions"]["ear"][
+        "effects"]["asperity"]["stderr"]
+    alone_b = run([image("asperity", with_),
+                   image("lambert", without, noise=(without * other).astype(np.float32))]
+                  )["main"]["point"]["regions"]["ear"]["effects"]["asperity"]["stderr"]
+    assert apart["stderr"] == pytest.approx(np.hypot(alone_a, alone_b), rel=5 / np.sqrt(800))
+
+
 def test03_the_cheapest_adequate_model_is_never_one_that_misses_or_is_unresolved():
     truth = {"point": {"models": {
         # cheapest, but 3 % off in the ear: fails there
