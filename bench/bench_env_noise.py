@@ -408,13 +408,16 @@ def brightness(scene, mesh, lights, vis, env, shaders, subsurface, ref, seeds) -
             w = weights[name] * sin_t
             emap.pmf = (w / w.sum()).ravel()
             emap.cdf = np.cumsum(emap.pmf)
-            emap._prod = None
+            vars(emap).pop("_prod", None)   # the product tables rebuilt for these weights
             r = _measure(scene, mesh, lights, vis, env, shaders, subsurface, ref, seeds,
                          "default", verbose=False)
             out[name] = {m: round(v["rel_rmse"], 4) for m, v in r["models"].items()}
             print("  brightness", name, out[name], flush=True)
     finally:
-        emap.pmf, emap.cdf, emap._prod = keep
+        emap.pmf, emap.cdf = keep[:2]
+        vars(emap).pop("_prod", None)
+        if keep[2] is not None:
+            emap._prod = keep[2]
     return out
 
 

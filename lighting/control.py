@@ -23,8 +23,8 @@ estimator goes negative where occluders hide more of the region than the samples
 the renderer combines the sums per pixel (the irradiance pass per point) instead as a
 non-negative estimator - the difference where the control sum is below its integral, the
 ratio (the lit sum scaled by the integral over the control sum) above it - biased by
-O(1 / samples) (:func:`control_estimate`).  The product strategy covers R_b by construction (R_b keeps only pixels it can draw), so the control sum
-is unbiased for n_s . M_b.  Why: under the Venice sunset one hit's irradiance from 4 samples
+O(1 / samples) (:func:`control_estimate`).  The product strategy covers R_b by construction
+(R_b keeps only pixels it can draw), so the control sum is unbiased for n_s . M_b.  Why: under the Venice sunset one hit's irradiance from 4 samples
 had a relative spread of 10-30 % even with samples drawn in proportion to luminance x cosine:
 the map's colour (a red sun, a blue sky, an orange horizon) cannot follow one scalar pdf;
 measured on the default scan (bench/results/env_noise.json).
@@ -35,17 +35,13 @@ against brute force).
 from __future__ import annotations
 
 import math
-import threading
 from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["CONTROL_SPLIT", "ControlTable", "control_table", "pixel_moments", "control_estimate"]
+from dermis.pipeline.reuse import built_once
 
-# Held while a map's table is built: its arrays take ~0.5 GB for a 2048-pixel map while
-# built (the map's L m and their prefix sums, float64), so two threads building the same
-# table at once (the render and the irradiance nodes of a run) doubled a run's peak.
-_BUILDING = threading.Lock()
+__all__ = ["CONTROL_SPLIT", "ControlTable", "control_table", "pixel_moments", "control_estimate"]
 
 # Normal bins of the control variate: CONTROL_SPLIT x CONTROL_SPLIT inside each of the
 # product strategy's 16 x 32 (PRODUCT_NORMAL_BINS), so a hit's control region is one its
@@ -166,12 +162,7 @@ def control_table(env) -> ControlTable:
     Each map row's share of M_b is a difference of the row's prefix sums of L m over the
     arc of columns above n_b's horizon (:meth:`ControlTable.arc`); pixels the bin's product
     table cannot draw (whole blocks of zero weight) are taken out again, block by block."""
-    cached = getattr(env, "_control", None)
-    if cached is not None:
-        return cached
-    with _BUILDING:   # once per map: the render and irradiance nodes of a run ask at once
-        cached = getattr(env, "_control", None)
-        return cached if cached is not None else _control_table(env)
+    return built_once(env, "_control", lambda: _control_table(env))
 
 
 def _control_table(env) -> ControlTable:
@@ -205,9 +196,7 @@ def _control_table(env) -> ControlTable:
         part += np.where(wrap[..., None], prefix[rr, np.where(wrap, end - w, 0)], 0.0)
         moments[s:s + len(b)] = part.sum(axis=1)
     excluded = _exclude(env, t, out, lm.reshape(-1, 9), moments)
-    out = ControlTable(kr, kc, moments.reshape(-1, 3, 3), nrm, arcs, rows, excluded)
-    env._control = out
-    return out
+    return ControlTable(kr, kc, moments.reshape(-1, 3, 3), nrm, arcs, rows, excluded)
 
 
 def _exclude(env, t, table: ControlTable, lm: np.ndarray, moments: np.ndarray) -> bool:

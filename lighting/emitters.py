@@ -99,8 +99,9 @@ from dermis.lighting.warps import concentric_disc, cosine_hemisphere, normalize,
 from dermis.pipeline.errors import ConfigError, DermisError
 from dermis.pipeline.store import file_digest
 
-__all__ = ["LightSamples", "SamplingOptions", "Lobe", "sample_lights", "light_params",
-           "check_points", "ENV_STRATEGIES", "PRODUCT_COSINE_FRACTION", "MIS_COSINE_FRACTION"]
+__all__ = ["LightSamples", "SamplingOptions", "Lobe", "sample_lights", "light_columns",
+           "light_params", "check_points", "ENV_STRATEGIES", "PRODUCT_COSINE_FRACTION",
+           "MIS_COSINE_FRACTION"]
 
 # Environment-light sampling strategies (module docstring); the first is the default.
 ENV_STRATEGIES = ("product", "mis", "luminance")
@@ -432,6 +433,13 @@ def _environment_map(light, p: np.ndarray, rng, samples: int, env, normals, stra
 
 
 # --------------------------------------------------------------------------- public API
+def light_columns(lights, spp: int, shadow_samples: int | None = None) -> list[int]:
+    """Light samples drawn per camera hit, per light: 1 per point or directional light,
+    ceil(S / spp) per disc or environment light (S = ``shadow_samples`` or the light's
+    ``samples``), in the order :func:`sample_lights` concatenates them (``share`` = spp)."""
+    return [1 if lt.type in ("point", "directional")
+            else -(-int(shadow_samples or lt.samples) // spp) for lt in lights]
+
 def sample_lights(lights, points: np.ndarray, normals: np.ndarray | None = None, *,
                   seed: int | Sequence[int] = 0, options: SamplingOptions = SamplingOptions(),
                   share: int = 1, strata: "PixelStrata | None" = None,

@@ -24,13 +24,13 @@ from __future__ import annotations
 
 import functools
 import math
-import threading
 from pathlib import Path
 
 import numpy as np
 
 from dermis.pipeline.errors import ConfigError, DermisError
 from dermis.pipeline.imageio import read_image
+from dermis.pipeline.reuse import built_once
 from dermis.rendering.color import LUMINANCE
 
 __all__ = ["EnvironmentMap", "brightness", "procedural_sunset", "environment_map", "SUNSET_SUN_ELEVATION_DEG",
@@ -62,9 +62,6 @@ SUNSET_GROUND_RADIANCE = (0.02, 0.017, 0.015)   # dark ground below the horizon 
 SUNSET_WIDTH = 2048     # 0.18 deg per pixel: the sun spans ~3 pixels
 
 _TWO_PI = 2.0 * math.pi
-# Held while a map's product tables are built (EnvironmentMap._product): the render and the
-# irradiance nodes of a run ask at once, and each build holds the map's blocks twice over.
-_PRODUCT_BUILDING = threading.Lock()
 
 
 def brightness(radiance: np.ndarray) -> np.ndarray:
@@ -223,14 +220,9 @@ class EnvironmentMap:
         blocks of about PRODUCT_BLOCKS pixels, weighted per normal bin by the cosine of the
         block (padded by the block's and the bin's angular radius, so a block partly above
         a normal's horizon keeps some mass), and the pixels' share inside each block."""
-        if getattr(self, "_prod", None) is not None:
-            return self._prod
-        with _PRODUCT_BUILDING:   # once per map, whichever node asks first
-            if getattr(self, "_prod", None) is None:
-                self._product_tables()
-            return self._prod
+        return built_once(self, "_prod", self._product_tables)
 
-    def _product_tables(self) -> None:
+    def _product_tables(self) -> dict:
         h, w = self.height, self.width
         bh = max(1, -(-h // PRODUCT_BLOCKS[0]))
         bw = max(1, -(-w // PRODUCT_BLOCKS[1]))
@@ -267,15 +259,14 @@ class EnvironmentMap:
         # a pixel's block and position in the block as the sums of lookups by its row and its
         # column, and back (integer divisions of millions of samples cost more)
         r, c, b, q = np.arange(hc * bh), np.arange(wc * bw), np.arange(hc * wc), np.arange(per)
-        self._prod = {"bh": bh, "bw": bw, "hc": hc, "wc": wc, "table": table.ravel(),
-                      "block_of": ((r // bh) * wc, c // bw), "pos_of": ((r % bh) * bw, c % bw),
-                      "rows_of": ((b // wc) * bh, q // bw), "cols_of": ((b % wc) * bw, q % bw),
-                      "nb": hc * wc, "per": per, "cum_last": cum[:, -1],
-                      "row_cum": row_cum, "row_tree": _tree(row_cum),
-                      "col_cum": cum.ravel(), "col_tree": _tree(cum.reshape(-1, wc)),
-                      "fine_tree": _tree(np.cumsum(share, axis=1)),
-                      "share": share.ravel(), "kr": kr, "kc": kc}
-        return self._prod
+        return {"bh": bh, "bw": bw, "hc": hc, "wc": wc, "table": table.ravel(),
+                "block_of": ((r // bh) * wc, c // bw), "pos_of": ((r % bh) * bw, c % bw),
+                "rows_of": ((b // wc) * bh, q // bw), "cols_of": ((b % wc) * bw, q % bw),
+                "nb": hc * wc, "per": per, "cum_last": cum[:, -1],
+                "row_cum": row_cum, "row_tree": _tree(row_cum),
+                "col_cum": cum.ravel(), "col_tree": _tree(cum.reshape(-1, wc)),
+                "fine_tree": _tree(np.cumsum(share, axis=1)),
+                "share": share.ravel(), "kr": kr, "kc": kc}
 
     def normal_bin(self, normals: np.ndarray) -> np.ndarray:
         """(N,) index of the product strategy's bin of each unit normal."""

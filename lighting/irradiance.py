@@ -38,9 +38,10 @@ import numpy as np
 
 from dermis.lighting.control import control_estimate
 from dermis.lighting.emitters import (ENV_STRATEGIES, SamplingOptions, check_points,
-                                      sample_lights)
+                                      light_columns, sample_lights)
 from dermis.lighting.strata import PixelStrata
 from dermis.pipeline.errors import DermisError
+from dermis.rendering.halves import sample_signs
 
 __all__ = ["irradiance", "run_batches", "IRRADIANCE_THREADS"]
 
@@ -134,7 +135,11 @@ def _lit_cosines(ls, ps, ns, occlusion_fn) -> tuple[np.ndarray, np.ndarray]:
 def _irradiance_halves(p, n, light, occlusion_fn, *, seed, options, chunk, transmittance):
     """The pipeline's estimator (module docstring, "Halves"): (E, noise), each (N, 3) float32."""
     lights = list(light) if isinstance(light, (list, tuple)) else [light]
-    signs = np.concatenate([_column_signs(lt, options) for lt in lights])
+    # each sample column's half, as the renderer's for a pixel of one camera sample (the
+    # first S // 2 of a disc or environment light's S, the next S // 2; point and directional
+    # lights, and an odd one out, in both)
+    signs = sample_signs(np.zeros(1, np.int64), 1,
+                         light_columns(lights, 1, options.samples))[0].astype(np.float32)
     out = np.zeros((len(p), 3), dtype=np.float32)
     noise = np.zeros((len(p), 3), dtype=np.float32)
     # the control's coefficient: any value fixed per point keeps E unbiased; the cosine-
@@ -155,22 +160,20 @@ def _irradiance_halves(p, n, light, occlusion_fn, *, seed, options, chunk, trans
                            product_normals=ns if mixture else None)
         cos, factor = _lit_cosines(ls, ps, ns, occlusion_fn)
         w = ls.weights
+        terms = w * factor[..., None]      # V cos (T) weights per sample
         if transmittance is not None:
-            factor = factor[..., None] * np.asarray(transmittance(np.maximum(cos, 0.0)),
-                                                    np.float32)
-        else:
-            factor = factor[..., None]
+            terms *= np.asarray(transmittance(np.maximum(cos, 0.0)), np.float32)
 
         def sums(x, where=None):   # (sum, signed sum) over a point's samples, (m, 3) each
             y = x if where is None else x * where[..., None]
             return (np.einsum("nsk->nk", y, dtype=np.float64),
                     np.einsum("nsk,s->nk", y, signs, dtype=np.float64))
-        lit, lit_signed = sums(w * factor)
+        lit, lit_signed = sums(terms)
         if ls.control is None:
             e, d = lit, lit_signed
         else:   # the first environment light's control variate (lighting/control.py)
             region = ls.control
-            other, other_signed = sums(w * factor, ~region)
+            other, other_signed = sums(terms, ~region)
             ctrl, ctrl_signed = sums(w * (alpha * np.where(region, cos, np.float32(0.0))[
                 ..., None]))
             moments = np.asarray(ls.control_table, np.float64).take(ls.control_bin, axis=0)
@@ -183,19 +186,6 @@ def _irradiance_halves(p, n, light, occlusion_fn, *, seed, options, chunk, trans
         noise[start:start + m] = d
     run_batches(batch, len(p), chunk)
     return out, noise
-
-
-def _column_signs(light, options: SamplingOptions) -> np.ndarray:
-    """The half (+1 A, -1 B, 0 both) of each of a light's sample columns, as
-    :func:`sample_lights` lays them out for a point of its own (``share`` 1, rendering/halves.py
-    ``sample_signs``): one column of a point or directional light, in both halves; of the S of
-    a disc or environment light, the first S // 2 and the next S // 2 (an odd one out in
-    both)."""
-    if light.type in ("point", "directional"):
-        return np.zeros(1, np.float32)
-    s = int(options.samples if options.samples is not None else light.samples)
-    i = np.arange(s)
-    return np.where(i < s // 2, 1.0, np.where(i < 2 * (s // 2), -1.0, 0.0)).astype(np.float32)
 
 
 def run_batches(batch: Callable[[int], None], count: int, chunk: int) -> None:

@@ -27,11 +27,11 @@ Guarded by tests/test_env_sun.py and tests/test_cycles.py (the Cycles lamp).
 from __future__ import annotations
 
 import math
-import threading
 from dataclasses import dataclass
 
 import numpy as np
 
+from dermis.pipeline.reuse import built_once
 from dermis.rendering.color import LUMINANCE
 
 __all__ = ["Sun", "SunSplit", "sun_mask", "split_sun", "SUN_FRACTION", "SUN_RADIUS_DEG",
@@ -128,18 +128,10 @@ class SunSplit:
     sun: Sun
 
 
-_SPLITTING = threading.Lock()
-
-
 def split_sun(env) -> SunSplit | None:
     """The sun and the sky of an EnvironmentMap (module docstring), or None when the map has no
     sun (:func:`sun_mask`); built once per map."""
-    cached = getattr(env, "_sun_split", False)
-    if cached is not False:
-        return cached
-    with _SPLITTING:   # once per map: two threads would make two skies, each with its tables
-        cached = getattr(env, "_sun_split", False)
-        return cached if cached is not False else _split_sun(env)
+    return built_once(env, "_sun_split", lambda: _split_sun(env))
 
 
 def _split_sun(env) -> SunSplit | None:
@@ -167,5 +159,4 @@ def _split_sun(env) -> SunSplit | None:
             split = SunSplit(sky, Sun(rows.astype(np.int64), cols.astype(np.int64),
                                       env.radiance[rows, cols], np.cumsum(pmf), pmf,
                                       irradiance, d, angle, env, share))
-    env._sun_split = split
     return split

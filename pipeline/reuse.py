@@ -1,6 +1,7 @@
 """Results kept by the content of their inputs: :func:`content_key` (a digest of arrays and
 plain values; hashing the 1.13M-triangle mesh takes ~30 ms), :class:`RecentResults` (the
-last few results of one computation, thread-safe) and :class:`KeyedLocks`.  A run's shared
+last few results of one computation, thread-safe), :class:`KeyedLocks`, and
+:func:`built_once` (an object's lazily built attribute, built by one thread).  A run's shared
 intermediates (pipeline/shared.py) and a few pure functions' tables (the gather's profile
 tables, subsurface/gather.py) are kept in them.
 """
@@ -13,7 +14,28 @@ from contextlib import contextmanager
 
 import numpy as np
 
-__all__ = ["content_key", "RecentResults", "KeyedLocks"]
+__all__ = ["content_key", "RecentResults", "KeyedLocks", "built_once"]
+
+# Held while an attribute of :func:`built_once` is built; re-entrant, since one build may ask
+# for another (an environment map's control table needs its product tables).
+_BUILDING = threading.RLock()
+_MISSING = object()
+
+
+def built_once(owner, attr: str, build):
+    """``owner.<attr>``, made by ``build()`` and kept on ``owner`` the first time any thread
+    asks; threads asking meanwhile wait for it (an environment map's sampling tables take
+    ~0.5 GB while built: the render and the irradiance nodes of a run building them at once
+    doubled its peak, pipeline/resources.py).  ``build()`` may return None: that is kept too."""
+    value = getattr(owner, attr, _MISSING)
+    if value is not _MISSING:
+        return value
+    with _BUILDING:
+        value = getattr(owner, attr, _MISSING)
+        if value is _MISSING:
+            value = build()
+            setattr(owner, attr, value)
+        return value
 
 
 def content_key(*parts) -> str:

@@ -34,7 +34,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from dermis.lighting.emitters import ENV_STRATEGIES, SamplingOptions, sample_lights
+from dermis.lighting.emitters import (ENV_STRATEGIES, SamplingOptions, light_columns,
+                                      sample_lights)
 from dermis.lighting.environment import environment_map
 from dermis.lighting.lobes import (LOBE_SHARE_SCALE, LOBE_SHARE_SCALE_CONTROL, RETRO_FRACTION,
                                    RETRO_G_MAX, GlossyLobe, LafortuneLobes, RetroLobe)
@@ -105,14 +106,6 @@ def _light_sampling(sampling: LightSampling | None, lights) -> LightSampling:
         if lt.type == "environment" and env is None:
             env = environment_map(lt)
     return replace(sampling, env=env)
-
-
-def light_columns(lights, spp: int, shadow_samples: int | None = None) -> list[int]:
-    """Light samples drawn per camera hit, per light: 1 per point or directional light,
-    ceil(S / spp) per disc or environment light (S = ``shadow_samples`` or the light's
-    ``samples``), in the order the samples are concatenated."""
-    return [1 if lt.type in ("point", "directional")
-            else -(-int(shadow_samples or lt.samples) // spp) for lt in lights]
 
 
 def samples_per_hit(lights, spp: int, shadow_samples: int | None = None) -> int:

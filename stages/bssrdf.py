@@ -155,7 +155,7 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
                                                  params["seed"], vis, ctx)
         image += spec
         if spec_noise is not None:
-            noise = spec_noise if noise is None else noise + spec_noise
+            noise = noise + spec_noise
         timings["surface_reflection"] = spec_t["total"]
         timings["kernel_seconds"] += spec_t.get("kernel_seconds", 0.0)
     image = np.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0)
@@ -175,9 +175,8 @@ def run(params: dict, inputs: dict, ctx) -> StageResult:
     info = {"model": model, "light": params["label"], "geometry": params["geometry"],
             "profile_model": profile.info.get("model", "multipole"),
             "gather": {k: v for k, v in stats.items() if isinstance(v, (int, float, str))}}
-    if noise is not None:
-        noise = np.nan_to_num(noise, nan=0.0, posinf=0.0, neginf=0.0).reshape(
-            px.height, px.width, 3).astype(np.float32)
+    noise = np.nan_to_num(noise, nan=0.0, posinf=0.0, neginf=0.0).reshape(
+        px.height, px.width, 3).astype(np.float32)
     return StageResult(RenderedImage(linear, mask, timings, info, noise=noise,
                                      blend=None if blend is None else blend.astype(np.float32)),
                        files=files,

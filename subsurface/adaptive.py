@@ -446,22 +446,20 @@ def adaptive_exitance(points, irradiance, profile, shading: ShadingPoints, *, li
     stats: dict = {"kernel_seconds": 0.0}
 
     noisy = noise is not None and bool(np.any(noise))
-    noise_parts: list = []    # the smooth terms' noise, in the order they are gathered
 
     def term(terms, idx, at=None):
         """exitance()'s ``terms`` at the shading points ``idx`` (or at positions ``at`` with
-        their normals), with the run's octree and shadow edges (the smooth terms' noise kept
-        in ``noise_parts``)."""
+        their normals), with the run's octree and shadow edges: (M, its noise, None where
+        the points have none and for the near terms)."""
         vis_sub = None if shading.visible is None else shading.visible[idx]
         m, st = exitance(points, E, profile, ShadingPoints(q[idx] if at is None else at,
                                                             ns[idx], ng[idx], visible=vis_sub),
                          lights=lights, visibility=visibility, options=options,
                          shared=shared, keys=keys, terms=terms,
-                         noise=noise if noisy and terms == "smooth" else None)
+                         noise=noise if noisy else None)
         stats["kernel_seconds"] += float(st.get("kernel_seconds", 0.0))
-        if noisy and terms == "smooth":
-            noise_parts.append(np.asarray(st["noise"], np.float64))
-        return np.asarray(m, np.float64)
+        n = st.get("noise")
+        return np.asarray(m, np.float64), None if n is None else np.asarray(n, np.float64)
     # the exact part at every shading point
     parts: list = []
     exact = exact_exitance(profile, shading, lights=lights, visibility=visibility,
@@ -471,10 +469,9 @@ def adaptive_exitance(points, irradiance, profile, shading: ShadingPoints, *, li
     t1 = time.perf_counter()
     grid = sample_grid(frame.pixel, frame.width, frame.height,
                        sample_spacing(sigma, float(np.median(frame.footprint))))
-    smooth_s = term("smooth", grid.points)
+    smooth_s, noise_s = term("smooth", grid.points)
     smooth, complete, corners = interpolate(grid, smooth_s, pixels, frame.width)
-    smooth_noise = (interpolate(grid, noise_parts[0], pixels, frame.width)[0] if noisy
-                    else None)
+    smooth_noise = interpolate(grid, noise_s, pixels, frame.width)[0] if noisy else None
     t_sample = time.perf_counter() - t1
     # the predictors
     t2 = time.perf_counter()
@@ -500,10 +497,10 @@ def adaptive_exitance(points, irradiance, profile, shading: ShadingPoints, *, li
     at_pixel = smooth_rows[one_surface]
     if len(at_pixel):
         wi = w_smooth[at_pixel, None]
-        smooth[at_pixel] = ((1.0 - wi) * smooth[at_pixel]
-                            + wi * term("smooth", rep[at_pixel], at=centre[one_surface]))
+        m, n = term("smooth", rep[at_pixel], at=centre[one_surface])
+        smooth[at_pixel] = (1.0 - wi) * smooth[at_pixel] + wi * m
         if noisy:
-            smooth_noise[at_pixel] = (1.0 - wi) * smooth_noise[at_pixel] + wi * noise_parts[-1]
+            smooth_noise[at_pixel] = (1.0 - wi) * smooth_noise[at_pixel] + wi * n
     M = exact + smooth[rep_of]
     M_noise = smooth_noise[rep_of] if noisy else None
     straddle = np.zeros(len(pixels), bool)
@@ -512,13 +509,14 @@ def adaptive_exitance(points, irradiance, profile, shading: ShadingPoints, *, li
     w_q = w_smooth[rep_of]
     if len(at_point):
         wi = w_q[at_point, None]
-        M[at_point] += wi * (term("smooth", at_point) - smooth[rep_of[at_point]])
+        m, n = term("smooth", at_point)
+        M[at_point] += wi * (m - smooth[rep_of[at_point]])
         if noisy:
-            M_noise[at_point] += wi * (noise_parts[-1] - smooth_noise[rep_of[at_point]])
+            M_noise[at_point] += wi * (n - smooth_noise[rep_of[at_point]])
     # the near field's edge terms where the shadow is predicted to change the pixel
     near = np.flatnonzero(w_near[rep_of] > 0)
     if len(near):
-        M[near] += w_near[rep_of[near], None] * (term("near", near) - exact[near])
+        M[near] += w_near[rep_of[near], None] * (term("near", near)[0] - exact[near])
     t_gather = time.perf_counter() - t3
     w_pix = np.maximum(w_smooth, w_near)
     size = frame.width * frame.height

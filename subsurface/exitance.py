@@ -178,15 +178,15 @@ def exitance(points, irradiance: np.ndarray, profile, shading: ShadingPoints, *,
                progress=progress, tuning=tuning)
     qkey = content_key(queries)
 
-    def gathered(name, e, part, made_tree=False):
-        """gather() of the octree ``name`` (``made_tree``: the octree ``e()``) at the queries,
-        or the same gather made earlier in the run (its stats then with no kernel seconds of
-        this call; which node made it depends on the run's order, so nothing else says so:
-        the artifact stays the same)."""
+    def gathered(name, make_tree, part):
+        """gather() of the octree ``make_tree()`` (kept in the run as ``name``) at the
+        queries, or the same gather made earlier in the run (its stats then with no kernel
+        seconds of this call; which node made it depends on the run's order, so nothing
+        else says so: the artifact stays the same)."""
         gk = ((name, part, qkey, profile_key, epsilon, normalisation, brute_force,
                repr(tuning)) + key)
         (m, st), made = cache.get_made(GATHERS, gk, lambda: gather(
-            e() if made_tree else tree(name, e), profile, queries, part=part, **gkw))
+            make_tree(), profile, queries, part=part, **gkw))
         return m, (st if made else {**st, "kernel_seconds": 0.0})
 
     def lit_near(k, ed):
@@ -219,12 +219,12 @@ def exitance(points, irradiance: np.ndarray, profile, shading: ShadingPoints, *,
         # the noise through the irradiance's clusters: the octree "all" of E, as the gathers'
         d = np.asarray(noise, np.float32)
         stats["noise"], st = gathered("noise", lambda: tree("all", lambda: E).carrying(d),
-                                      "all", made_tree=True)
+                                      "all")
         stats["kernel_seconds"] += st["kernel_seconds"]
     if not resolved:
         if terms == "near":
             return np.zeros((len(queries), 3), np.float32), {**stats, "seconds": 0.0}
-        m, st = gathered("all", lambda: E, "all")
+        m, st = gathered("all", lambda: tree("all", lambda: E), "all")
         stats.update(st)
         stats["seconds"] = time.perf_counter() - t0
         return m, stats
@@ -245,14 +245,14 @@ def exitance(points, irradiance: np.ndarray, profile, shading: ShadingPoints, *,
                         locate_edges)
     M = np.zeros((len(queries), 3))
     if terms != "near":
-        m_far, st = gathered("all", lambda: E, "far")
+        m_far, st = gathered("all", lambda: tree("all", lambda: E), "far")
         stats.update(st)
         M += m_far
     edges = [f.result() for f in pending]
     t_edges = sum(ed.info["seconds"] for ed in edges)
     if terms != "near" and (soft or options.indirect):
-        m_soft, st_soft = gathered("soft", lambda: np.maximum(
-            E - sum(ed.irradiance for ed in edges), 0.0).astype(np.float32), "near")
+        m_soft, st_soft = gathered("soft", lambda: tree("soft", lambda: np.maximum(
+            E - sum(ed.irradiance for ed in edges), 0.0).astype(np.float32)), "near")
         M += m_soft
         stats["kernel_seconds"] += st_soft["kernel_seconds"]
     t1 = time.perf_counter()
