@@ -63,9 +63,9 @@ BSSRDF_BASE = 150 << 20          # octree, profile tables, points held by the ga
 # as the renderer does (the mixture and its control variate, lighting/irradiance.py
 # "Halves"): the small render of tests/test_hardening_config.py test12 (96^2, disc and
 # procedural sunset, Lafortune and BSSRDF; the map's tables built once under a lock,
-# lighting/control.py) peaked at 1099-1769 MiB over 7 local runs (1555-1587 before, 2 runs)
-# and at 2242 in a clean-clone CI run, where it depends on which nodes' batches meet: 580 B
-# a texel bounds the largest with a margin of 1.1.
+# pipeline/reuse.py built_once) peaked at 1099-1769 MiB over 7 local runs (1555-1587
+# before, 2 runs) and at 2242 in a clean-clone CI run, where it depends on which nodes'
+# batches meet: 580 B a texel bounds the largest with a margin of 1.1.
 ENVIRONMENT_BYTES = {"brdf": (650 << 20, 60), "bssrdf": (650 << 20, 580)}   # (fixed, per texel)
 PROCEDURAL_SUNSET_TEXELS = 2048 * 1024   # lighting/environment.py procedural_sunset: 2048 x 1024
 # Surface area of the embedded procedural head (mm^2, measured at 2k-60k triangles: 1.55e5
